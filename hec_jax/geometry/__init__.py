@@ -1,0 +1,31 @@
+"""The eye: motion of a rigid object from images of 3D-parallel line segments (Secs. 2-3)."""
+
+from hec_jax.geometry.camera import (
+    check_intrinsics,
+    intrinsics_from_fovy,
+    normalized_to_pixel,
+    pixel_to_normalized,
+    project_points,
+    project_to_pixels,
+)
+from hec_jax.geometry.parallel_motion import (
+    MotionEstimate,
+    estimate_motion,
+    estimate_motion_core,
+)
+from hec_jax.geometry.synthetic import SceneConfig, make_cube_scenes, rotation_error_deg
+
+__all__ = [
+    "MotionEstimate",
+    "SceneConfig",
+    "check_intrinsics",
+    "estimate_motion",
+    "estimate_motion_core",
+    "intrinsics_from_fovy",
+    "make_cube_scenes",
+    "normalized_to_pixel",
+    "pixel_to_normalized",
+    "project_points",
+    "project_to_pixels",
+    "rotation_error_deg",
+]

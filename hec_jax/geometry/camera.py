@@ -1,0 +1,74 @@
+"""Pinhole camera helpers: pixel <-> normalised image coordinates, projection.
+
+Camera frame convention (the pinhole convention of an intrinsic matrix): x right, y down, z forward
+(optical axis). Normalised image coordinates are x = X/Z, y = Y/Z (Eq. 3 of the paper).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+
+def check_intrinsics(intrinsics) -> None:
+    """Raise ValueError unless ``intrinsics`` is a finite 3x3 pinhole matrix with positive focal lengths."""
+    k = np.asarray(intrinsics)
+    if k.shape != (3, 3):
+        raise ValueError(f"intrinsics must have shape (3, 3), got {k.shape}")
+    if not np.all(np.isfinite(k)):
+        raise ValueError("intrinsics contain non-finite values")
+    if k[0, 0] <= 0 or k[1, 1] <= 0:
+        raise ValueError(f"focal lengths must be positive, got fx={k[0, 0]}, fy={k[1, 1]}")
+    if not np.allclose(k[2], [0.0, 0.0, 1.0]) or k[1, 0] != 0:
+        raise ValueError("intrinsics must be upper triangular with last row (0, 0, 1)")
+
+
+def intrinsics_from_fovy(fovy_deg: float, width: int, height: int) -> np.ndarray:
+    """3x3 intrinsic matrix of an ideal pinhole camera (square pixels, centred principal point).
+
+    MuJoCo's camera ``fovy`` is the full vertical field of view in degrees, so
+    f = (height / 2) / tan(fovy / 2) [px]; cx, cy are at the image centre (pixel centres at
+    integer coordinates, so the centre is (W - 1)/2, (H - 1)/2 in that convention; we follow
+    OpenCV/MuJoCo rendering, where the image spans [0, W] x [0, H] and the centre is W/2, H/2).
+    """
+    if not (0.0 < fovy_deg < 180.0):
+        raise ValueError(f"fovy must be in (0, 180) degrees, got {fovy_deg}")
+    if width <= 0 or height <= 0:
+        raise ValueError(f"image size must be positive, got {width}x{height}")
+    f = 0.5 * height / np.tan(np.deg2rad(fovy_deg) / 2.0)
+    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+def pixel_to_normalized(pixels: Array, intrinsics: Array) -> Array:
+    """Pixel coordinates (..., 2) [px] -> normalised image coordinates (..., 2) (x = X/Z, y = Y/Z)."""
+    k = jnp.asarray(intrinsics)
+    fx, fy, skew, cx, cy = k[0, 0], k[1, 1], k[0, 1], k[0, 2], k[1, 2]
+    v = pixels[..., 1]
+    y = (v - cy) / fy
+    x = (pixels[..., 0] - cx - skew * y) / fx
+    return jnp.stack([x, y], axis=-1)
+
+
+def normalized_to_pixel(normalized: Array, intrinsics: Array) -> Array:
+    """Normalised image coordinates (..., 2) -> pixel coordinates (..., 2) [px]."""
+    k = jnp.asarray(intrinsics)
+    x, y = normalized[..., 0], normalized[..., 1]
+    u = k[0, 0] * x + k[0, 1] * y + k[0, 2]
+    v = k[1, 1] * y + k[1, 2]
+    return jnp.stack([u, v], axis=-1)
+
+
+def project_points(points_camera: Array) -> Array:
+    """Perspective projection (Eq. 3): camera-frame points (..., 3) [m] -> normalised (..., 2).
+
+    Points with Z <= 0 project to NaN-free values but are meaningless; callers check depth.
+    """
+    z = points_camera[..., 2]
+    safe_z = jnp.where(jnp.abs(z) > 0, z, 1.0)
+    return points_camera[..., :2] / safe_z[..., None]
+
+
+def project_to_pixels(points_camera: Array, intrinsics: Array) -> Array:
+    """Camera-frame points (..., 3) [m] -> pixel coordinates (..., 2) [px]."""
+    return normalized_to_pixel(project_points(points_camera), intrinsics)

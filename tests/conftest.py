@@ -1,0 +1,23 @@
+"""Strict JAX configuration shared by every test.
+
+* float64 available (float32 tests pass float32 arrays explicitly),
+* rank promotion raises (no silent broadcasting),
+* persistent compilation cache, so repeated CI runs and test processes reuse compiles.
+"""
+
+import os
+from pathlib import Path
+
+os.environ.setdefault("MUJOCO_GL", "egl")
+
+import jax  # noqa: E402
+
+_CACHE_DIR = Path(
+    os.environ.get("HEC_JAX_CACHE", Path(__file__).resolve().parents[1] / ".jax_cache")
+)
+
+jax.config.update("jax_enable_x64", True)
+jax.config.update("jax_numpy_rank_promotion", "raise")
+jax.config.update("jax_compilation_cache_dir", str(_CACHE_DIR))
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
