@@ -1,0 +1,126 @@
+"""The virtual stiffness, viscosity and inertia networks VSN, VVN, VIN (Sec. 5.1, Eqs. 50-51).
+
+Reading implemented (paper-notes Sec. 3): one network per virtual-impedance parameter and per task
+axis. For axis i, VSN_i, VVN_i and VIN_i take the four inputs (X_r,i, X_r,i', X_r,i'', F_int,i)
+(normalised by fixed scales, since their units differ by orders of magnitude) and output K_o,i,
+B_o,i and M_o,i: a diagonal virtual impedance. Each network is 4-20-20-1 with sigmoid hidden units
+(Eq. 51, middle layer) and the output unit of Eq. 51,
+
+    y = (U/2) (1 - exp(-x + theta)) / (1 + exp(-x + theta)) = (U/2) tanh((x - theta) / 2),
+
+range (-U/2, U/2). Biases: Eq. 50 has none; we keep the usual bias in the hidden layers and in the
+output unit (x = sum_j w_ij y_j + b_i); with the bias at 0 the output unit is exactly Eq. 51's.
+
+Stability by construction (Eq. 49, strict form): with U_K = 2 K_e (1 - margin),
+U_B = 2 B_e (1 - margin), U_M = 2 M_e (1 - margin), every output satisfies
+K_o + K_e >= margin K_e > 0 (and likewise for B, M) for any weights, also where tanh rounds to
++-1 in floating point. The default margin is 1%.
+
+Parameters are a pytree (a Flax ``params`` dict) with a leading axis (n_axes, 3) over
+(axis, parameter kind), kind 0 = K (VSN), 1 = B (VVN), 2 = M (VIN).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+KINDS = ("k", "b", "m")  # order of the parameter-kind axis: VSN, VVN, VIN
+
+
+def output_unit(x: Array, u_max: Array, theta: float) -> Array:
+    """Output unit of Eq. 51: (U/2) (1 - e^{-x+theta}) / (1 + e^{-x+theta}) = (U/2) tanh((x-theta)/2)."""
+    return 0.5 * u_max * jnp.tanh(0.5 * (x - theta))
+
+
+def output_unit_derivative(x: Array, u_max: Array, theta: float) -> Array:
+    """d(output_unit)/dx = (U/4) (1 - tanh^2((x - theta)/2))."""
+    th = jnp.tanh(0.5 * (x - theta))
+    return 0.25 * u_max * (1.0 - th**2)
+
+
+@dataclass(frozen=True)
+class NetConfig:
+    """Static structure of the networks.
+
+    Attributes:
+        n_axes: task axes l (2 for the vertical plane).
+        hidden: hidden layer widths (Sec. 6.2: two layers of 20).
+        theta: threshold of the output unit (Eq. 51).
+        input_scale: normalisation of (X_r [m], X_r' [m/s], X_r'' [m/s^2], F_int [N]).
+        init_output_std: std of the initial output-layer weights (small: near-zero initial output).
+        margin: stability margin of the output range (see the module docstring).
+    """
+
+    n_axes: int = 2
+    hidden: tuple[int, ...] = (20, 20)
+    theta: float = 0.1
+    input_scale: tuple[float, float, float, float] = (0.25, 1.0, 10.0, 10.0)
+    init_output_std: float = 0.01
+    margin: float = 0.01
+
+
+class _Mlp(nn.Module):
+    """One network: Dense-sigmoid x len(hidden), then a Dense to the pre-activation x of Eq. 51."""
+
+    hidden: tuple[int, ...]
+    init_output_std: float
+
+    @nn.compact
+    def __call__(self, inputs: Array) -> Array:
+        y = inputs
+        for width in self.hidden:
+            y = nn.sigmoid(nn.Dense(width)(y))  # Eqs. 50-51, middle layers
+        x = nn.Dense(1, kernel_init=nn.initializers.normal(self.init_output_std))(y)
+        return x[..., 0]  # pre-activation of the output unit
+
+
+def u_max(config: NetConfig, m_e: Array, b_e: Array, k_e: Array) -> Array:
+    """U per (axis, kind): 2 (K_e, B_e, M_e) (1 - margin), shape (n_axes, 3)."""
+    target = jnp.stack([jnp.asarray(k_e), jnp.asarray(b_e), jnp.asarray(m_e)], axis=-1)
+    target = jnp.broadcast_to(target, (config.n_axes, 3))
+    return 2.0 * (1.0 - config.margin) * target
+
+
+def init_params(key: Array, config: NetConfig, dtype=jnp.float32) -> dict:
+    """Random parameters for all n_axes x 3 networks (leading axes (n_axes, 3)), in ``dtype``."""
+    model = _Mlp(config.hidden, config.init_output_std)
+    keys = jax.random.split(key, config.n_axes * 3)
+    params = jax.vmap(lambda k: model.init(k, jnp.zeros((4,), jnp.float32))["params"])(keys)
+    return jax.tree_util.tree_map(
+        lambda p: p.reshape((config.n_axes, 3) + p.shape[1:]).astype(dtype), params
+    )
+
+
+def normalise_inputs(
+    config: NetConfig, x_r: Array, xd_r: Array, xdd_r: Array, f_int: Array
+) -> Array:
+    """Per-axis network inputs (n_axes, 4) from task-space vectors (n_axes,) each."""
+    raw = jnp.stack([x_r, xd_r, xdd_r, f_int], axis=-1)
+    return raw / jnp.broadcast_to(jnp.asarray(config.input_scale, raw.dtype), raw.shape)
+
+
+def apply(params: dict, config: NetConfig, inputs: Array, u: Array) -> Array:
+    """Virtual impedance O = (K_o, B_o, M_o) per axis, shape (n_axes, 3) (Eqs. 50-51).
+
+    Args:
+        params: from :func:`init_params`.
+        inputs: (n_axes, 4) normalised inputs of each axis (:func:`normalise_inputs`).
+        u: (n_axes, 3) maximum outputs U (:func:`u_max`).
+    """
+    model = _Mlp(config.hidden, config.init_output_std)
+    per_net = lambda p, x: model.apply({"params": p}, x)  # noqa: E731
+    over_kinds = jax.vmap(per_net, in_axes=(0, None))  # the 3 nets of one axis share its inputs
+    pre = jax.vmap(over_kinds, in_axes=(0, 0))(params, inputs)  # (n_axes, 3)
+    return output_unit(pre, u, config.theta)
+
+
+def stability_margins(o: Array, m_e: Array, b_e: Array, k_e: Array) -> Array:
+    """Strict Eq. 49 margins (K_o + K_e, B_o + B_e, M_o + M_e) per axis, shape (..., n_axes, 3);
+    all must be > 0."""
+    target = jnp.stack([jnp.asarray(k_e), jnp.asarray(b_e), jnp.asarray(m_e)], axis=-1)
+    return o + jnp.broadcast_to(target, o.shape)

@@ -1,0 +1,275 @@
+"""Online learning of the virtual impedance (Sec. 5.2, Eqs. 52-58) for catching and hitting.
+
+``make_online_learner(config, sphere_fn)`` returns pure ``init(key) -> LearnerState`` and
+``update(state, inputs) -> (state, LearnerOutput)``; ``update`` runs once per control sample
+inside the jitted rollout (one ``lax.scan``), never in Python.
+
+Per sample (readings from paper-notes Sec. 3):
+
+1. X_r = X_o - X_e and its derivatives; inside = |X_r| <= r. t_c is the first sample inside after
+   being outside: X_r'(t_c) is latched per encounter.
+2. O = (K_o, B_o, M_o) per axis from the networks (Eqs. 50-51), and
+   F_o = M_o dX_o'' + B_o dX_o' + K_o dX_o inside the sphere, 0 outside (Eq. 47); the geometry
+   (dX_o and derivatives, Eq. 45-46) comes from ``sphere_fn``, passed in by the caller (the hand's
+   ``hec_jax.control`` owns it; ``nets`` stands alone).
+3. Energy E(t) of the task and its gradient with respect to X_e and X_e' (autodiff of the energy
+   expression, object state held fixed):
+   * catching (Eqs. 59-62): E = 1/2 |alpha(|X_r|) X_r'(t_c) - X_r'(t)|^2 + mu e_f,
+   * hitting (Eqs. 63-66): E = 1/2 |beta(|X_r|) X_o'(t) - X_e'(t)|^2 + mu e_f,
+   where e_f = 1/2 |F_d - F_int|^2 is the integrand of E_cf / E_hf (Eqs. 61, 65): the part of the
+   integral that the current control can still change. F_d = -f_d n while in contact, 0 otherwise
+   (the object presses on the hand with f_d, along -n). dF_int/dX_e, which the paper does not give,
+   is the nominal contact-stiffness Jacobian -k_c n n^T while in contact and 0 otherwise.
+4. The paper's approximation (Eqs. 54-58, the hand as a unit mass over one sample):
+   dE/dF_act = dE/dX_e dt^2 + dE/dX_e' dt (Eq. 54's second factor read as dX_e'/dF_act; Eq. 56's
+   "(k)" is debris).
+5. dw = -eta (dE/dF_act)^T (dF_act/dO)(dO/dw) (Eqs. 52-53) with F_act = F_o: one vector-Jacobian
+   product through Eq. 47 and the networks (backpropagation). A separate learning rate per network
+   kind (VSN, VVN, VIN).
+6. Gate (catching; found in a 1-D prototype, not in the paper): no learning while the object
+   recedes inside the sphere without contact (n . X_r' > 0), otherwise the latched approach velocity
+   becomes a wrong target and the hand unlearns the catch. R_b must be below the contact distance
+   (hand radius + half cube), or the learner learns to avoid contact; this is a parameter choice.
+   Hitting learns whenever the object is inside the sphere.
+
+Gain functions: alpha (Eq. 62) = sin((|X_r| - R_b) pi / (2 (r - R_b))) for |X_r| >= R_b, else 0;
+beta (Eq. 66) = alpha - 1 for |X_r| >= R_b, else 0: beta jumps from -1 to 0 at R_b, as printed (the
+paper's choice, kept and flagged).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from hec_jax.nets import impedance_nets as nets
+
+TASKS = ("catching", "hitting")
+
+
+@dataclass(frozen=True)
+class LearnerConfig:
+    """Static configuration of the online learner (parameter values: paper-notes Sec. 4).
+
+    Attributes:
+        task: "catching" or "hitting".
+        dt: sampling interval Delta t_s [s].
+        radius: virtual sphere radius r [m].
+        r_b: R_b of the gain functions [m] (below the contact distance).
+        eta: learning rates of (VSN, VVN, VIN).
+        mu: weight of the force term E_cf / E_hf.
+        f_desired: desired contact force magnitude f_d [N] (F_cd or F_hd = -f_d n in contact).
+        contact_stiffness: nominal k_c [N/m] for dF_int/dX_e = -k_c n n^T in contact.
+        m_e, b_e, k_e: target impedance diagonals [kg], [N s/m], [N/m] (fix U of Eq. 51).
+        gate_receding: pause catching learning while the object recedes without contact.
+        net: network structure.
+    """
+
+    task: str = "catching"
+    dt: float = 1e-3
+    radius: float = 0.25
+    r_b: float = 0.06
+    eta: tuple[float, float, float] = (0.1, 0.1, 0.1)
+    mu: float = 1e-3
+    f_desired: float = 1.0
+    contact_stiffness: float = 1e4
+    m_e: tuple[float, ...] = (1.0, 1.0)
+    b_e: tuple[float, ...] = (40.0, 40.0)
+    k_e: tuple[float, ...] = (400.0, 400.0)
+    gate_receding: bool = True
+    net: nets.NetConfig = field(default_factory=nets.NetConfig)
+
+    def __post_init__(self):
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
+        if not (0.0 <= self.r_b < self.radius):
+            raise ValueError(f"need 0 <= R_b < r, got R_b={self.r_b}, r={self.radius}")
+        if self.dt <= 0:
+            raise ValueError(f"dt must be positive, got {self.dt}")
+        for name in ("m_e", "b_e", "k_e"):
+            v = getattr(self, name)
+            if len(v) != self.net.n_axes or min(v) <= 0:
+                raise ValueError(f"{name} must have {self.net.n_axes} positive entries, got {v}")
+        if len(self.eta) != 3 or min(self.eta) < 0:
+            raise ValueError(f"eta must be 3 non-negative rates (VSN, VVN, VIN), got {self.eta}")
+
+
+class SphereGeometry(NamedTuple):
+    """What ``sphere_fn`` returns (task space, per axis): dX_o, dX_o', dX_o'' (Eqs. 45-46)."""
+
+    dx_o: Array
+    dxd_o: Array
+    dxdd_o: Array
+
+
+SphereFn = Callable[[Array, Array, Array, float], SphereGeometry]
+
+
+class LearnerInputs(NamedTuple):
+    """One control sample, task space (n_axes,) each, plus the contact flag ()."""
+
+    x_e: Array  # [m] hand position
+    xd_e: Array  # [m/s]
+    xdd_e: Array  # [m/s^2]
+    x_o: Array  # [m] object position
+    xd_o: Array  # [m/s]
+    xdd_o: Array  # [m/s^2]
+    f_int: Array  # [N] force exerted on the hand by the environment (Eq. 39)
+    in_contact: Array  # bool ()
+
+
+class LearnerState(NamedTuple):
+    params: dict  # network parameters, leading axes (n_axes, 3)
+    xd_r_tc: Array  # (n_axes,) X_r'(t_c) latched at the last entry into the sphere
+    was_inside: Array  # bool ()
+    energy_f: Array  # () running E_cf / E_hf integral [N^2 s]
+    encounters: Array  # int () number of entries into the sphere so far
+
+
+class LearnerOutput(NamedTuple):
+    f_o: Array  # (n_axes,) virtual force F_o [N] (Eq. 47)
+    impedance: Array  # (n_axes, 3) O = (K_o, B_o, M_o)
+    energy: Array  # () E(t) of the task (velocity term + mu * force integrand)
+    de_df_act: Array  # (n_axes,) the paper's dE/dF_act
+    inside: Array  # bool ()
+    learning: Array  # bool (): weights updated this sample
+    margins: Array  # (n_axes, 3) strict Eq. 49 margins, all > 0
+
+
+def gain_alpha(rho: Array, radius: float, r_b: float) -> Array:
+    """alpha(|X_r|) of Eq. 62."""
+    phase = (rho - r_b) * jnp.pi / (2.0 * (radius - r_b))
+    return jnp.where(rho >= r_b, jnp.sin(phase), 0.0)
+
+
+def gain_beta(rho: Array, radius: float, r_b: float) -> Array:
+    """beta(|X_r|) of Eq. 66 (jumps from -1 to 0 at R_b, as printed)."""
+    phase = (rho - r_b) * jnp.pi / (2.0 * (radius - r_b))
+    return jnp.where(rho >= r_b, jnp.sin(phase) - 1.0, 0.0)
+
+
+def _norm(v: Array) -> Array:
+    sq = jnp.sum(v * v)
+    ok = sq > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+
+
+def task_energy(
+    config: LearnerConfig,
+    x_e: Array,
+    xd_e: Array,
+    inputs: LearnerInputs,
+    xd_r_tc: Array,
+) -> Array:
+    """E(t) as a function of the hand state (X_e, X_e'), object state held fixed (Eqs. 59-66).
+
+    The force term is mu * 1/2 |F_d - F_int(X_e)|^2 with F_int linearised about the measured value
+    with the nominal contact stiffness (see the module docstring).
+    """
+    x_r = inputs.x_o - x_e
+    rho = _norm(x_r)
+    x_r0 = inputs.x_o - inputs.x_e
+    rho0 = _norm(x_r0)
+    n0 = jnp.where(rho0 > 0, x_r0 / jnp.where(rho0 > 0, rho0, 1.0), 0.0)
+    contact = inputs.in_contact.astype(x_e.dtype)
+    # F_int(X_e) = F_int + dF_int/dX_e (X_e - X_e0), dF_int/dX_e = -k_c n n^T in contact.
+    f_int = inputs.f_int - contact * config.contact_stiffness * n0 * jnp.dot(n0, x_e - inputs.x_e)
+    f_d = -config.f_desired * contact * n0
+    e_force = 0.5 * jnp.sum((f_d - f_int) ** 2)
+    if config.task == "catching":
+        alpha = gain_alpha(rho, config.radius, config.r_b)
+        e_vel = 0.5 * jnp.sum((alpha * xd_r_tc - (inputs.xd_o - xd_e)) ** 2)  # Eq. 60
+    else:
+        beta = gain_beta(rho, config.radius, config.r_b)
+        e_vel = 0.5 * jnp.sum((beta * inputs.xd_o - xd_e) ** 2)  # Eq. 64
+    return e_vel + config.mu * e_force
+
+
+def make_online_learner(
+    config: LearnerConfig, sphere_fn: SphereFn
+) -> tuple[Callable[[Array], LearnerState], Callable[[LearnerState, LearnerInputs], tuple]]:
+    """Factory of the pure ``init`` and ``update`` of the online learner (Eqs. 52-58).
+
+    Args:
+        config: static configuration.
+        sphere_fn: ``(x_r, xd_r, xdd_r, radius) -> SphereGeometry`` (Eqs. 45-46), e.g. from
+            ``hec_jax.control``.
+    """
+    n_axes = config.net.n_axes
+    u = nets.u_max(
+        config.net, jnp.asarray(config.m_e), jnp.asarray(config.b_e), jnp.asarray(config.k_e)
+    )
+    eta = jnp.asarray(config.eta)
+
+    def init(key: Array, dtype=jnp.float32) -> LearnerState:
+        params = nets.init_params(key, config.net, dtype)
+        return LearnerState(
+            params=params,
+            xd_r_tc=jnp.zeros((n_axes,), dtype),
+            was_inside=jnp.asarray(False),
+            energy_f=jnp.zeros((), dtype),
+            encounters=jnp.zeros((), jnp.int32),
+        )
+
+    def virtual_force(params, net_in, geometry, inside):
+        o = nets.apply(params, config.net, net_in, u.astype(net_in.dtype))
+        terms = jnp.stack([geometry.dx_o, geometry.dxd_o, geometry.dxdd_o], axis=-1)  # K, B, M
+        f_o = jnp.where(inside, jnp.sum(o * terms.astype(o.dtype), axis=-1), 0.0)  # Eq. 47
+        return f_o, o
+
+    def update(state: LearnerState, inputs: LearnerInputs) -> tuple[LearnerState, LearnerOutput]:
+        x_r = inputs.x_o - inputs.x_e
+        xd_r = inputs.xd_o - inputs.xd_e
+        xdd_r = inputs.xdd_o - inputs.xdd_e
+        rho = _norm(x_r)
+        inside = rho <= config.radius
+        entering = inside & ~state.was_inside
+        xd_r_tc = jnp.where(entering, xd_r, state.xd_r_tc)  # latch X_r'(t_c) per encounter
+        geometry = sphere_fn(x_r, xd_r, xdd_r, config.radius)
+        net_in = nets.normalise_inputs(config.net, x_r, xd_r, xdd_r, inputs.f_int)
+        f_o, pullback, o = jax.vjp(
+            lambda p: virtual_force(p, net_in, geometry, inside), state.params, has_aux=True
+        )
+        energy, (de_dx, de_dxd) = jax.value_and_grad(
+            lambda xe, xde: task_energy(config, xe, xde, inputs, xd_r_tc), argnums=(0, 1)
+        )(inputs.x_e, inputs.xd_e)
+        de_df_act = de_dx * config.dt**2 + de_dxd * config.dt  # Eqs. 54-58
+        learning = inside
+        if config.task == "catching" and config.gate_receding:
+            receding = jnp.dot(x_r, xd_r) > 0
+            learning = learning & ~(receding & ~inputs.in_contact)
+        cotangent = jnp.where(learning, de_df_act, 0.0).astype(f_o.dtype)
+        (grad_w,) = pullback(cotangent)  # (dE/dF_act)^T (dF_o/dO) (dO/dw), Eq. 53
+        lr = lambda g: eta.reshape((1, 3) + (1,) * (g.ndim - 2)).astype(g.dtype)  # noqa: E731
+        params = jax.tree_util.tree_map(lambda w, g: w - lr(g) * g, state.params, grad_w)  # Eq. 52
+        contact = inputs.in_contact.astype(f_o.dtype)
+        n = jnp.where(rho > 0, x_r / jnp.where(rho > 0, rho, 1.0), 0.0)
+        f_d = -config.f_desired * contact * n
+        energy_f = state.energy_f + 0.5 * jnp.sum((f_d - inputs.f_int) ** 2) * config.dt
+        new_state = LearnerState(
+            params=params,
+            xd_r_tc=xd_r_tc,
+            was_inside=inside,
+            energy_f=energy_f,
+            encounters=state.encounters + entering.astype(jnp.int32),
+        )
+        margins = nets.stability_margins(
+            o, jnp.asarray(config.m_e), jnp.asarray(config.b_e), jnp.asarray(config.k_e)
+        )
+        out = LearnerOutput(
+            f_o=f_o,
+            impedance=o,
+            energy=energy,
+            de_df_act=de_df_act,
+            inside=inside,
+            learning=learning,
+            margins=margins,
+        )
+        return new_state, out
+
+    return init, update

@@ -1,0 +1,202 @@
+"""The networks (Eqs. 50-51) and the online learner (Eqs. 52-66)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from point_mass_world import B_E, K_C, K_E, M_E, make_episodes, sphere_1d
+
+from hec_jax import nets
+from hec_jax.nets import LearnerConfig, LearnerInputs, NetConfig
+
+CFG_1D = LearnerConfig(
+    net=NetConfig(n_axes=1),
+    m_e=(M_E,),
+    b_e=(B_E,),
+    k_e=(K_E,),
+    contact_stiffness=K_C,
+    eta=(0.1, 0.1, 0.1),
+)
+
+
+def test_output_unit_is_eq51_and_its_derivative():
+    x = jnp.linspace(-30.0, 30.0, 601)
+    u, theta = 7.0, 0.1
+    printed = u / 2 * (1 - jnp.exp(-x + theta)) / (1 + jnp.exp(-x + theta))
+    np.testing.assert_allclose(nets.output_unit(x, u, theta), printed, atol=1e-12)
+    grad = jax.vmap(jax.grad(lambda v: nets.output_unit(v, u, theta)))(x)
+    np.testing.assert_allclose(nets.output_unit_derivative(x, u, theta), grad, atol=1e-12)
+    h = 1e-6
+    fd = (nets.output_unit(x + h, u, theta) - nets.output_unit(x - h, u, theta)) / (2 * h)
+    np.testing.assert_allclose(nets.output_unit_derivative(x, u, theta), fd, atol=1e-8)
+    assert np.all(np.abs(nets.output_unit(x, u, theta)) <= u / 2)
+
+
+def test_stability_by_construction_under_random_weights():
+    config = NetConfig()
+    m_e, b_e, k_e = jnp.array([1.0, 2.0]), jnp.array([40.0, 30.0]), jnp.array([400.0, 100.0])
+    u = nets.u_max(config, m_e, b_e, k_e)
+    for seed in range(5):
+        key, k_in = jax.random.split(jax.random.PRNGKey(seed))
+        params = nets.init_params(key, config, jnp.float64)
+        # Blow the weights up so outputs saturate (tanh rounds to +-1).
+        params = jax.tree_util.tree_map(lambda p, s=seed: p * 1e3 * (s + 1), params)
+        inputs = jax.random.normal(k_in, (256, 2, 4)) * 10.0
+        o = jax.vmap(nets.apply, in_axes=(None, None, 0, None))(params, config, inputs, u)
+        margins = nets.stability_margins(o, m_e, b_e, k_e)
+        assert np.all(np.asarray(margins) > 0)
+        assert np.min(margins) >= config.margin * 0.999  # at least margin x min(M_e) (M_e >= 1)
+
+
+def test_gain_functions_eq62_eq66():
+    r, r_b = 0.25, 0.06
+    rho = jnp.array([0.0, 0.03, r_b, (r + r_b) / 2, r, 0.3])
+    alpha = nets.gain_alpha(rho, r, r_b)
+    beta = nets.gain_beta(rho, r, r_b)
+    np.testing.assert_allclose(alpha[:3], [0.0, 0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(alpha[3], np.sin(np.pi / 4), atol=1e-15)
+    np.testing.assert_allclose(alpha[4], 1.0, atol=1e-15)
+    np.testing.assert_allclose(beta[:2], [0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(beta[2], -1.0, atol=1e-15)  # the jump at R_b (as printed)
+    np.testing.assert_allclose(beta[3], np.sin(np.pi / 4) - 1, atol=1e-15)
+    np.testing.assert_allclose(beta[4], 0.0, atol=1e-15)
+
+
+def _inputs_2d(contact, f_int):
+    return LearnerInputs(
+        x_e=jnp.array([0.0, 0.1]),
+        xd_e=jnp.array([0.2, -0.1]),
+        xdd_e=jnp.zeros(2),
+        x_o=jnp.array([0.12, 0.05]),
+        xd_o=jnp.array([-0.8, 0.3]),
+        xdd_o=jnp.array([0.0, -9.8]),
+        f_int=jnp.asarray(f_int),
+        in_contact=jnp.asarray(contact),
+    )
+
+
+def test_energy_functions_against_their_equations():
+    cfg_c = LearnerConfig(task="catching", mu=0.01, f_desired=2.0)
+    cfg_h = LearnerConfig(task="hitting", mu=0.01, f_desired=5.0)
+    v_tc = jnp.array([-1.0, 0.4])
+    for contact, f_int in ((False, [0.0, 0.0]), (True, [-3.0, 1.0])):
+        inp = _inputs_2d(contact, f_int)
+        x_r = np.asarray(inp.x_o - inp.x_e)
+        rho = np.linalg.norm(x_r)
+        n = x_r / rho
+        f_d = -cfg_c.f_desired * n * contact
+        alpha = np.sin((rho - 0.06) * np.pi / (2 * (0.25 - 0.06)))
+        e_cv = 0.5 * np.sum((alpha * np.asarray(v_tc) - np.asarray(inp.xd_o - inp.xd_e)) ** 2)
+        e_cf = 0.5 * np.sum((f_d - np.asarray(f_int)) ** 2)
+        got = nets.task_energy(cfg_c, inp.x_e, inp.xd_e, inp, v_tc)
+        np.testing.assert_allclose(got, e_cv + cfg_c.mu * e_cf, rtol=1e-12)
+        beta = alpha - 1
+        f_hd = -cfg_h.f_desired * n * contact
+        e_hv = 0.5 * np.sum((beta * np.asarray(inp.xd_o) - np.asarray(inp.xd_e)) ** 2)
+        e_hf = 0.5 * np.sum((f_hd - np.asarray(f_int)) ** 2)
+        got = nets.task_energy(cfg_h, inp.x_e, inp.xd_e, inp, v_tc)
+        np.testing.assert_allclose(got, e_hv + cfg_h.mu * e_hf, rtol=1e-12)
+
+
+def _sigmoid(x):
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+def test_update_equals_hand_computed_update_1d():
+    """1-D point mass, object approaching inside the sphere, no contact: the learner's weight change
+    equals Eqs. 52-58 worked out by hand in NumPy (forward pass, dE/dF_act, backprop)."""
+    init, update = nets.make_online_learner(CFG_1D, sphere_1d)
+    state = init(jax.random.PRNGKey(3), jnp.float64)
+    x_e, v_e, a_e, x_o, v_o, a_o = 0.01, 0.05, 0.3, 0.2, -0.9, 1.5
+    v_tc = -1.1
+    state = state._replace(xd_r_tc=jnp.array([v_tc]), was_inside=jnp.asarray(True))
+    inputs = LearnerInputs(
+        *(jnp.array([v]) for v in (x_e, v_e, a_e, x_o, v_o, a_o, 0.0)), jnp.asarray(False)
+    )
+    new_state, out = update(state, inputs)
+    # --- by hand ---
+    cfg, r, r_b, dt = CFG_1D, CFG_1D.radius, CFG_1D.r_b, CFG_1D.dt
+    x_r, v_r, a_r = x_o - x_e, v_o - v_e, a_o - a_e
+    terms = np.array([x_r - r, v_r, a_r])  # dX_o (n = +1), dX_o', dX_o'' for (K, B, M)
+    net_in = np.array([x_r, v_r, a_r, 0.0]) / np.array(cfg.net.input_scale)
+    p = jax.tree_util.tree_map(lambda a: np.asarray(a)[0], state.params)  # axis 0
+    u = 2 * (1 - cfg.net.margin) * np.array([K_E, B_E, M_E])
+    phase = (x_r - r_b) * np.pi / (2 * (r - r_b))
+    alpha, dalpha = np.sin(phase), np.cos(phase) * np.pi / (2 * (r - r_b))
+    resid = alpha * v_tc - v_r
+    de_dve = resid  # d/dv_e of 1/2 (alpha v_tc - (v_o - v_e))^2
+    de_dxe = resid * v_tc * dalpha * (-1.0)  # through alpha(|x_o - x_e|)
+    g = de_dxe * dt**2 + de_dve * dt  # Eqs. 54-58
+    np.testing.assert_allclose(out.de_df_act, [g], rtol=1e-12)
+    o = np.zeros(3)
+    for k in range(3):
+        w1, b1 = p["Dense_0"]["kernel"][k], p["Dense_0"]["bias"][k]
+        w2, b2 = p["Dense_1"]["kernel"][k], p["Dense_1"]["bias"][k]
+        w3, b3 = p["Dense_2"]["kernel"][k], p["Dense_2"]["bias"][k]
+        y1 = _sigmoid(net_in @ w1 + b1)
+        y2 = _sigmoid(y1 @ w2 + b2)
+        x = y2 @ w3 + b3
+        th = np.tanh((x[0] - cfg.net.theta) / 2)
+        o[k] = u[k] / 2 * th
+        delta = g * terms[k] * u[k] / 4 * (1 - th**2)  # dE/dx of the output unit
+        eta = cfg.eta[k]
+        np.testing.assert_allclose(
+            np.asarray(new_state.params["Dense_2"]["bias"][0, k]), b3 - eta * delta, rtol=1e-10
+        )
+        np.testing.assert_allclose(
+            np.asarray(new_state.params["Dense_2"]["kernel"][0, k]),
+            w3 - eta * delta * y2[:, None],
+            rtol=1e-10,
+        )
+        delta2 = (w3[:, 0] * delta) * y2 * (1 - y2)
+        delta1 = (w2 @ delta2) * y1 * (1 - y1)
+        np.testing.assert_allclose(
+            np.asarray(new_state.params["Dense_0"]["kernel"][0, k]),
+            w1 - eta * np.outer(net_in, delta1),
+            rtol=1e-10,
+            atol=1e-16,
+        )
+    np.testing.assert_allclose(out.impedance[0], o, rtol=1e-12)
+    np.testing.assert_allclose(out.f_o, [np.sum(o * terms)], rtol=1e-12)
+    assert bool(out.learning)
+
+
+def test_no_learning_outside_sphere_and_while_receding_without_contact():
+    init, update = nets.make_online_learner(CFG_1D, sphere_1d)
+    state = init(jax.random.PRNGKey(0), jnp.float64)
+    for x_o, v_o in ((0.5, -1.0), (0.2, +0.5)):  # outside; inside but receding
+        inputs = LearnerInputs(
+            *(jnp.array([v]) for v in (0.0, 0.0, 0.0, x_o, v_o, 0.0, 0.0)), jnp.asarray(False)
+        )
+        new_state, out = update(state, inputs)
+        assert not bool(out.learning)
+        for a, b in zip(
+            jax.tree_util.tree_leaves(state.params),
+            jax.tree_util.tree_leaves(new_state.params),
+            strict=True,
+        ):
+            np.testing.assert_array_equal(a, b)
+    assert float(update(state, inputs)[1].f_o[0]) != 0.0  # inside: F_o acts even when not learning
+
+
+@pytest.fixture(scope="module")
+def learning_run():
+    run = make_episodes(CFG_1D, steps=1200, learn=True)
+    _, logs = run(jax.random.PRNGKey(0), 6)
+    return jax.tree_util.tree_map(np.asarray, logs)
+
+
+def test_short_learning_run_lowers_energy_and_peak_force(learning_run):
+    """Six 1.2 s swings with the weights carried over: the task energy accumulated inside the sphere
+    and the peak contact force fall from swing to swing and below the frozen initial networks."""
+    logs = learning_run
+    energy = np.sum(logs["energy"] * logs["inside"], axis=1) * CFG_1D.dt  # per episode
+    peak = -np.min(logs["f_int"], axis=1)
+    _, flog = make_episodes(CFG_1D, steps=1200, learn=False)(jax.random.PRNGKey(0), 1)
+    frozen_energy = float(np.sum(flog["energy"] * flog["inside"]) * CFG_1D.dt)
+    frozen_peak = float(-np.min(np.asarray(flog["f_int"])))
+    assert energy[0] < frozen_energy  # learning acts within the first swing already
+    assert energy[-1] < energy[0]
+    assert np.all(np.diff(peak) < 0)
+    assert peak[-1] < 0.5 * frozen_peak
+    assert np.all(logs["margins"] > 0)  # strict Eq. 49 at every sample
