@@ -109,17 +109,25 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 120) -> None:
 
 
 def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Path:
-    """Create the run folder and write its ``config.json``; returns the folder."""
+    """Create the run folder and write its ``config.json``; returns the folder.
+
+    ``config.json`` holds ``seed``, ``command``, ``argv``, ``versions``, ``device`` and, at the top
+    level beside them, the run's own ``settings`` (so e.g. ``m_e`` is ``config["m_e"]``).
+    """
+    reserved = {"seed", "command", "argv", "versions", "device"} & set(settings)
+    if reserved:
+        raise ValueError(f"settings may not use the reserved keys {sorted(reserved)}")
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
     write_json(
         folder / "config.json",
         {
-            "seed": seed,
-            "command": " ".join([Path(sys.argv[0]).name] + sys.argv[1:]),
+            "seed": int(seed),
+            "command": " ".join([sys.executable, *sys.argv]),
+            "argv": list(sys.argv),
             "versions": package_versions(),
             "device": device_description(),
-            "settings": settings,
+            **settings,
         },
     )
     return folder

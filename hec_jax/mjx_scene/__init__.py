@@ -1,0 +1,106 @@
+"""MuJoCo/MJX model of the experimental set-up of Sec. 6.1 (Terauchi, Tanaka, Tsuji).
+
+Modelling choices (see also ``scene.xml``):
+
+* Arm: a 6-link serial chain whose motion is confined to the vertical x-z plane. The three pitch
+  joints (shoulder, elbow, wrist; axes normal to the plane) are actuated by torque motors with
+  limits 100 / 60 / 20 N m. The other three joints of the 6-DOF arm (base yaw, forearm roll, wrist
+  roll) are *welded*: their bodies exist with their masses, but carry no joint, i.e. they are
+  held perfectly rigid at zero. This is the physically honest limit of the paper's "motions
+  restricted to the vertical 2D plane" without very stiff servo loops that would need a smaller
+  time step.
+  Each active joint has armature 0.02 kg m^2 and viscous damping 0.2 N m s/rad; the controller
+  accounts for both through M (qM includes armature) and h = qfrc_bias - qfrc_passive.
+* Hand: a sphere (radius 0.04 m, 0.3 kg) whose centre is the end-effector point X_e, the hand body
+  origin and its COM (so ``xfrc_applied`` on the hand acts at X_e). A 3-axis force sensor sits on
+  the wrist side of the hand (site ``ft_sensor``).
+* Object: a 0.1 m wooden cube (0.7 kg) on a 0.6 m steel rod (radius 3 mm) from a ceiling hinge at
+  (0.35, 0, 1.25) m, swinging in the same plane.
+* Contact: only the hand sphere and the cube, through an explicit frictionless pair (condim 1,
+  solref 0.005), so that the contact force passes through the hand centre and Eq. 39 with a 2-D
+  force is exact. Every other geom has contype = conaffinity = 0.
+* Camera ``eye``: fixed, optical axis along world +y, fovy 45 deg, 640x480 intended.
+* Time step 1 ms, semi-implicit Euler with joint damping integrated explicitly (eulerdamp off).
+"""
+
+from hec_jax.mjx_scene.camera import (
+    IMAGE_HEIGHT,
+    IMAGE_WIDTH,
+    camera_intrinsics,
+    camera_pose_world,
+    intrinsics,
+    project,
+)
+from hec_jax.mjx_scene.model import (
+    ARM_JOINTS,
+    CUBE_EDGE,
+    HAND_RADIUS,
+    SCENE_XML,
+    TASK_AXES,
+    X_HOME,
+    PendulumConditions,
+    SceneIds,
+    apply_conditions,
+    default_conditions,
+    load_mj_model,
+    load_mjx_model,
+    mj_model_with_conditions,
+    scene_ids,
+    solve_posture,
+    validate_conditions,
+)
+from hec_jax.mjx_scene.sim import (
+    CQuantities,
+    SimStep,
+    Trajectory,
+    bias_force,
+    c_quantities,
+    full_mass_matrix,
+    hand_contact_force,
+    hand_contact_force_c,
+    make_data,
+    make_data_c,
+    rollout,
+    rollout_c,
+    site_jacobians,
+    site_position,
+)
+
+__all__ = [
+    "ARM_JOINTS",
+    "CUBE_EDGE",
+    "HAND_RADIUS",
+    "IMAGE_HEIGHT",
+    "IMAGE_WIDTH",
+    "SCENE_XML",
+    "TASK_AXES",
+    "CQuantities",
+    "PendulumConditions",
+    "SceneIds",
+    "SimStep",
+    "Trajectory",
+    "apply_conditions",
+    "c_quantities",
+    "camera_intrinsics",
+    "camera_pose_world",
+    "default_conditions",
+    "hand_contact_force",
+    "full_mass_matrix",
+    "bias_force",
+    "site_jacobians",
+    "site_position",
+    "hand_contact_force_c",
+    "intrinsics",
+    "load_mj_model",
+    "load_mjx_model",
+    "make_data",
+    "make_data_c",
+    "mj_model_with_conditions",
+    "solve_posture",
+    "X_HOME",
+    "project",
+    "rollout",
+    "rollout_c",
+    "scene_ids",
+    "validate_conditions",
+]

@@ -1,0 +1,274 @@
+"""Loading the set-up of Sec. 6.1 and putting the pendulum conditions into the model pytree.
+
+The MJCF is ``scene.xml`` next to this file. Names and indices that code needs are collected once in
+the frozen :class:`SceneIds` (static, hashable). The pendulum conditions are a pytree
+(:class:`PendulumConditions`) so that a sweep is ``jax.vmap`` over them; rod length and cube mass
+reach the physics through :func:`apply_conditions`, which rewrites the MJX model fields that the
+compiler would have produced for those values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+SCENE_XML = Path(__file__).resolve().parent / "scene.xml"
+
+# Fixed physical constants of the pendulum (not swept).
+ROD_RADIUS = 0.003  # [m] steel rod radius (matches scene.xml)
+ROD_DENSITY = 7850.0  # [kg/m^3] steel
+CUBE_EDGE = 0.1  # [m] wooden cube edge (box half-size 0.05 in scene.xml)
+HAND_RADIUS = 0.04  # [m] hand sphere radius (scene.xml)
+
+ARM_JOINTS = ("shoulder", "elbow", "wrist")
+# Task space: the vertical plane x-z of the world (Eq. 39 with l = 2). TASK_AXES picks (x, z).
+TASK_AXES = (0, 2)
+
+
+@dataclasses.dataclass(frozen=True)
+class SceneIds:
+    """Static indices into the model (hashable, safe as a jit static argument).
+
+    Attributes:
+        arm_qpos: qpos addresses of the 3 active pitch joints (shoulder, elbow, wrist).
+        arm_dof: dof addresses of the same joints.
+        pend_qpos: qpos address of the pendulum hinge.
+        pend_dof: dof address of the pendulum hinge.
+        hand_body: body id of the hand (sphere centre = body origin = COM = site ``hand``).
+        hand_site: site id of the end-effector point X_e.
+        hand_geom: geom id of the hand sphere.
+        cube_body, cube_site, cube_geom: ids of the cube (object point X_o = cube centre).
+        rod_body, rod_geom: ids of the rod.
+        ft_site: site of the force/torque sensor between wrist flange and hand.
+        camera: camera id of the fixed camera ``eye``.
+        force_sensor_adr: sensordata address of the 3-axis force sensor.
+    """
+
+    arm_qpos: tuple[int, ...]
+    arm_dof: tuple[int, ...]
+    pend_qpos: int
+    pend_dof: int
+    hand_body: int
+    hand_site: int
+    hand_geom: int
+    cube_body: int
+    cube_site: int
+    cube_geom: int
+    rod_body: int
+    rod_geom: int
+    ft_site: int
+    camera: int
+    force_sensor_adr: int
+
+
+def scene_ids(m: mujoco.MjModel) -> SceneIds:
+    """Collects the ids used by the simulation and control code from a compiled MjModel."""
+
+    def jid(name: str) -> int:
+        return mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, name)
+
+    def oid(obj: mujoco.mjtObj, name: str) -> int:
+        i = mujoco.mj_name2id(m, obj, name)
+        if i < 0:
+            raise ValueError(f"scene has no {obj.name} named {name!r}")
+        return i
+
+    arm = [jid(n) for n in ARM_JOINTS]
+    hinge = jid("hinge")
+    return SceneIds(
+        arm_qpos=tuple(int(m.jnt_qposadr[j]) for j in arm),
+        arm_dof=tuple(int(m.jnt_dofadr[j]) for j in arm),
+        pend_qpos=int(m.jnt_qposadr[hinge]),
+        pend_dof=int(m.jnt_dofadr[hinge]),
+        hand_body=oid(mujoco.mjtObj.mjOBJ_BODY, "hand"),
+        hand_site=oid(mujoco.mjtObj.mjOBJ_SITE, "hand"),
+        hand_geom=oid(mujoco.mjtObj.mjOBJ_GEOM, "hand"),
+        cube_body=oid(mujoco.mjtObj.mjOBJ_BODY, "cube"),
+        cube_site=oid(mujoco.mjtObj.mjOBJ_SITE, "cube"),
+        cube_geom=oid(mujoco.mjtObj.mjOBJ_GEOM, "cube"),
+        rod_body=oid(mujoco.mjtObj.mjOBJ_BODY, "rod"),
+        rod_geom=oid(mujoco.mjtObj.mjOBJ_GEOM, "rod"),
+        ft_site=oid(mujoco.mjtObj.mjOBJ_SITE, "ft_sensor"),
+        camera=oid(mujoco.mjtObj.mjOBJ_CAMERA, "eye"),
+        force_sensor_adr=int(m.sensor_adr[oid(mujoco.mjtObj.mjOBJ_SENSOR, "hand_force")]),
+    )
+
+
+class PendulumConditions(NamedTuple):
+    """Conditions of one pendulum swing; every field is a pytree leaf (vmap a sweep over them).
+
+    Attributes:
+        rod_length: [m] length of the steel rod from the hinge to the top face of the cube.
+        cube_mass: [kg] mass of the wooden cube (edge 0.1 m, uniform density).
+        release_angle: [rad] hinge angle at release (0 = hanging, > 0 swings the cube toward +x).
+        release_speed: [rad/s] hinge angular velocity at release.
+        hinge_damping: [N m s/rad] viscous damping of the ceiling hinge.
+        arrival_phase: [s] delay of the release after t = 0: the pendulum is held in its release
+            state for this long, which shifts when the cube arrives at the hand.
+    """
+
+    rod_length: jnp.ndarray
+    cube_mass: jnp.ndarray
+    release_angle: jnp.ndarray
+    release_speed: jnp.ndarray
+    hinge_damping: jnp.ndarray
+    arrival_phase: jnp.ndarray
+
+
+def default_conditions(**overrides: float) -> PendulumConditions:
+    """Conditions of paper-notes Sec. 4: 0.6 m rod, 0.7 kg cube, released from rest at -0.5 rad."""
+    base = dict(
+        rod_length=0.6,
+        cube_mass=0.7,
+        release_angle=-0.5,
+        release_speed=0.0,
+        hinge_damping=0.002,
+        arrival_phase=0.0,
+    )
+    unknown = set(overrides) - set(base)
+    if unknown:
+        raise ValueError(f"unknown pendulum condition(s): {sorted(unknown)}")
+    base.update(overrides)
+    return PendulumConditions(**{k: jnp.asarray(v, dtype=float) for k, v in base.items()})
+
+
+def validate_conditions(c: PendulumConditions) -> None:
+    """Raises ValueError for physically meaningless conditions (host-side check, not traced)."""
+    for name in ("rod_length", "cube_mass"):
+        v = np.asarray(getattr(c, name))
+        if np.any(~np.isfinite(v)) or np.any(v <= 0):
+            raise ValueError(f"{name} must be finite and > 0, got {v}")
+    for name in ("hinge_damping", "arrival_phase"):
+        v = np.asarray(getattr(c, name))
+        if np.any(~np.isfinite(v)) or np.any(v < 0):
+            raise ValueError(f"{name} must be finite and >= 0, got {v}")
+    for name in ("release_angle", "release_speed"):
+        v = np.asarray(getattr(c, name))
+        if np.any(~np.isfinite(v)):
+            raise ValueError(f"{name} must be finite, got {v}")
+
+
+def load_mj_model(path: str | Path = SCENE_XML) -> mujoco.MjModel:
+    """Compiles the MJCF of the set-up with MuJoCo C."""
+    return mujoco.MjModel.from_xml_path(str(path))
+
+
+def load_mjx_model(m: mujoco.MjModel | None = None) -> mjx.Model:
+    """Puts the model on the default device with the pure-JAX MJX implementation."""
+    if m is None:
+        m = load_mj_model()
+    return mjx.put_model(m, impl="jax")
+
+
+def mj_model_with_conditions(c: PendulumConditions, path: str | Path = SCENE_XML) -> mujoco.MjModel:
+    """MuJoCo C model with rod length, cube mass and hinge damping set in the MJCF spec,
+    recompiled.
+
+    The compiler computes masses and inertias from the geoms itself, so this is an independent
+    reference for :func:`apply_conditions`. Only scalar (unbatched) conditions are accepted.
+    """
+    validate_conditions(c)
+    L = float(c.rod_length)
+    spec = mujoco.MjSpec.from_file(str(path))
+    rod = spec.geom("rod")
+    rod.size = np.array([ROD_RADIUS, L / 2, 0.0])
+    rod.pos = np.array([0.0, 0.0, -L / 2])
+    spec.body("cube").pos = np.array([0.0, 0.0, -(L + CUBE_EDGE / 2)])
+    spec.geom("cube").mass = float(c.cube_mass)
+    spec.joint("hinge").damping = np.array([float(c.hinge_damping), 0.0, 0.0])
+    return spec.compile()
+
+
+def apply_conditions(m: mjx.Model, ids: SceneIds, c: PendulumConditions) -> mjx.Model:
+    """Writes rod length, cube mass and hinge damping into the MJX model (pure, vmappable).
+
+    Rod (cylinder of radius ROD_RADIUS, steel, from the hinge down to the cube, axis along body z):
+        mass m_r = rho pi a^2 L, COM at (0, 0, -L/2),
+        principal inertia (m_r (3a^2 + L^2)/12, same, m_r a^2 / 2).
+    Cube (edge e, uniform): body origin at (0, 0, -(L + e/2)), mass m_c,
+        inertia m_c e^2 / 6 per axis.
+    Hinge: dof_damping of the pendulum dof. Release angle/speed and arrival phase enter through the
+    state (see ``make_data``) and the hold in ``rollout``, not the model.
+    """
+    L = c.rod_length
+    a = ROD_RADIUS
+    m_rod = ROD_DENSITY * jnp.pi * a**2 * L
+    rod_inertia = jnp.stack(
+        [m_rod * (3 * a**2 + L**2) / 12, m_rod * (3 * a**2 + L**2) / 12, m_rod * a**2 / 2]
+    )
+    zero = jnp.zeros_like(L)
+    rod_com = jnp.stack([zero, zero, -L / 2])
+    m_cube = c.cube_mass
+    cube_inertia = jnp.full((3,), 1.0) * (m_cube * CUBE_EDGE**2 / 6)
+    cube_pos = jnp.stack([zero, zero, -(L + CUBE_EDGE / 2)])
+
+    body_mass = m.body_mass.at[ids.rod_body].set(m_rod).at[ids.cube_body].set(m_cube)
+    # subtree masses: the rod's subtree is rod + cube; ancestors are fixed bodies (ceiling, world).
+    old_sub = m.body_subtreemass[ids.rod_body]
+    new_sub = m_rod + m_cube
+    body_subtreemass = (
+        m.body_subtreemass.at[ids.rod_body]
+        .set(new_sub)
+        .at[ids.cube_body]
+        .set(m_cube)
+        .at[0]
+        .add(new_sub - old_sub)
+    )
+    ceiling = int(np.asarray(m.body_parentid)[ids.rod_body])
+    if ceiling != 0:
+        body_subtreemass = body_subtreemass.at[ceiling].add(new_sub - old_sub)
+    geom_size = m.geom_size.at[ids.rod_geom, 1].set(L / 2)
+    geom_pos = m.geom_pos.at[ids.rod_geom].set(rod_com)
+    return m.replace(
+        body_mass=body_mass,
+        body_subtreemass=body_subtreemass,
+        body_inertia=m.body_inertia.at[ids.rod_body]
+        .set(rod_inertia)
+        .at[ids.cube_body]
+        .set(cube_inertia),
+        body_ipos=m.body_ipos.at[ids.rod_body].set(rod_com),
+        body_pos=m.body_pos.at[ids.cube_body].set(cube_pos),
+        geom_size=geom_size,
+        geom_pos=geom_pos,
+        dof_damping=m.dof_damping.at[ids.pend_dof].set(c.hinge_damping),
+    )
+
+
+# Nominal set-up: the hand waits at X_HOME (task coordinates x, z [m]), hand link horizontal,
+# pointing at the pendulum (0.3 m from the resting cube centre, outside the 0.25 m virtual sphere).
+X_HOME = (0.65, 0.60)
+Q_HOME_GUESS = (-0.6, 1.9, -1.3)  # [rad] elbow-up branch
+
+
+def solve_posture(
+    m: mujoco.MjModel,
+    ids: SceneIds,
+    x_task,
+    hand_pitch: float = 0.0,
+    q_guess=Q_HOME_GUESS,
+    tol: float = 1e-12,
+) -> np.ndarray:
+    """Arm joint angles [rad] (3,) putting the hand centre at ``x_task`` = (x, z) [m] with the hand
+    link at pitch ``hand_pitch`` = q1 + q2 + q3 [rad] (Newton iterations on MuJoCo C kinematics)."""
+    d = mujoco.MjData(m)
+    q = np.asarray(q_guess, dtype=float).copy()
+    target = np.array([x_task[0], x_task[1], hand_pitch])
+    jac = np.zeros((3, m.nv))
+    for _ in range(100):
+        d.qpos[list(ids.arm_qpos)] = q
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)
+        x = d.site_xpos[ids.hand_site]
+        err = target - np.array([x[TASK_AXES[0]], x[TASK_AXES[1]], q.sum()])
+        if np.max(np.abs(err)) < tol:
+            return q
+        mujoco.mj_jacSite(m, d, jac, None, ids.hand_site)
+        A = np.vstack([jac[list(TASK_AXES)][:, list(ids.arm_dof)], np.ones((1, 3))])
+        q = q + np.linalg.solve(A, err)
+    raise ValueError(f"posture for {x_task} did not converge (residual {err})")

@@ -1,0 +1,201 @@
+"""Pure control functions: Eq. 42-44 algebra, virtual sphere (Eqs. 45-47), Eq. 49, validation."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from hec_jax import control as C
+
+
+def _random_obs(rng, f_int=None):
+    A = rng.normal(size=(3, 3))
+    M = A @ A.T + 0.5 * np.eye(3)
+    return C.TaskObs(
+        q=jnp.asarray(rng.normal(size=3)),
+        qd=jnp.asarray(rng.normal(size=3)),
+        M=jnp.asarray(M),
+        h=jnp.asarray(rng.normal(size=3) * 5),
+        x_e=jnp.asarray(rng.normal(size=2)),
+        xd_e=jnp.asarray(rng.normal(size=2)),
+        J=jnp.asarray(rng.normal(size=(2, 3))),
+        jdot_qdot=jnp.asarray(rng.normal(size=2)),
+        f_int=jnp.asarray(rng.normal(size=2) * 3 if f_int is None else f_int),
+        x_o=jnp.asarray(rng.normal(size=2)),
+        xd_o=jnp.asarray(rng.normal(size=2)),
+    )
+
+
+def test_control_law_gives_eq48_algebraically():
+    """Plugging tau of Eqs. 41-44 into Eq. 39 (NumPy) gives M_e ddX + B_e dX' + K_e dX = F_int + F_o,
+    and the null-space term produces no task acceleration."""
+    rng = np.random.default_rng(1)
+    cfg = C.ControllerConfig(mx_damping=0.0)
+    for _ in range(5):
+        obs = _random_obs(rng)
+        p = C.impedance_params(
+            rng.uniform(0.2, 2, 2), rng.uniform(5, 50, 2), rng.uniform(50, 500, 2)
+        )
+        tgt = C.Target(*(jnp.asarray(rng.normal(size=2)) for _ in range(3)))
+        f_o = jnp.asarray(rng.normal(size=2))
+        q_post = jnp.asarray(rng.normal(size=3))
+        tau, _ = C.impedance_torque(obs, p, tgt, f_o, q_post, cfg)
+        M, J, h = (np.asarray(x) for x in (obs.M, obs.J, obs.h))
+        qdd = np.linalg.solve(M, np.asarray(tau) + J.T @ np.asarray(obs.f_int) - h)  # Eq. 39
+        xdd = J @ qdd + np.asarray(obs.jdot_qdot)
+        dX = np.asarray(obs.x_e - tgt.x_d)
+        dXd = np.asarray(obs.xd_e - tgt.xd_d)
+        lhs = np.asarray(p.m_e) * (xdd - np.asarray(tgt.xdd_d)) + np.asarray(p.b_e) * dXd
+        lhs = lhs + np.asarray(p.k_e) * dX
+        np.testing.assert_allclose(lhs, np.asarray(obs.f_int + f_o), rtol=1e-9, atol=1e-9)
+        # null-space torque alone: zero task acceleration (dynamic consistency)
+        tau_q1, _ = C.impedance_torque(obs, p, tgt, f_o, q_post + 1.0, cfg)
+        dq = np.linalg.solve(M, np.asarray(tau_q1 - tau))
+        np.testing.assert_allclose(J @ dq, 0.0, atol=1e-9)
+        assert np.linalg.norm(dq) > 1e-3  # the posture term does act in the null space
+
+
+def test_operational_inertia_damped_near_singularity():
+    """Eq. 44 equals the exact inverse away from singularities and stays finite at one."""
+    rng = np.random.default_rng(2)
+    obs = _random_obs(rng)
+    M, J = obs.M, obs.J
+    Mx, cond = C.operational_inertia(M, J, 1e-6)
+    exact = np.linalg.inv(np.asarray(J) @ np.linalg.solve(np.asarray(M), np.asarray(J).T))
+    np.testing.assert_allclose(np.asarray(Mx), exact, rtol=1e-8)
+    J_sing = jnp.stack([J[0], 2.0 * J[0]])  # rank 1
+    Mx_s, cond_s = C.operational_inertia(M, J_sing, 1e-3)
+    assert np.all(np.isfinite(np.asarray(Mx_s)))
+    assert float(cond_s) > 1e10 and np.max(np.abs(np.asarray(Mx_s))) < 1e4
+
+
+def _poly_path(a, b, c):
+    return lambda t: a + b * t + c * t**2
+
+
+def test_sphere_derivatives_match_autodiff():
+    """dX_o', dX_o'' of Eq. 45 with n from Eq. 46 equal autodiff d/dt along a quadratic path."""
+    rng = np.random.default_rng(3)
+    r = 0.25
+    for _ in range(5):
+        a, b, c = (jnp.asarray(rng.normal(size=2) * s) for s in (0.2, 0.5, 2.0))
+        path = _poly_path(a, b, c)
+
+        def dxo(t, path=path):
+            x = path(t)
+            return x - r * x / jnp.linalg.norm(x)
+
+        t0 = 0.1
+        d1 = jax.jacfwd(dxo)(t0)
+        d2 = jax.jacfwd(jax.jacfwd(dxo))(t0)
+        x_r = path(t0)
+        sk = C.sphere_kinematics(x_r, jax.jacfwd(path)(t0), jax.jacfwd(jax.jacfwd(path))(t0), r)
+        np.testing.assert_allclose(np.asarray(sk.dx_o), np.asarray(dxo(t0)), rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(sk.dxd_o), np.asarray(d1), rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(sk.dxdd_o), np.asarray(d2), rtol=1e-9, atol=1e-10)
+
+
+def test_virtual_force_signs_and_regions():
+    """Eq. 47: zero outside and at the centre; K_o > 0 pushes the hand away from the object."""
+    vp = C.virtual_params(0.0, 0.0, 300.0, 0.25)
+    z = jnp.zeros(2)
+    inside = C.sphere_kinematics(jnp.array([0.1, 0.05]), z, z, vp.r)
+    f = C.virtual_force(vp, inside)
+    assert float(jnp.dot(f, inside.x_r)) < 0  # pushes the hand (at the centre) away from X_o
+    np.testing.assert_allclose(
+        np.asarray(f), -300.0 * (0.25 - float(inside.rho)) * np.asarray(inside.n)
+    )
+    outside = C.sphere_kinematics(jnp.array([0.3, 0.0]), jnp.ones(2), z, vp.r)
+    assert np.all(np.asarray(C.virtual_force(vp, outside)) == 0)
+    centre = C.sphere_kinematics(z, jnp.ones(2), jnp.ones(2), vp.r)
+    assert np.all(np.asarray(C.virtual_force(vp, centre)) == 0)
+    g = jax.grad(lambda x: C.virtual_force(vp, C.sphere_kinematics(x, z, z, vp.r)).sum())(z)
+    assert np.all(np.isfinite(np.asarray(g)))  # NaN-safe at X_r = 0
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    st.lists(st.floats(-50, 50), min_size=6, max_size=6),
+    st.lists(st.floats(0.01, 50), min_size=3, max_size=3),
+)
+def test_eq49_projection(vals, target):
+    """project_stable lands in the strict stable set, is idempotent and keeps stable values."""
+    m_o, b_o, k_o = (jnp.asarray(vals[2 * i : 2 * i + 2]) for i in range(3))
+    m_e, b_e, k_e = (jnp.full(2, t) for t in target)
+    vp = C.VirtualParams(m_o, b_o, k_o, jnp.asarray(0.25))
+    pr = C.project_stable(vp, m_e, b_e, k_e)
+    assert np.all(np.asarray(C.is_stable(m_e, b_e, k_e, pr.m_o, pr.b_o, pr.k_o)))
+    pr2 = C.project_stable(pr, m_e, b_e, k_e)
+    for x, y in zip(pr[:3], pr2[:3], strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    stable = np.asarray(C.is_stable(m_e, b_e, k_e, vp.m_o, vp.b_o, vp.k_o))
+    kept = (np.asarray(vp.m_o) >= -0.999 * np.asarray(m_e)) & (
+        np.asarray(vp.b_o) >= -0.999 * np.asarray(b_e)
+    )
+    kept &= np.asarray(vp.k_o) >= -0.999 * np.asarray(k_e)
+    assert np.all(np.asarray(pr.m_o)[kept] == np.asarray(vp.m_o)[kept])
+    assert np.all(stable[kept])
+
+
+def test_eq49_printed_condition_not_sufficient():
+    """K_o = -K_e alone satisfies the printed '>=' but leaves a pole at s = 0: not strictly stable."""
+    one = jnp.ones(2)
+    assert not np.any(
+        np.asarray(C.is_stable(one, 40 * one, 400 * one, 0 * one, 0 * one, -400 * one))
+    )
+    roots = np.roots([1.0, 40.0, 0.0])
+    assert np.isclose(roots.max(), 0.0)
+
+
+def test_validation_errors():
+    with pytest.raises(ValueError):
+        C.impedance_params(0.0, 40.0, 400.0)
+    with pytest.raises(ValueError):
+        C.impedance_params(1.0, -1.0, 400.0)
+    with pytest.raises(ValueError):
+        C.impedance_params(1.0, 40.0, -1.0)
+    with pytest.raises(ValueError):
+        C.impedance_params(np.ones(3), 40.0, 400.0)
+    with pytest.raises(ValueError):
+        C.virtual_params(0.0, 0.0, 100.0, 0.0)
+    with pytest.raises(ValueError):
+        C.virtual_params(np.nan, 0.0, 100.0, 0.25)
+    with pytest.raises(ValueError):
+        C.ControllerConfig(dt=0.0)
+    with pytest.raises(ValueError):
+        C.fixed_target([0.1, 0.2, 0.3])
+    init, apply = C.make_impedance_controller()
+    obs = _random_obs(np.random.default_rng(4))
+    with pytest.raises(ValueError):
+        init(obs._replace(J=jnp.zeros((3, 3))))
+    st0 = init(obs)
+    p = C.impedance_params(1.0, 40.0, 400.0)
+    vp = C.virtual_params(0.0, 0.0, 0.0, 0.25)
+    with pytest.raises(ValueError):
+        apply(p, vp, C.fixed_target([0.0, 0.0]), st0, obs._replace(f_int=jnp.zeros(3)))
+
+
+def test_controller_jit_vmap_grad():
+    """apply works under jit, vmap (over parameters) and grad (w.r.t. K_e), with finite values."""
+    init, apply = C.make_impedance_controller()
+    obs = _random_obs(np.random.default_rng(5))
+    st0 = init(obs)
+    vp = C.virtual_params(0.5, 5.0, 300.0, 5.0)  # object inside a large sphere
+    tgt = C.fixed_target([0.0, 0.0])
+
+    def tau_of(k_e):
+        p = C.ImpedanceParams(jnp.ones(2), 40.0 * jnp.ones(2), k_e)
+        return apply(p, vp, tgt, st0, obs)[2].tau_cmd  # before saturation
+
+    t_jit = jax.jit(tau_of)(400.0 * jnp.ones(2))
+    t_vmap = jax.vmap(tau_of)(jnp.stack([400.0 * jnp.ones(2), 200.0 * jnp.ones(2)]))
+    np.testing.assert_allclose(np.asarray(t_vmap[0]), np.asarray(t_jit), rtol=1e-12)
+    g = jax.jacfwd(tau_of)(400.0 * jnp.ones(2))
+    # d tau / d K_e = J^T M_x M_e^-1 (-dX) (Eq. 42), independent of everything else
+    Mx, _ = C.operational_inertia(obs.M, obs.J, 1e-3)
+    expected = np.asarray(obs.J).T @ np.asarray(Mx) @ np.diag(-np.asarray(obs.x_e))
+    np.testing.assert_allclose(np.asarray(g), expected, rtol=1e-9)

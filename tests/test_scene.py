@@ -1,0 +1,247 @@
+"""The MJX scene against MuJoCo C: model conditions, dynamics quantities, contact force, camera."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from mujoco import mjx
+
+from hec_jax import control as C
+from hec_jax import mjx_scene as S
+from hec_jax.mjx_scene.sim import _mjx_ctx
+
+N_BATCH = 4  # every call of the shared compiled function uses this batch size (one compile)
+PLANE = [0, 2]  # task-plane components (x, z) of world vectors
+
+CONDS = [
+    dict(rod_length=0.6, cube_mass=0.7, hinge_damping=0.002),
+    dict(rod_length=0.45, cube_mass=1.1, hinge_damping=0.05),
+]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    mm = S.load_mj_model()
+    ids = S.scene_ids(mm)
+    return mm, ids, S.load_mjx_model(mm)
+
+
+@pytest.fixture(scope="module")
+def quantities(scene):
+    """One compiled, vmapped function: apply_conditions + full forward (with contact solve)."""
+    mm, ids, mx = scene
+
+    def one(c, qpos, qvel, ctrl):
+        m = S.apply_conditions(mx, ids, c)
+        d = mjx.make_data(m).replace(qpos=qpos, qvel=qvel, ctrl=ctrl)
+        with _mjx_ctx():
+            d = mjx.forward(m, d)
+        obs = C.observe(m, ids, S.SimStep(d=d, f_int=jnp.zeros(3), t=d.time))
+        J_fd = jax.jacfwd(lambda q: C.hand_position(m, d, ids, q))(qpos[np.array(ids.arm_qpos)])
+        return dict(
+            M=S.full_mass_matrix(m, d),
+            h=S.bias_force(d),
+            qacc=d.qacc,
+            site_xpos=d.site_xpos,
+            J=obs.J,
+            J_autodiff=J_fd,
+            jdot_qdot=obs.jdot_qdot,
+            x_o=obs.x_o,
+            xd_o=obs.xd_o,
+            f_contact=S.hand_contact_force(m, d, ids),
+            sensor=d.sensordata[:3],
+            site_xmat=d.site_xmat,
+        )
+
+    return jax.jit(jax.vmap(one))
+
+
+def _random_states(rng, n, ids, contact=False):
+    qpos = np.zeros((n, 4))
+    qpos[:, :3] = rng.uniform(-2.0, 2.0, size=(n, 3))
+    qpos[:, 3] = rng.uniform(-0.8, 0.8, size=n)
+    qvel = rng.normal(size=(n, 4))
+    ctrl = rng.uniform(-10, 10, size=(n, 3))
+    return qpos, qvel, ctrl
+
+
+def _stack(conds):
+    return jax.tree.map(lambda *x: jnp.stack(x), *conds)
+
+
+def test_apply_conditions_matches_compiler(scene):
+    """apply_conditions writes the same masses/inertias/positions the MuJoCo compiler computes."""
+    mm, ids, mx = scene
+    for kw in CONDS:
+        c = S.default_conditions(**kw)
+        m2 = S.apply_conditions(mx, ids, c)
+        mc = S.mj_model_with_conditions(c)
+        for f in (
+            "body_mass",
+            "body_subtreemass",
+            "body_inertia",
+            "body_ipos",
+            "body_iquat",
+            "body_pos",
+            "geom_size",
+            "geom_pos",
+            "dof_damping",
+        ):
+            np.testing.assert_allclose(np.asarray(getattr(m2, f)), getattr(mc, f), atol=1e-12)
+
+
+def test_dynamics_match_mujoco_c(scene, quantities):
+    """M, h, J, J' theta', site positions and qacc (with conditions applied) equal MuJoCo C's."""
+    mm, ids, _ = scene
+    rng = np.random.default_rng(0)
+    n = N_BATCH
+    worst = {}
+    for kw in CONDS:
+        c = S.default_conditions(**kw)
+        qpos, qvel, ctrl = _random_states(rng, n, ids)
+        out = jax.tree.map(np.asarray, quantities(_stack([c] * n), qpos, qvel, ctrl))
+        mc = S.mj_model_with_conditions(c)
+        for i in range(n):
+            d = mujoco.MjData(mc)
+            d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[i], qvel[i], ctrl[i]
+            mujoco.mj_forward(mc, d)
+            cq = S.c_quantities(mc, d, ids)
+            obs_c = C.observe_c(ids, d.qpos, d.qvel, cq, np.zeros(3))
+            pairs = dict(
+                M=(out["M"][i], cq.M),
+                h=(out["h"][i], cq.h),
+                qacc=(out["qacc"][i], d.qacc),
+                site_xpos=(out["site_xpos"][i], d.site_xpos),
+                J=(out["J"][i], np.asarray(obs_c.J)),
+                J_autodiff=(out["J_autodiff"][i], np.asarray(obs_c.J)),
+                jdot_qdot=(out["jdot_qdot"][i], np.asarray(obs_c.jdot_qdot)),
+                x_o=(out["x_o"][i], np.asarray(obs_c.x_o)),
+                xd_o=(out["xd_o"][i], np.asarray(obs_c.xd_o)),
+            )
+            for k, (a, b) in pairs.items():
+                err = np.max(np.abs(a - b)) / max(1.0, np.max(np.abs(b)))
+                worst[k] = max(worst.get(k, 0.0), err)
+    print("max relative error vs MuJoCo C:", {k: f"{v:.1e}" for k, v in worst.items()})
+    for k, v in worst.items():
+        assert v < 1e-9, (k, v)
+
+
+def test_operational_inertia_matches_c(scene, quantities):
+    """M_x (Eq. 44) from MJX quantities equals inv(J M^-1 J^T) from MuJoCo C's mj_fullM/mj_jacSite."""
+    mm, ids, _ = scene
+    c = S.default_conditions()
+    q_home = S.solve_posture(mm, ids, S.X_HOME)
+    qpos = np.zeros((N_BATCH, 4))
+    qpos[:, :3] = q_home
+    qpos[1, :3] = q_home + np.array([0.3, -0.4, 0.2])
+    out = jax.tree.map(
+        np.asarray,
+        quantities(_stack([c] * N_BATCH), qpos, np.zeros((N_BATCH, 4)), np.zeros((N_BATCH, 3))),
+    )
+    for i in range(2):
+        d = mujoco.MjData(mm)
+        d.qpos[:] = qpos[i]
+        mujoco.mj_forward(mm, d)
+        cq = S.c_quantities(mm, d, ids)
+        Jc = cq.J_hand[[0, 2]][:, :3]
+        Mx_c = np.linalg.inv(Jc @ np.linalg.solve(cq.M[:3, :3], Jc.T))
+        Mx, cond = C.operational_inertia(out["M"][i][:3, :3], out["J"][i], 1e-3)
+        np.testing.assert_allclose(np.asarray(Mx), Mx_c, rtol=1e-5)
+        assert 1.0 <= float(cond) < 10.0
+
+
+def test_contact_force_sign_magnitude(scene, quantities):
+    """Force ON the hand: equals mj_contactForce (C) and the wrist force-sensor balance, and pushes
+    the hand away from the cube."""
+    mm, ids, _ = scene
+    c = S.default_conditions()
+    q_home = S.solve_posture(mm, ids, S.X_HOME)
+    qpos = np.zeros((N_BATCH, 4))
+    qpos[:, :3] = q_home
+    # cube centre 0.08 m and 0.085 m left of the hand centre: 1-2 cm penetration
+    qpos[:2, 3] = np.arcsin((np.array([0.65 - 0.08, 0.65 - 0.085]) - 0.35) / 0.65)
+    qvel = np.zeros((N_BATCH, 4))
+    qvel[:2] = [[0.3, -0.2, 0.5, 1.0], [0.0, 0.0, 0.0, 0.5]]
+    ctrl = np.zeros((N_BATCH, 3))
+    ctrl[0] = [5.0, -3.0, 1.0]
+    out = jax.tree.map(np.asarray, quantities(_stack([c] * N_BATCH), qpos, qvel, ctrl))
+    m_h = mm.body_mass[ids.hand_body]
+    for i in range(2):
+        d = mujoco.MjData(mm)
+        d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[i], qvel[i], ctrl[i]
+        mujoco.mj_forward(mm, d)
+        assert d.ncon == 1
+        f_c = S.hand_contact_force_c(mm, d, ids)
+        f_mjx = out["f_contact"][i]
+        assert np.linalg.norm(f_c) > 50.0  # a real, large contact force
+        # In-plane components agree. MJX's sphere-box normal has a spurious out-of-plane component
+        # (~3e-4 of |F|); no joint moves out of the plane, so it does no work and F_int uses (x, z).
+        np.testing.assert_allclose(f_mjx[PLANE], f_c[PLANE], rtol=1e-6)
+        assert abs(f_mjx[1]) < 1e-3 * np.linalg.norm(f_mjx)
+        # sign: the force on the hand points from the cube towards the hand
+        away = d.site_xpos[ids.hand_site] - d.site_xpos[ids.cube_site]
+        assert np.dot(f_mjx, away) > 0.9 * np.linalg.norm(f_mjx) * np.linalg.norm(away)
+        # wrist force sensor (force of the wrist on the hand, site frame): Newton on the hand body,
+        # m_h (a_h - g) = F_contact + F_wrist, with a_h from qacc (MuJoCo C)
+        cq = S.c_quantities(mm, d, ids)
+        a_h = cq.J_hand @ d.qacc + cq.Jdot_hand @ d.qvel
+        f_wrist = out["site_xmat"][i][ids.ft_site].reshape(3, 3) @ out["sensor"][i]
+        f_from_sensor = m_h * (a_h - mm.opt.gravity) - f_wrist
+        np.testing.assert_allclose(f_from_sensor[PLANE], f_mjx[PLANE], rtol=1e-6)
+
+
+def test_contact_only_hand_cube(scene):
+    """Only the explicit hand-cube pair can collide."""
+    mm, ids, _ = scene
+    assert np.all(mm.geom_contype == 0) and np.all(mm.geom_conaffinity == 0)
+    assert mm.npair == 1
+    assert {mm.pair_geom1[0], mm.pair_geom2[0]} == {ids.hand_geom, ids.cube_geom}
+
+
+def test_camera_intrinsics_and_pose(scene):
+    """K from fovy (pinhole, x right, y down) and pose: geometric truths of the frustum."""
+    mm, ids, _ = scene
+    d = mujoco.MjData(mm)
+    mujoco.mj_forward(mm, d)
+    K = S.camera_intrinsics(mm, ids.camera)
+    R, p = S.camera_pose_world(mm, d, ids.camera)
+    np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
+    assert np.isclose(np.linalg.det(R), 1.0)
+    # a point on the optical axis projects to the image centre
+    uv, z = S.project(K, R, p, p + 2.0 * R[:, 2])
+    np.testing.assert_allclose(uv[0], [320.0, 240.0], atol=1e-9)
+    # a point at half the vertical field of view above the axis (world +z is "up" = -y_cam)
+    half = np.radians(mm.cam_fovy[ids.camera]) / 2
+    up = p + np.cos(half) * R[:, 2] - np.sin(half) * R[:, 1]
+    uv, _ = S.project(K, R, p, up)
+    np.testing.assert_allclose(uv[0], [320.0, 0.0], atol=1e-9)
+    # world +x appears to the right, world +z upwards (smaller v)
+    uv, _ = S.project(
+        K, R, p, np.stack([p + R[:, 2], p + R[:, 2] + [0.1, 0, 0], p + R[:, 2] + [0, 0, 0.1]])
+    )
+    assert uv[1, 0] > uv[0, 0] and uv[2, 1] < uv[0, 1]
+    # hand and cube (at rest and at release) in view, in front of the camera
+    c = S.default_conditions()
+    dc = S.make_data_c(mm, ids, c, S.solve_posture(mm, ids, S.X_HOME))
+    pts = np.stack(
+        [dc.site_xpos[ids.hand_site], dc.site_xpos[ids.cube_site], d.site_xpos[ids.cube_site]]
+    )
+    uv, z = S.project(K, R, p, pts)
+    assert np.all(z > 0.5)
+    assert np.all((uv >= 0) & (uv <= [640, 480]))
+    with pytest.raises(ValueError):
+        S.intrinsics(0.0)
+    with pytest.raises(ValueError):
+        S.intrinsics(45.0, 0, 480)
+
+
+def test_conditions_validation():
+    with pytest.raises(ValueError):
+        S.mj_model_with_conditions(S.default_conditions(rod_length=-0.1))
+    with pytest.raises(ValueError):
+        S.validate_conditions(S.default_conditions(cube_mass=0.0))
+    with pytest.raises(ValueError):
+        S.default_conditions(rod_lenght=0.5)
