@@ -61,6 +61,8 @@ def _default(obj):
         return obj.item()
     if isinstance(obj, Path):
         return str(obj)
+    if hasattr(obj, "__array__"):  # JAX arrays
+        return np.asarray(obj).tolist()
     raise TypeError(f"not JSON serialisable: {type(obj)}")
 
 

@@ -14,7 +14,12 @@ Per sample (readings from paper-notes Sec. 3):
    ``hec_jax.control`` owns it; ``nets`` stands alone).
 3. Energy E(t) of the task and its gradient with respect to X_e and X_e' (autodiff of the energy
    expression, object state held fixed):
-   * catching (Eqs. 59-62): E = 1/2 |alpha(|X_r|) X_r'(t_c) - X_r'(t)|^2 + mu e_f,
+   * catching (Eqs. 59-62): E = c 1/2 |alpha(|X_r|) X_r'(t_c) - X_r'(t)|^2 + mu e_f, where c = 1
+     until the first contact of the encounter and 0 after it (Sec. 6.2: "relative velocity ...
+     should be reduced before contact, and the end-point force after contact ... should be
+     controlled"; with the velocity term kept after contact, alpha > 0 at the contact distance
+     keeps asking for an approach velocity the object cannot have, which pulls the hand into the
+     object and unlearns the catch),
    * hitting (Eqs. 63-66): E = 1/2 |beta(|X_r|) X_o'(t) - X_e'(t)|^2 + mu e_f,
    where e_f = 1/2 |F_d - F_int|^2 is the integrand of E_cf / E_hf (Eqs. 61, 65): the part of the
    integral that the current control can still change. F_d = -f_d n while in contact, 0 otherwise
@@ -127,6 +132,7 @@ class LearnerState(NamedTuple):
     params: dict  # network parameters, leading axes (n_axes, 3)
     xd_r_tc: Array  # (n_axes,) X_r'(t_c) latched at the last entry into the sphere
     was_inside: Array  # bool ()
+    touched: Array  # bool (): contact has occurred since the last entry into the sphere
     energy_f: Array  # () running E_cf / E_hf integral [N^2 s]
     encounters: Array  # int () number of entries into the sphere so far
 
@@ -165,6 +171,7 @@ def task_energy(
     xd_e: Array,
     inputs: LearnerInputs,
     xd_r_tc: Array,
+    touched: Array | bool = False,
 ) -> Array:
     """E(t) as a function of the hand state (X_e, X_e'), object state held fixed (Eqs. 59-66).
 
@@ -184,6 +191,7 @@ def task_energy(
     if config.task == "catching":
         alpha = gain_alpha(rho, config.radius, config.r_b)
         e_vel = 0.5 * jnp.sum((alpha * xd_r_tc - (inputs.xd_o - xd_e)) ** 2)  # Eq. 60
+        e_vel = jnp.where(touched, 0.0, e_vel)  # before contact only (Sec. 6.2)
     else:
         beta = gain_beta(rho, config.radius, config.r_b)
         e_vel = 0.5 * jnp.sum((beta * inputs.xd_o - xd_e) ** 2)  # Eq. 64
@@ -212,6 +220,7 @@ def make_online_learner(
             params=params,
             xd_r_tc=jnp.zeros((n_axes,), dtype),
             was_inside=jnp.asarray(False),
+            touched=jnp.asarray(False),
             energy_f=jnp.zeros((), dtype),
             encounters=jnp.zeros((), jnp.int32),
         )
@@ -230,13 +239,14 @@ def make_online_learner(
         inside = rho <= config.radius
         entering = inside & ~state.was_inside
         xd_r_tc = jnp.where(entering, xd_r, state.xd_r_tc)  # latch X_r'(t_c) per encounter
+        touched = (state.touched & ~entering) | (inside & inputs.in_contact)
         geometry = sphere_fn(x_r, xd_r, xdd_r, config.radius)
         net_in = nets.normalise_inputs(config.net, x_r, xd_r, xdd_r, inputs.f_int)
         f_o, pullback, o = jax.vjp(
             lambda p: virtual_force(p, net_in, geometry, inside), state.params, has_aux=True
         )
         energy, (de_dx, de_dxd) = jax.value_and_grad(
-            lambda xe, xde: task_energy(config, xe, xde, inputs, xd_r_tc), argnums=(0, 1)
+            lambda xe, xde: task_energy(config, xe, xde, inputs, xd_r_tc, touched), argnums=(0, 1)
         )(inputs.x_e, inputs.xd_e)
         de_df_act = de_dx * config.dt**2 + de_dxd * config.dt  # Eqs. 54-58
         learning = inside
@@ -255,6 +265,7 @@ def make_online_learner(
             params=params,
             xd_r_tc=xd_r_tc,
             was_inside=inside,
+            touched=touched,
             energy_f=energy_f,
             encounters=state.encounters + entering.astype(jnp.int32),
         )

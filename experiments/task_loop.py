@@ -1,0 +1,232 @@
+"""The closed loop of Secs. 5-6: MJX world + impedance hand + online learning of the virtual impedance.
+
+Wires ``hec_jax.mjx_scene`` (world), ``hec_jax.control`` (hand) and ``hec_jax.nets`` (learning)
+together through plain arrays and pure functions. One swing is one ``lax.scan`` over 1 ms steps
+(``hec_jax.mjx_scene.rollout``); successive swings are a ``lax.scan`` over swings that restarts the
+world at the same release and carries the learner's state (weights) over; conditions and seeds are
+``vmap``-ed. The three conditions of the experiments share one compiled function: they differ only
+in two pytree leaves, ``use_virtual`` (0: plain impedance, F_o = 0) and ``learn`` (0: frozen nets).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hec_jax.control import (
+    ControllerConfig,
+    ImpedanceParams,
+    Target,
+    VirtualParams,
+    make_impedance_controller,
+    observe,
+    sphere_kinematics,
+)
+from hec_jax.mjx_scene import (
+    PendulumConditions,
+    SimStep,
+    apply_conditions,
+    load_mj_model,
+    load_mjx_model,
+    make_data,
+    rollout,
+    scene_ids,
+    solve_posture,
+)
+from hec_jax.nets import LearnerConfig, LearnerInputs, SphereGeometry, make_online_learner
+
+CONDITIONS = ("plain", "frozen", "learned")
+
+
+@dataclass(frozen=True)
+class TaskConfig:
+    """Static configuration of one experiment (catching or hitting)."""
+
+    learner: LearnerConfig
+    x_home: tuple[float, float] = (0.65, 0.60)  # X_d: hand equilibrium (x, z) [m]
+    swing_steps: int = 1500  # samples per swing [1 ms]
+    swings: int = 10
+    contact_threshold: float = 1e-3  # |F_int| above this counts as contact [N]
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+
+
+def sphere_fn(x_r, xd_r, xdd_r, radius) -> SphereGeometry:
+    """Eqs. 45-46 from the hand's ``sphere_kinematics`` in the form the learner wants."""
+    sk = sphere_kinematics(x_r, xd_r, xdd_r, radius)
+    return SphereGeometry(sk.dx_o, sk.dxd_o, sk.dxdd_o)
+
+
+class Switches(NamedTuple):
+    """Pytree leaves selecting the condition (so one compile serves all three)."""
+
+    use_virtual: jax.Array  # () 0.0 or 1.0
+    learn: jax.Array  # () 0.0 or 1.0
+
+
+def switches(condition: str) -> Switches:
+    if condition not in CONDITIONS:
+        raise ValueError(f"condition must be one of {CONDITIONS}, got {condition!r}")
+    return Switches(
+        use_virtual=jnp.asarray(0.0 if condition == "plain" else 1.0),
+        learn=jnp.asarray(1.0 if condition == "learned" else 0.0),
+    )
+
+
+def make_experiment(config: TaskConfig, pendulum: PendulumConditions):
+    """Builds ``run(keys, switches) -> logs``: swings x steps logs for a batch of seeds.
+
+    ``keys``: (n_seeds, 2) PRNG keys (network initialisation); ``switches``: a :class:`Switches`.
+    Returns a dict of arrays with leading axes (n_seeds, swings, swing_steps).
+    """
+    lc = config.learner
+    m_c = load_mj_model()
+    ids = scene_ids(m_c)
+    mx = apply_conditions(load_mjx_model(m_c), ids, pendulum)
+    q_home = jnp.asarray(solve_posture(m_c, ids, config.x_home))
+    c_init, c_apply = make_impedance_controller(config.controller)
+    l_init, l_update = make_online_learner(lc, sphere_fn)
+    params = ImpedanceParams(
+        m_e=jnp.asarray(lc.m_e), b_e=jnp.asarray(lc.b_e), k_e=jnp.asarray(lc.k_e)
+    )
+    target = Target(x_d=jnp.asarray(config.x_home), xd_d=jnp.zeros(2), xdd_d=jnp.zeros(2))
+    dt = config.controller.dt
+    f_ext = jnp.zeros((config.swing_steps, 3))
+
+    def policy(ps, m, step: SimStep):
+        cs, ls, sw = ps
+        obs = observe(m, ids, step)
+        xdd_e = (obs.xd_e - cs.xd_e_prev) / dt  # one sample old, as the controller's
+        xdd_o = (obs.xd_o - cs.xd_o_prev) / dt
+        in_contact = jnp.sqrt(jnp.sum(obs.f_int**2)) > config.contact_threshold
+        inputs = LearnerInputs(
+            obs.x_e, obs.xd_e, xdd_e, obs.x_o, obs.xd_o, xdd_o, obs.f_int, in_contact
+        )
+        ls_new, out = l_update(ls, inputs)
+        keep = sw.learn > 0
+        ls_new = ls_new._replace(
+            params=jax.tree_util.tree_map(
+                lambda new, old: jnp.where(keep, new, old), ls_new.params, ls.params
+            )
+        )
+        o = out.impedance * sw.use_virtual  # (2, 3): K_o, B_o, M_o per axis
+        vp = VirtualParams(m_o=o[:, 2], b_o=o[:, 1], k_o=o[:, 0], r=jnp.asarray(lc.radius))
+        tau, cs, info = c_apply(params, vp, target, cs, obs)
+        aux = dict(
+            x_e=obs.x_e,
+            xd_e=obs.xd_e,
+            x_o=obs.x_o,
+            xd_o=obs.xd_o,
+            f_int=obs.f_int,
+            f_o=info.f_o,
+            k_o=o[:, 0],
+            b_o=o[:, 1],
+            m_o=o[:, 2],
+            margins=out.margins,
+            energy=out.energy,
+            inside=out.inside,
+            learning=out.learning & keep,
+            in_contact=in_contact,
+            saturated=info.saturated,
+        )
+        return tau, (cs, ls_new, sw), aux
+
+    def one_swing(ls, sw):
+        d0 = make_data(mx, ids, pendulum, q_home)
+        cs0 = c_init(observe(mx, ids, SimStep(d=d0, f_int=jnp.zeros(3), t=d0.time)))
+        (_, (_, ls, _)), traj = rollout(mx, ids, d0, policy, (cs0, ls, sw), f_ext, pendulum)
+        ls = ls._replace(was_inside=jnp.asarray(False))
+        log = dict(traj.aux, f_contact=traj.f_contact, t=traj.t)
+        return ls, log
+
+    def run_one_seed(key, sw):
+        ls0 = l_init(key, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+        _, logs = jax.lax.scan(lambda ls, _: one_swing(ls, sw), ls0, None, length=config.swings)
+        return logs
+
+    return jax.jit(jax.vmap(run_one_seed, in_axes=(0, None)))
+
+
+def run_conditions(config: TaskConfig, pendulum: PendulumConditions, seed: int, n_seeds: int):
+    """All three conditions for ``n_seeds`` seeds; returns {condition: logs as NumPy}, timings."""
+    import time
+
+    run = make_experiment(config, pendulum)
+    keys = jax.random.split(jax.random.PRNGKey(seed), n_seeds)
+    out, timing = {}, {}
+    for condition in CONDITIONS:
+        t0 = time.perf_counter()
+        logs = run(keys, switches(condition))
+        logs = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(logs))
+        timing[condition] = time.perf_counter() - t0
+        out[condition] = logs
+    return out, timing
+
+
+# ---------------------------------------------------------------------------------------------
+# Metrics and figures shared by catching.py and hitting.py (NumPy boundary).
+
+
+def contact_events(f_norm: np.ndarray, threshold: float, min_gap: int) -> list[tuple[int, int]]:
+    """(start, end) sample indices of contact episodes in a force-magnitude series; contacts closer
+    than ``min_gap`` samples are merged into one event (one hit may chatter)."""
+    on = np.flatnonzero(f_norm > threshold)
+    if on.size == 0:
+        return []
+    events, start, prev = [], on[0], on[0]
+    for i in on[1:]:
+        if i - prev > min_gap:
+            events.append((int(start), int(prev) + 1))
+            start = i
+        prev = i
+    events.append((int(start), int(prev) + 1))
+    return events
+
+
+def force_norm(logs: dict) -> np.ndarray:
+    """|F_int| [N] of the contact solved at each step, (..., steps)."""
+    return np.linalg.norm(logs["f_contact"][..., [0, 2]], axis=-1)
+
+
+def mean_std(x) -> dict:
+    x = np.asarray(x, dtype=float)
+    return {"mean": float(np.mean(x)), "std": float(np.std(x))}
+
+
+def save_trajectories(folder, logs_by_condition: dict, dt: float) -> None:
+    """One ``trajectory_<condition>.npz`` per condition: t, x_e, x_o, f_int, k_o, b_o, m_o (+ more),
+    arrays with a leading seed axis (then swing and sample axes for swing-structured runs)."""
+    from hec_jax.runs import write_npz
+
+    for condition, logs in logs_by_condition.items():
+        steps = logs["x_e"].shape[-2]
+        write_npz(
+            folder / f"trajectory_{condition}.npz",
+            t=np.arange(steps) * dt,
+            x_e=logs["x_e"],
+            xd_e=logs["xd_e"],
+            x_o=logs["x_o"],
+            xd_o=logs["xd_o"],
+            f_int=logs["f_contact"][..., [0, 2]],
+            f_o=logs["f_o"],
+            k_o=logs["k_o"],
+            b_o=logs["b_o"],
+            m_o=logs["m_o"],
+            margins=logs["margins"],
+            inside=logs["inside"],
+            learning=logs["learning"],
+        )
+
+
+def stability_summary(logs: dict) -> dict:
+    """Smallest strict Eq. 49 margins (K_o + K_e, B_o + B_e, M_o + M_e) over every sample."""
+    m = logs["margins"].reshape(-1, logs["margins"].shape[-2], 3)
+    return {
+        "min_k_margin": float(m[..., 0].min()),
+        "min_b_margin": float(m[..., 1].min()),
+        "min_m_margin": float(m[..., 2].min()),
+        "all_strictly_stable": bool(np.all(m > 0)),
+    }
