@@ -76,12 +76,19 @@ def switches(condition: str) -> Switches:
     )
 
 
-def make_experiment(config: TaskConfig, pendulum: PendulumConditions):
-    """Builds ``run(keys, switches) -> logs``: swings x steps logs for a batch of seeds.
+class Loop(NamedTuple):
+    """The pieces of the closed loop (all pure; ``policy`` plugs into ``mjx_scene.rollout``)."""
 
-    ``keys``: (n_seeds, 2) PRNG keys (network initialisation); ``switches``: a :class:`Switches`.
-    Returns a dict of arrays with leading axes (n_seeds, swings, swing_steps).
-    """
+    mx: object  # MJX model with the pendulum conditions applied
+    ids: object  # static scene ids
+    policy: object  # (policy_state, m, SimStep) -> (tau, policy_state, aux)
+    initial_data: object  # () -> MJX data at the release
+    initial_policy_state: object  # (data, learner_state, switches) -> policy state
+    learner_init: object  # (key, dtype) -> LearnerState
+
+
+def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
+    """World, hand and learner wired together for one pendulum condition."""
     lc = config.learner
     m_c = load_mj_model()
     ids = scene_ids(m_c)
@@ -94,7 +101,6 @@ def make_experiment(config: TaskConfig, pendulum: PendulumConditions):
     )
     target = Target(x_d=jnp.asarray(config.x_home), xd_d=jnp.zeros(2), xdd_d=jnp.zeros(2))
     dt = config.controller.dt
-    f_ext = jnp.zeros((config.swing_steps, 3))
 
     def policy(ps, m, step: SimStep):
         cs, ls, sw = ps
@@ -134,16 +140,35 @@ def make_experiment(config: TaskConfig, pendulum: PendulumConditions):
         )
         return tau, (cs, ls_new, sw), aux
 
-    def one_swing(ls, sw):
-        d0 = make_data(mx, ids, pendulum, q_home)
+    def initial_data():
+        return make_data(mx, ids, pendulum, q_home)
+
+    def initial_policy_state(d0, ls, sw):
         cs0 = c_init(observe(mx, ids, SimStep(d=d0, f_int=jnp.zeros(3), t=d0.time)))
-        (_, (_, ls, _)), traj = rollout(mx, ids, d0, policy, (cs0, ls, sw), f_ext, pendulum)
+        return (cs0, ls, sw)
+
+    return Loop(mx, ids, policy, initial_data, initial_policy_state, l_init)
+
+
+def make_experiment(config: TaskConfig, pendulum: PendulumConditions):
+    """Builds ``run(keys, switches) -> logs``: swings x steps logs for a batch of seeds.
+
+    ``keys``: (n_seeds, 2) PRNG keys (network initialisation); ``switches``: a :class:`Switches`.
+    Returns a dict of arrays with leading axes (n_seeds, swings, swing_steps).
+    """
+    loop = build_loop(config, pendulum)
+    f_ext = jnp.zeros((config.swing_steps, 3))
+
+    def one_swing(ls, sw):
+        d0 = loop.initial_data()
+        ps0 = loop.initial_policy_state(d0, ls, sw)
+        (_, (_, ls, _)), traj = rollout(loop.mx, loop.ids, d0, loop.policy, ps0, f_ext, pendulum)
         ls = ls._replace(was_inside=jnp.asarray(False))
         log = dict(traj.aux, f_contact=traj.f_contact, t=traj.t)
         return ls, log
 
     def run_one_seed(key, sw):
-        ls0 = l_init(key, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+        ls0 = loop.learner_init(key, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
         _, logs = jax.lax.scan(lambda ls, _: one_swing(ls, sw), ls0, None, length=config.swings)
         return logs
 

@@ -13,9 +13,16 @@ from hec_jax.geometry.parallel_motion import (
     estimate_motion,
     estimate_motion_core,
 )
+from hec_jax.geometry.refine import TwoFrameMotion, two_frame_motion
 from hec_jax.geometry.synthetic import SceneConfig, make_cube_scenes, rotation_error_deg
+from hec_jax.geometry.track import BoxTrack, TrackConfig, track_box
 
 __all__ = [
+    "BoxTrack",
+    "TrackConfig",
+    "TwoFrameMotion",
+    "track_box",
+    "two_frame_motion",
     "MotionEstimate",
     "SceneConfig",
     "check_intrinsics",

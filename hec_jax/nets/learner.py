@@ -31,11 +31,12 @@ Per sample (readings from paper-notes Sec. 3):
 5. dw = -eta (dE/dF_act)^T (dF_act/dO)(dO/dw) (Eqs. 52-53) with F_act = F_o: one vector-Jacobian
    product through Eq. 47 and the networks (backpropagation). A separate learning rate per network
    kind (VSN, VVN, VIN).
-6. Gate (catching; found in a 1-D prototype, not in the paper): no learning while the object
-   recedes inside the sphere without contact (n . X_r' > 0), otherwise the latched approach velocity
-   becomes a wrong target and the hand unlearns the catch. R_b must be below the contact distance
-   (hand radius + half cube), or the learner learns to avoid contact; this is a parameter choice.
-   Hitting learns whenever the object is inside the sphere.
+6. Gate (found in a 1-D prototype, not in the paper): no learning while the object recedes inside
+   the sphere without contact (n . X_r' > 0). In catching the latched approach velocity then
+   becomes a wrong target and the hand unlearns the catch; in hitting, beta X_o' of a receding
+   object asks the hand to move away from it, which trains the networks against the next strike.
+   R_b must be below the contact distance (hand radius + half cube), or the catching learner learns
+   to avoid contact; this is a parameter choice. ``gate_receding=False`` learns whenever inside.
 
 Gain functions: alpha (Eq. 62) = sin((|X_r| - R_b) pi / (2 (r - R_b))) for |X_r| >= R_b, else 0;
 beta (Eq. 66) = alpha - 1 for |X_r| >= R_b, else 0: beta jumps from -1 to 0 at R_b, as printed (the
@@ -71,7 +72,7 @@ class LearnerConfig:
         f_desired: desired contact force magnitude f_d [N] (F_cd or F_hd = -f_d n in contact).
         contact_stiffness: nominal k_c [N/m] for dF_int/dX_e = -k_c n n^T in contact.
         m_e, b_e, k_e: target impedance diagonals [kg], [N s/m], [N/m] (fix U of Eq. 51).
-        gate_receding: pause catching learning while the object recedes without contact.
+        gate_receding: pause learning while the object recedes without contact.
         net: network structure.
     """
 
@@ -250,7 +251,7 @@ def make_online_learner(
         )(inputs.x_e, inputs.xd_e)
         de_df_act = de_dx * config.dt**2 + de_dxd * config.dt  # Eqs. 54-58
         learning = inside
-        if config.task == "catching" and config.gate_receding:
+        if config.gate_receding:
             receding = jnp.dot(x_r, xd_r) > 0
             learning = learning & ~(receding & ~inputs.in_contact)
         cotangent = jnp.where(learning, de_df_act, 0.0).astype(f_o.dtype)

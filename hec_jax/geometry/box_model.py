@@ -1,0 +1,109 @@
+"""The known box: corners, edges, faces, projection and visibility (pure JAX).
+
+Object frame: origin at the box centre, axes along the edges; a pose maps object points to the
+camera frame, ``X_cam = R X_obj + t`` (camera frame x right, y down, z forward). Corner, edge and
+face numbering follow ``synthetic.CUBE_CORNERS_UNIT``, ``CUBE_EDGE_FAMILIES`` and ``CUBE_FACES``.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from hec_jax.geometry.camera import project_to_pixels
+from hec_jax.geometry.synthetic import CUBE_CORNERS_UNIT, CUBE_EDGE_FAMILIES, CUBE_FACES
+
+# (12, 2) corner indices of the 12 edges, family by family (x, y, z), and their family (12,).
+EDGES = np.array([e for fam in CUBE_EDGE_FAMILIES for e in fam], dtype=np.int32)
+EDGE_FAMILY = np.repeat(np.arange(3, dtype=np.int32), 4)
+# (6, 4) corner indices of the faces (cyclic), (6, 3) outward normals in the object frame.
+FACES = np.array([f for f, _ in CUBE_FACES], dtype=np.int32)
+FACE_NORMALS = np.array([n for _, n in CUBE_FACES], dtype=float)
+
+
+def _face_orientation() -> np.ndarray:
+    """+1 where the cyclic corner order of a face turns counter-clockwise about its outward normal."""
+    c = CUBE_CORNERS_UNIT[FACES]
+    turn = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 1])
+    return np.sign(np.sum(turn * FACE_NORMALS, axis=-1))
+
+
+FACE_ORIENTATION = _face_orientation()
+# (12, 2) the two faces adjacent to each edge.
+EDGE_FACES = np.array(
+    [[f for f in range(6) if a in FACES[f] and b in FACES[f]] for a, b in EDGES], dtype=np.int32
+)
+
+
+class Pose(NamedTuple):
+    """Rigid pose of the box in the camera frame (a pytree).
+
+    Attributes:
+        rotation: (..., 3, 3) R, object axes in the camera frame.
+        translation: (..., 3) t, box centre in the camera frame [m].
+    """
+
+    rotation: Array
+    translation: Array
+
+
+def box_corners(size) -> Array:
+    """(8, 3) corners of a cube of edge ``size`` [m] in the object frame."""
+    return jnp.asarray(CUBE_CORNERS_UNIT) * size
+
+
+def corners_camera(pose: Pose, size) -> Array:
+    """(..., 8, 3) corners in the camera frame [m]."""
+    c = box_corners(size)
+    return jnp.einsum("...ij,nj->...ni", pose.rotation, c) + pose.translation[..., None, :]
+
+
+def project_corners(pose: Pose, size, intrinsics: Array) -> Array:
+    """(..., 8, 2) pixel coordinates [px] of the corners (pinhole convention of ``intrinsics``)."""
+    return project_to_pixels(corners_camera(pose, size), intrinsics)
+
+
+def face_visibility(pose: Pose, size) -> Array:
+    """(..., 6) bool: face turned towards the camera (outward normal . face centre < 0)."""
+    corners = corners_camera(pose, size)
+    centres = jnp.mean(corners[..., FACES, :], axis=-2)  # (..., 6, 3)
+    normals = jnp.einsum("...ij,fj->...fi", pose.rotation, jnp.asarray(FACE_NORMALS))
+    return jnp.sum(normals * centres, axis=-1) < 0
+
+
+def image_face_visibility(pixels: Array) -> tuple[Array, Array]:
+    """Visibility of the faces from the image alone: (..., 6) bool and (..., 6) image areas [px^2].
+
+    A face is turned towards the camera iff its projected corner polygon keeps the turning sense
+    it has about its outward normal (x right, y down: a face seen from the front with its corners
+    counter-clockwise about the normal is clockwise in the image, i.e. of negative shoelace area).
+    Needs only the labelled corner pixels (..., 8, 2), no pose.
+    """
+    p = pixels[..., FACES, :]  # (..., 6, 4, 2)
+    q = jnp.roll(p, -1, axis=-2)
+    shoelace = 0.5 * jnp.sum(p[..., 0] * q[..., 1] - p[..., 1] * q[..., 0], axis=-1)
+    orient = jnp.asarray(FACE_ORIENTATION).reshape((1,) * (shoelace.ndim - 1) + (6,))
+    signed = -shoelace * orient
+    return signed > 0, jnp.maximum(signed, 0.0)
+
+
+def edge_visibility(face_visible: Array) -> Array:
+    """(..., 12) bool: an edge of a convex box is visible iff one of its two faces is."""
+    return jnp.any(face_visible[..., EDGE_FACES], axis=-1)
+
+
+def corner_visibility(face_visible: Array) -> Array:
+    """(..., 8) bool: a corner is visible iff one of its faces is."""
+    member = np.zeros((6, 8), bool)
+    for f in range(6):
+        member[f, FACES[f]] = True
+    member = jnp.asarray(member).reshape((1,) * (face_visible.ndim - 1) + (6, 8))
+    return jnp.any(face_visible[..., :, None] & member, axis=-2)
+
+
+def project_edges(pose: Pose, size, intrinsics: Array) -> Array:
+    """(..., 12, 2, 2) pixel end points [px] of the 12 edges."""
+    return project_corners(pose, size, intrinsics)[..., EDGES, :]

@@ -1,0 +1,207 @@
+"""Line segments and the box's image region from camera frames (OpenCV, at the NumPy boundary).
+
+Pixel convention: OpenCV puts pixel centres at integer coordinates, the intrinsics of the eye put
+the image on [0, W] x [0, H] (centre W/2, H/2, pixel centres at k + 1/2). Every coordinate leaving
+this module is in the intrinsics' convention (OpenCV coordinates + 0.5).
+
+Detectors (``benchmarks/eye_pipeline.py`` measures them against the projected true edges):
+
+* ``lsd``: ``cv2.createLineSegmentDetector`` (LSD, sub-pixel by construction), the default;
+* ``hough``: ``cv2.Canny`` + ``cv2.HoughLinesP`` (integer end points), for comparison.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+PIXEL_OFFSET = 0.5  # OpenCV pixel centre (integer) -> intrinsics convention (k + 1/2)
+_LSD = None
+
+
+def check_frames(frames) -> np.ndarray:
+    """Validate a (T, H, W, 3) uint8 RGB sequence; raises ValueError with the reason."""
+    if not isinstance(frames, np.ndarray):
+        frames = np.asarray(frames)
+    if frames.dtype != np.uint8:
+        raise ValueError(f"frames must be uint8 RGB, got dtype {frames.dtype}")
+    if frames.ndim != 4 or frames.shape[-1] != 3:
+        raise ValueError(f"frames must have shape (T, H, W, 3), got {frames.shape}")
+    if frames.shape[0] == 0 or frames.shape[1] < 8 or frames.shape[2] < 8:
+        raise ValueError(f"frames must hold at least one image of 8x8 px, got {frames.shape}")
+    return frames
+
+
+def to_gray(frame: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 RGB -> (H, W) uint8 luminance."""
+    return cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+
+
+def _lsd():
+    global _LSD
+    if _LSD is None:
+        _LSD = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
+    return _LSD
+
+
+def clip_roi(roi, width: int, height: int):
+    """Integer (x0, y0, x1, y1) clipped to the image, or None if empty."""
+    x0, y0, x1, y1 = (
+        int(np.floor(roi[0])),
+        int(np.floor(roi[1])),
+        int(np.ceil(roi[2])),
+        int(np.ceil(roi[3])),
+    )
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return None
+    return x0, y0, x1, y1
+
+
+def detect_segments(
+    gray: np.ndarray, roi=None, method: str = "lsd", min_length: float = 5.0
+) -> np.ndarray:
+    """Line segments (N, 2, 2) [px, intrinsics convention] in ``gray`` (optionally inside a ROI).
+
+    ``roi`` = (x0, y0, x1, y1) in pixels; segments shorter than ``min_length`` [px] are dropped.
+    """
+    h, w = gray.shape
+    box = (0, 0, w, h) if roi is None else clip_roi(roi, w, h)
+    if box is None:
+        return np.zeros((0, 2, 2))
+    x0, y0, x1, y1 = box
+    patch = np.ascontiguousarray(gray[y0:y1, x0:x1])
+    if method == "lsd":
+        lines = _lsd().detect(patch)[0]
+    elif method == "hough":
+        edges = cv2.Canny(patch, 40, 120)
+        lines = cv2.HoughLinesP(
+            edges, 1, np.pi / 360, threshold=8, minLineLength=int(min_length), maxLineGap=2
+        )
+    else:
+        raise ValueError(f"method must be 'lsd' or 'hough', got {method!r}")
+    if lines is None:
+        return np.zeros((0, 2, 2))
+    seg = np.asarray(lines, dtype=np.float64).reshape(-1, 2, 2)
+    seg += np.array([x0, y0]) + PIXEL_OFFSET
+    length = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=-1)
+    return seg[length >= min_length]
+
+
+def pad_segments(segments: np.ndarray, max_segments: int) -> tuple[np.ndarray, np.ndarray]:
+    """Keep the ``max_segments`` longest segments, zero-pad: ((M, 2, 2), (M,) bool mask)."""
+    out = np.zeros((max_segments, 2, 2))
+    mask = np.zeros(max_segments, bool)
+    if len(segments):
+        length = np.linalg.norm(segments[:, 1] - segments[:, 0], axis=-1)
+        keep = np.argsort(-length)[:max_segments]
+        out[: len(keep)] = segments[keep]
+        mask[: len(keep)] = True
+    return out, mask
+
+
+def background_model(frames: np.ndarray, samples: int = 25) -> np.ndarray:
+    """Per-pixel median (H, W) uint8 gray of up to ``samples`` evenly spaced frames.
+
+    Valid as a background only for a static camera and an object that moves; a static object is
+    part of it (then :func:`foreground_region` finds nothing and the caller searches the full image).
+    """
+    idx = np.unique(np.linspace(0, len(frames) - 1, min(samples, len(frames))).astype(int))
+    return np.median(np.stack([to_gray(frames[i]) for i in idx]), axis=0).astype(np.uint8)
+
+
+def foreground_regions(
+    gray: np.ndarray, background: np.ndarray, threshold: int = 20, open_px: int = 5, count: int = 3
+) -> list[tuple[tuple[int, int, int, int], float]]:
+    """Bounding boxes (x0, y0, x1, y1) and areas [px^2] of the ``count`` largest moving blobs.
+
+    Where the object was in the background image, the difference shows a blob too (a "ghost");
+    the caller tries each blob.
+    """
+    diff = cv2.absdiff(gray, background)
+    mask = (diff > threshold).astype(np.uint8)
+    mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((open_px, open_px), np.uint8))
+    n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA])
+    out = []
+    for b in order[:count]:
+        x, y, w, h, area = stats[b]
+        if area >= 16:
+            out.append(((int(x), int(y), int(x + w), int(y + h)), float(area)))
+    return out
+
+
+def foreground_region(
+    gray: np.ndarray, background: np.ndarray, threshold: int = 20, open_px: int = 5
+) -> tuple[tuple[int, int, int, int], float] | None:
+    """Bounding box (x0, y0, x1, y1) and area [px^2] of the largest moving blob, or None.
+
+    Difference to the background, thresholded, opened with an ``open_px`` square (removes thin
+    things such as a rod or a string), largest connected component.
+    """
+    diff = cv2.absdiff(gray, background)
+    mask = (diff > threshold).astype(np.uint8)
+    mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((open_px, open_px), np.uint8))
+    n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    if n <= 1:
+        return None
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    x, y, w, h, area = stats[best]
+    if area < 16:
+        return None
+    return (int(x), int(y), int(x + w), int(y + h)), float(area)
+
+
+def edge_points(
+    gray: np.ndarray,
+    edges_px: np.ndarray,
+    usable: np.ndarray,
+    spacing: float = 2.0,
+    search: float = 2.5,
+    step: float = 0.25,
+    end_margin: float = 3.0,
+    min_step: float = 6.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel edge points along predicted model edges ("moving edges").
+
+    For every usable edge (``edges_px`` (E, 2, 2) [px, intrinsics convention], ``usable`` (E,))
+    points every ``spacing`` px (``end_margin`` px from the corners) search along the edge normal
+    within +-``search`` px for the strongest intensity step of the smoothed image, located to
+    sub-pixel precision by a parabola through the derivative peak. Steps weaker than ``min_step``
+    [grey levels / px] are dropped. Returns (points (N, 2) [px], edge index (N,)).
+    """
+    img = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), 0.8)
+    offs = np.arange(-search, search + 1e-9, step)
+    pts, ids, normals = [], [], []
+    for e in np.flatnonzero(usable):
+        a, b = edges_px[e]
+        d = b - a
+        length = float(np.hypot(*d))
+        if length < 2 * end_margin + spacing:
+            continue
+        u = d / length
+        ts = np.arange(end_margin, length - end_margin + 1e-9, spacing)
+        pts.append(a + ts[:, None] * u)
+        ids.append(np.full(len(ts), e))
+        normals.append(np.tile([-u[1], u[0]], (len(ts), 1)))
+    if not pts:
+        return np.zeros((0, 2)), np.zeros(0, int)
+    pts, ids, normals = np.concatenate(pts), np.concatenate(ids), np.concatenate(normals)
+    samp = pts[:, None, :] + offs[None, :, None] * normals[:, None, :] - PIXEL_OFFSET
+    vals = cv2.remap(
+        img,
+        samp[..., 0].astype(np.float32),
+        samp[..., 1].astype(np.float32),
+        cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    deriv = np.abs(vals[:, 2:] - vals[:, :-2]) / (2 * step)  # at offs[1:-1]
+    i = np.argmax(deriv[:, 1:-1], axis=1) + 1
+    rows = np.arange(len(i))
+    y0, y1, y2 = deriv[rows, i - 1], deriv[rows, i], deriv[rows, i + 1]
+    den = y0 - 2 * y1 + y2
+    delta = np.where(den < 0, 0.5 * (y0 - y2) / np.where(den < 0, den, -1.0), 0.0)
+    offset = offs[1:-1][i] + np.clip(delta, -0.5, 0.5) * step
+    keep = y1 >= min_step
+    found = pts + offset[:, None] * normals
+    return found[keep], ids[keep]

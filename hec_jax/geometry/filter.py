@@ -1,0 +1,82 @@
+"""Constant-acceleration Kalman filter for the box centre (pure JAX; ``init`` / ``update`` pair).
+
+State x = (p, v, a) (9,) in the camera frame [m, m/s, m/s^2]; motion model: white jerk of spectral
+density ``jerk_psd`` [m^2/s^5] per axis (the discretised Wiener-process-acceleration model, Bar-Shalom,
+Li & Kirubarajan, Sec. 6.3.3). Measurement: the refined position p with a full 3x3 covariance R
+(from the pose fit, so that the weak depth direction is trusted less).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jax import Array
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Static parameters of the filter.
+
+    Attributes:
+        dt: frame interval [s].
+        jerk_psd: spectral density of the white jerk [m^2/s^5].
+        init_std: initial standard deviations of (p, v, a) [m, m/s, m/s^2].
+    """
+
+    dt: float
+    jerk_psd: float = 50.0
+    init_std: tuple[float, float, float] = (0.05, 2.0, 20.0)
+
+
+class FilterState(NamedTuple):
+    """Attributes: mean (9,) = (p, v, a); cov (9, 9)."""
+
+    mean: Array
+    cov: Array
+
+
+def transition(config: FilterConfig) -> tuple[Array, Array]:
+    """(F, Q) (9, 9) of one frame interval."""
+    dt, q = config.dt, config.jerk_psd
+    f1 = jnp.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
+    q1 = q * jnp.array(
+        [
+            [dt**5 / 20, dt**4 / 8, dt**3 / 6],
+            [dt**4 / 8, dt**3 / 3, dt**2 / 2],
+            [dt**3 / 6, dt**2 / 2, dt],
+        ]
+    )
+    eye = jnp.eye(3)
+    return jnp.kron(f1, eye), jnp.kron(q1, eye)
+
+
+def init(config: FilterConfig, position: Array) -> FilterState:
+    """State at the first measurement: p measured, v = a = 0 with wide uncertainty."""
+    mean = jnp.concatenate([position, jnp.zeros(6, position.dtype)])
+    std = jnp.repeat(jnp.asarray(config.init_std, position.dtype), 3)
+    return FilterState(mean, jnp.diag(std * std))
+
+
+def predict(config: FilterConfig, state: FilterState) -> FilterState:
+    f, q = transition(config)
+    return FilterState(f @ state.mean, f @ state.cov @ f.T + q)
+
+
+def correct(state: FilterState, position: Array, cov: Array, use: Array) -> FilterState:
+    """Measurement update with position (3,) and covariance (3, 3); skipped where ``use`` is False."""
+    h = jnp.concatenate([jnp.eye(3), jnp.zeros((3, 6))], axis=1)
+    s = h @ state.cov @ h.T + cov
+    gain = jnp.linalg.solve(s, h @ state.cov).T  # P H^T S^-1 (S symmetric)
+    mean = state.mean + gain @ (position - h @ state.mean)
+    ikh = jnp.eye(9) - gain @ h
+    new_cov = ikh @ state.cov @ ikh.T + gain @ cov @ gain.T  # Joseph form
+    return FilterState(jnp.where(use, mean, state.mean), jnp.where(use, new_cov, state.cov))
+
+
+def update(
+    config: FilterConfig, state: FilterState, position: Array, cov: Array, use: Array
+) -> FilterState:
+    """Predict one frame ahead, then correct with the measurement (if ``use``)."""
+    return correct(predict(config, state), position, cov, use)

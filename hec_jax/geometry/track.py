@@ -1,0 +1,588 @@
+"""Tracking the known box through camera frames: segments -> model edges -> pose -> state.
+
+Per frame (``track_box``):
+
+1. predict the pose (Kalman filter for the centre, constant angular velocity for the rotation);
+2. detect line segments (LSD) in a window around the predicted box (:mod:`detect`, NumPy/OpenCV);
+3. associate segments with the visible projected model edges (direction and distance gates,
+   shrinking over rounds) and refine the 6-DOF pose by robust Levenberg-Marquardt on the
+   point-to-model-edge distances of the segment end points (:mod:`refine`, JAX);
+4. check the fit (coverage of the visible model edges by segments, residual, families seen); a
+   good fit updates the constant-acceleration filter (:mod:`filter`), a bad one is skipped;
+   after ``lost_after`` bad frames in a row the box is searched again from scratch.
+
+Initialisation (first frame, after loss): moving-blob window from a background model (per-pixel
+median of the sequence) or the whole image, LSD, and a multi-start of the same association +
+refinement from a fixed set of rotations, the best coverage winning.
+
+Steps 3-4 and the filter are one jitted function; only detection runs outside JAX.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from hec_jax.geometry import detect
+from hec_jax.geometry import filter as kf
+from hec_jax.geometry.box_model import (
+    EDGE_FACES,
+    EDGE_FAMILY,
+    Pose,
+    edge_visibility,
+    face_visibility,
+    image_face_visibility,
+    project_corners,
+    project_edges,
+)
+from hec_jax.geometry.camera import check_intrinsics
+from hec_jax.geometry.refine import (
+    edge_residuals,
+    levenberg_marquardt,
+    refine_edges,
+    so3_exp,
+    so3_log,
+)
+from hec_jax.geometry.synthetic import random_rotation
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """Static parameters of the tracker (hashable).
+
+    Attributes:
+        max_segments: segments kept per frame (longest first) [-].
+        gates_px: association distance gates of the refinement rounds [px].
+        gate_deg: association angle gate [deg].
+        iters: LM iterations per round.
+        huber_px: Huber threshold of the edge residuals [px].
+        min_edge_px: model edges shorter than this in the image are not used [px].
+        min_coverage: fraction of the visible model edge length that segments must explain.
+        max_rms_px: largest RMS edge residual of a valid fit [px].
+        roi_margin: detection window around the predicted box, in box image sizes [-].
+        lost_after: bad frames in a row before a new search from scratch.
+        init_starts: rotations tried by the search from scratch.
+        sigma_floor_px: floor of the per-pixel residual standard deviation for the filter [px].
+        filter: the constant-acceleration filter's parameters (dt set from fps).
+    """
+
+    max_segments: int = 48
+    max_points: int = 256
+    gates_px: tuple[float, ...] = (16.0, 6.0, 2.5, 1.5)
+    gate_deg: float = 12.0
+    iters: int = 6
+    huber_px: float = 0.5
+    min_edge_px: float = 4.0
+    min_coverage: float = 0.45
+    max_rms_px: float = 1.0
+    roi_margin: float = 0.6
+    lost_after: int = 3
+    init_starts: int = 96
+    sigma_floor_px: float = 0.1
+    jerk_psd: float = 50.0
+    rotation_prior_deg: float = 0.5
+    min_separation_px: float = 2.0
+    search_px: float = 1.5
+    init_gates: tuple[float, ...] = (0.35, 0.15, 0.06)  # in box image sizes, then gates_px
+    seed: int = field(default=0)
+
+
+class Association(NamedTuple):
+    """Segments clipped to their model edges. Attributes: endpoints (M, 2, 2) [px], edge_ids (M,),
+    weights (M,) [px] (overlap length, 0 = unassigned), coverage (fraction of visible edge length),
+    families (number of edge families with an assigned segment)."""
+
+    endpoints: Array
+    edge_ids: Array
+    weights: Array
+    coverage: Array
+    families: Array
+
+
+def associate(
+    pose: Pose,
+    segments: Array,
+    mask: Array,
+    size,
+    intrinsics: Array,
+    gate_px,
+    gate_cos,
+    min_edge_px,
+) -> Association:
+    """Each segment to the nearest visible model edge within the gates (pure JAX)."""
+    edges = project_edges(pose, size, intrinsics)  # (12, 2, 2)
+    a = edges[:, 0]
+    d = edges[:, 1] - a
+    length = jnp.sqrt(jnp.sum(d * d, -1) + 1e-12)  # (12,)
+    u = d / length[:, None]
+    n = jnp.stack([-u[:, 1], u[:, 0]], -1)
+    vis = edge_visibility(face_visibility(pose, size)) & (length > min_edge_px)
+    rel = segments[:, None, :, :] - a[None, :, None, :]  # (M, 12, 2, 2)
+    dist = jnp.einsum("mepk,ek->mep", rel, n)
+    along = jnp.einsum("mepk,ek->mep", rel, u) / length[None, :, None]
+    sd = segments[:, 1] - segments[:, 0]
+    slen = jnp.sqrt(jnp.sum(sd * sd, -1) + 1e-12)
+    cos = jnp.abs(jnp.einsum("mk,ek->me", sd / slen[:, None], u))
+    lo, hi = jnp.min(along, -1), jnp.max(along, -1)
+    overlap = jnp.clip(jnp.minimum(hi, 1.0) - jnp.maximum(lo, 0.0), 0.0, None)  # edge fraction
+    ok = (
+        vis[None, :]
+        & mask[:, None]
+        & (jnp.max(jnp.abs(dist), -1) < gate_px)
+        & (cos > gate_cos)
+        & (overlap * length[None, :] > 2.0)
+    )
+    score = jnp.where(ok, jnp.mean(jnp.abs(dist), -1), jnp.inf)
+    best = jnp.argmin(score, axis=1)  # (M,)
+    assigned = jnp.isfinite(jnp.min(score, axis=1))
+    take = lambda x: jnp.take_along_axis(x, best[:, None], 1)[:, 0]  # noqa: E731
+    # Clip the end points to the edge's extent (moving along the segment).
+    al = jnp.take_along_axis(along, best[:, None, None], 1)[:, 0]  # (M, 2)
+    span = al[:, 1] - al[:, 0]
+    safe = jnp.where(jnp.abs(span) > 1e-9, span, 1.0)
+    s = (jnp.clip(al, 0.0, 1.0) - al[:, :1]) / safe[:, None]
+    s = jnp.where(jnp.abs(span)[:, None] > 1e-9, s, jnp.array([0.0, 1.0]))
+    clipped = segments[:, :1, :] + s[..., None] * sd[:, None, :]
+    ov = take(overlap)
+    weight = jnp.where(assigned, ov * length[best], 0.0)
+    per_edge = jnp.zeros(12, weight.dtype).at[best].add(jnp.where(assigned, ov, 0.0))
+    vis_len = jnp.where(vis, length, 0.0)
+    coverage = jnp.sum(vis_len * jnp.minimum(per_edge, 1.0)) / jnp.maximum(jnp.sum(vis_len), 1e-9)
+    fam_w = jnp.zeros(3, weight.dtype).at[jnp.asarray(EDGE_FAMILY)[best]].add(weight)
+    return Association(clipped, best, weight, coverage, jnp.sum(fam_w > 0))
+
+
+class Located(NamedTuple):
+    """One frame's pose fit. Attributes: pose, association, rms [px], valid, position_cov (3, 3)."""
+
+    pose: Pose
+    association: Association
+    rms: Array
+    valid: Array
+    position_cov: Array
+
+
+def locate(
+    pose: Pose,
+    segments: Array,
+    mask: Array,
+    size,
+    intrinsics: Array,
+    gates: Array,
+    cfg: TrackConfig,
+) -> Located:
+    """Association and robust LM, one round per gate in ``gates`` (px), then the validity check."""
+    gate_cos = jnp.cos(jnp.deg2rad(cfg.gate_deg))
+    for i in range(gates.shape[0]):
+        asc = associate(pose, segments, mask, size, intrinsics, gates[i], gate_cos, cfg.min_edge_px)
+        fit = refine_edges(
+            pose,
+            asc.endpoints,
+            asc.edge_ids,
+            asc.weights,
+            size,
+            intrinsics,
+            cfg.iters,
+            cfg.huber_px,
+        )
+        pose = fit.pose
+    asc = associate(pose, segments, mask, size, intrinsics, gates[-1], gate_cos, cfg.min_edge_px)
+    used = jnp.sum(asc.weights > 0)
+    finite = jnp.all(jnp.isfinite(pose.rotation)) & jnp.all(jnp.isfinite(pose.translation))
+    valid = (
+        finite
+        & (asc.coverage >= cfg.min_coverage)
+        & (fit.rms <= cfg.max_rms_px)
+        & (asc.families >= 2)
+        & (used >= 4)
+        & (pose.translation[2] > 0)
+    )
+    # Covariance of the centre: s^2 (J^T W J)^-1, s^2 the weighted residual variance (floored).
+    w_mean = jnp.sum(asc.weights) / jnp.maximum(used, 1)
+    s2 = jnp.maximum(fit.cost / jnp.maximum(2 * used - 6, 1), cfg.sigma_floor_px**2 * w_mean)
+    info = fit.information + 1e-9 * jnp.eye(6)
+    cov = s2 * jnp.linalg.inv(info)[3:, 3:]
+    cov = 0.5 * (cov + cov.T)
+    return Located(pose, asc, fit.rms, valid, cov)
+
+
+class Refined(NamedTuple):
+    """Final fit of a frame on the edge points. Attributes: pose, rms [px], points used, valid,
+    position_cov (3, 3) [m^2], filter_state."""
+
+    pose: Pose
+    rms: Array
+    used: Array
+    valid: Array
+    position_cov: Array
+    filter_state: kf.FilterState
+
+
+def refine_points(
+    pose: Pose,
+    points: Array,
+    ids: Array,
+    weights: Array,
+    size,
+    intrinsics: Array,
+    cfg: TrackConfig,
+    prior_rotation: Array,
+    prior_weight: Array,
+):
+    """Robust LM on the distances of edge points (P, 2) to their model edges, with a Gaussian prior
+    on the rotation (the constant-angular-velocity prediction, std ``rotation_prior_deg``; weight 0
+    or 1). Returns (fit, used, position covariance)."""
+    ends = jnp.stack([points, points], axis=1)
+    scale = cfg.sigma_floor_px / jnp.deg2rad(cfg.rotation_prior_deg)  # [px / rad]
+
+    def residual(p):
+        r = edge_residuals(p, ends, ids, size, intrinsics)
+        prior = so3_log(p.rotation @ prior_rotation.T) * scale
+        return jnp.concatenate([r, prior])
+
+    w = jnp.concatenate([jnp.repeat(0.5 * weights, 2), jnp.full(3, 1.0) * prior_weight])
+    fit = levenberg_marquardt(residual, pose, w, cfg.iters, cfg.huber_px)
+    used = jnp.sum(weights > 0)
+    s2 = jnp.maximum(fit.cost / jnp.maximum(2 * used - 6, 1), cfg.sigma_floor_px**2)
+    # covariance of the centre given the rotation (the marginal one is inflated by the weakly
+    # observed tilt of a nearly frontal face, which barely moves the centre)
+    cov = s2 * jnp.linalg.inv(fit.information[3:, 3:] + 1e-9 * jnp.eye(3))
+    return fit, used, 0.5 * (cov + cov.T)
+
+
+def _make_locate(cfg: TrackConfig):
+    def run(prior, segments, mask, size, intrinsics):
+        return locate(prior, segments, mask, size, intrinsics, jnp.asarray(cfg.gates_px), cfg)
+
+    return jax.jit(run)
+
+
+def _make_finish(cfg: TrackConfig, fcfg: kf.FilterConfig):
+    def finish(
+        state, pose, points, ids, weights, size, intrinsics, lsd_valid, first, prior_rot, prior_w
+    ):
+        fit, used, cov = refine_points(
+            pose, points, ids, weights, size, intrinsics, cfg, prior_rot, prior_w
+        )
+        p = fit.pose
+        finite = jnp.all(jnp.isfinite(p.rotation)) & jnp.all(jnp.isfinite(p.translation))
+        valid = (
+            lsd_valid & finite & (fit.rms <= cfg.max_rms_px) & (used >= 12) & (p.translation[2] > 0)
+        )
+        pred = kf.predict(fcfg, state)
+        fresh = kf.init(fcfg, p.translation)
+        upd = kf.correct(pred, p.translation, cov, valid)
+        new = jax.tree.map(lambda a, b: jnp.where(first & valid, a, b), fresh, upd)
+        return Refined(p, fit.rms, used, valid, cov, new)
+
+    return jax.jit(finish)
+
+
+def usable_edges(pose: Pose, size, intrinsics, cfg: TrackConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (12, 2, 2) [px], usable (12,)): visible, long enough, and not within ``min_separation_px`` of another
+    visible edge of the same family (a face seen nearly edge-on cannot be resolved)."""
+    e = np.asarray(project_edges(pose, size, intrinsics))
+    vis_f = np.asarray(face_visibility(pose, size))
+    vis = np.asarray(edge_visibility(vis_f))
+    d = e[:, 1] - e[:, 0]
+    length = np.linalg.norm(d, axis=-1)
+    usable = vis & (length > cfg.min_edge_px)
+    # of two same-family edges closer than the separation (a face seen nearly edge-on) keep the
+    # one bordering the larger visible face: it carries the image step.
+    _, area = image_face_visibility(project_corners(pose, size, intrinsics))
+    border = np.max(np.where(vis_f[EDGE_FACES], np.asarray(area)[EDGE_FACES], 0.0), axis=1)
+    mid = e.mean(1)
+    keep = usable.copy()
+    for i in np.flatnonzero(usable):
+        n = np.array([-d[i, 1], d[i, 0]]) / length[i]
+        for j in np.flatnonzero(vis):
+            close = abs((mid[j] - e[i, 0]) @ n) < cfg.min_separation_px
+            if j != i and EDGE_FAMILY[j] == EDGE_FAMILY[i] and close and border[j] >= border[i]:
+                keep[i] = False
+    usable = keep
+    return e, usable
+
+
+def _make_search(cfg: TrackConfig):
+    rots = jnp.asarray(random_rotation(np.random.default_rng(cfg.seed), (cfg.init_starts,)))
+
+    def search(centre_px, edge_px, segments, mask, size, intrinsics):
+        """Multi-start search from a window centre [px] and box image size [px]."""
+        f = intrinsics[0, 0]
+        depth = f * size / edge_px
+        ray = jnp.linalg.solve(intrinsics, jnp.concatenate([centre_px, jnp.ones(1)]))
+        t0 = ray * depth
+        gates = jnp.concatenate(
+            [jnp.asarray(cfg.init_gates) * edge_px, jnp.asarray(cfg.gates_px)]
+        ).astype(segments.dtype)
+
+        def one(r):
+            return locate(Pose(r, t0), segments, mask, size, intrinsics, gates, cfg)
+
+        locs = jax.vmap(one)(rots)
+        score = locs.association.coverage - 0.1 * locs.rms + 1.0 * locs.valid
+        best = jnp.argmax(score)
+        return jax.tree.map(lambda x: x[best], locs)
+
+    return jax.jit(search)
+
+
+class BoxTrack(NamedTuple):
+    """Output of :func:`track_box` (NumPy arrays; camera frame of the intrinsics: x right, y down,
+    z forward).
+
+    Attributes:
+        position: (T, 3) box centre [m] (filtered).
+        rotation: (T, 3, 3) rotation of the box from frame 0 to frame t (Phi of Eq. 1).
+        velocity: (T, 3) [m/s], acceleration: (T, 3) [m/s^2] of the centre (filtered).
+        valid: (T,) bool, the frame's own measurement passed the checks.
+        pose_rotation: (T, 3, 3) R_cam_box of the frame's fit (object axes chosen at frame 0).
+        measured_position: (T, 3) the frame's fitted centre before filtering [m].
+        coverage: (T,) fraction of the visible model edge length explained by segments.
+        rms_px: (T,) RMS edge residual [px].
+        segments: (T, M, 2, 2) the associated segments (clipped) [px], NaN where unassigned.
+        edge_ids: (T, M) their model edge ids (-1 where unassigned).
+        timing_ms: dict of mean per-frame times [ms] (detection, estimation, total).
+    """
+
+    position: np.ndarray
+    rotation: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    valid: np.ndarray
+    pose_rotation: np.ndarray
+    measured_position: np.ndarray
+    coverage: np.ndarray
+    rms_px: np.ndarray
+    segments: np.ndarray
+    edge_ids: np.ndarray
+    timing_ms: dict
+
+
+def cube_symmetries() -> np.ndarray:
+    """(24, 3, 3) proper rotations mapping the cube onto itself (signed permutation matrices)."""
+    out = []
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        for signs in np.ndindex(2, 2, 2):
+            m = np.zeros((3, 3))
+            m[np.arange(3), perm] = 1.0 - 2.0 * np.asarray(signs)
+            if np.linalg.det(m) > 0:
+                out.append(m)
+    return np.stack(out)
+
+
+_SYMMETRIES = cube_symmetries()
+
+
+def snap_to_symmetry(rotation: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """The labelling ``rotation @ S`` (S a cube symmetry) closest to ``reference``."""
+    cands = rotation[None] @ _SYMMETRIES
+    traces = np.einsum("nij,ij->n", cands, reference)
+    return cands[int(np.argmax(traces))]
+
+
+_CACHE: dict = {}
+
+
+def _compiled(cfg: TrackConfig, fps: float):
+    key = (cfg, float(fps))
+    if key not in _CACHE:
+        fcfg = kf.FilterConfig(dt=1.0 / fps, jerk_psd=cfg.jerk_psd)
+        _CACHE[key] = (_make_locate(cfg), _make_finish(cfg, fcfg), _make_search(cfg), fcfg)
+    return _CACHE[key]
+
+
+def _window(corners_px: np.ndarray, margin: float):
+    lo, hi = corners_px.min(0), corners_px.max(0)
+    pad = margin * max(hi[0] - lo[0], hi[1] - lo[1]) + 4.0
+    return (lo[0] - pad, lo[1] - pad, hi[0] + pad, hi[1] + pad)
+
+
+def track_box(
+    frames, intrinsics, size: float, fps: float, config: TrackConfig = TrackConfig()
+) -> BoxTrack:
+    """Pose, velocity and acceleration of a single box of edge ``size`` [m] in a camera sequence.
+
+    Args:
+        frames: (T, H, W, 3) uint8 RGB.
+        intrinsics: (3, 3) camera matrix (pinhole, image on [0, W] x [0, H]).
+        size: the cube's edge [m].
+        fps: frame rate [1/s].
+
+    Returns:
+        :class:`BoxTrack`. Frames where the box was not found have ``valid == False`` (their state
+        is the filter's prediction, or zeros before the first detection).
+
+    Raises:
+        ValueError: frames not (T, H, W, 3) uint8, bad intrinsics, size or fps.
+    """
+    frames = detect.check_frames(frames)
+    check_intrinsics(intrinsics)
+    if not (np.isfinite(size) and size > 0):
+        raise ValueError(f"size must be finite and positive, got {size}")
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be finite and positive, got {fps}")
+    cfg = config
+    locate_jit, finish, search, fcfg = _compiled(cfg, fps)
+    k = jnp.asarray(intrinsics, jnp.float64)
+    t_n, h, w, _ = frames.shape
+    m = cfg.max_segments
+    out = {
+        "position": np.zeros((t_n, 3)),
+        "velocity": np.zeros((t_n, 3)),
+        "acceleration": np.zeros((t_n, 3)),
+        "valid": np.zeros(t_n, bool),
+        "pose_rotation": np.tile(np.eye(3), (t_n, 1, 1)),
+        "measured_position": np.full((t_n, 3), np.nan),
+        "coverage": np.zeros(t_n),
+        "rms_px": np.full(t_n, np.nan),
+        "segments": np.full((t_n, m, 2, 2), np.nan),
+        "edge_ids": np.full((t_n, m), -1),
+    }
+    background = detect.background_model(frames) if t_n >= 5 else None
+    state = kf.init(fcfg, jnp.zeros(3))
+    started = False  # filter initialised
+    misses = cfg.lost_after  # start in the "lost" state
+    rot_prev, rot_prev2 = None, None
+    r0 = None
+    t_det = t_est = 0.0
+    for i in range(t_n):
+        t0 = time.perf_counter()
+        gray = detect.to_gray(frames[i])
+        prior = None
+        if misses < cfg.lost_after and rot_prev is not None:
+            omega = np.zeros(3)
+            if rot_prev2 is not None:
+                omega = np.asarray(so3_log(jnp.asarray(rot_prev @ rot_prev2.T)))
+            pred = kf.predict(fcfg, state)
+            rot = np.asarray(so3_exp(jnp.asarray(omega))) @ rot_prev
+            prior = Pose(jnp.asarray(rot), pred.mean[:3])
+            corners = np.asarray(project_corners(prior, size, k))
+            seg = detect.detect_segments(gray, _window(corners, cfg.roi_margin))
+        else:
+            regions = []
+            if background is not None:
+                regions = detect.foreground_regions(gray, background)
+            candidates = []
+            for (x0, y0, x1, y1), area in regions:
+                pad = 0.2 * max(x1 - x0, y1 - y0) + 4
+                seg = detect.detect_segments(gray, (x0 - pad, y0 - pad, x1 + pad, y1 + pad))
+                centre = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
+                candidates.append((seg, centre, np.sqrt(area) / 1.2))
+            if not regions:
+                seg = detect.detect_segments(gray)
+                if len(seg):
+                    pts = seg.reshape(-1, 2)
+                    edge_px = max(0.5 * float(np.ptp(pts, 0).max()), 8.0)
+                    candidates.append((seg, np.median(pts, 0), edge_px))
+        segp, mask = detect.pad_segments(seg, m)
+        t1 = time.perf_counter()
+        if prior is None:
+            loc, best = None, -np.inf
+            for seg_c, centre, edge_px in candidates:
+                segp_c, mask_c = detect.pad_segments(seg_c, m)
+                if not mask_c.any():
+                    continue
+                cand = search(
+                    jnp.asarray(centre),
+                    jnp.asarray(float(edge_px)),
+                    jnp.asarray(segp_c),
+                    jnp.asarray(mask_c),
+                    jnp.asarray(float(size)),
+                    k,
+                )
+                score = float(cand.association.coverage) - 0.1 * float(cand.rms)
+                if bool(cand.valid) and score > best:
+                    loc, best, segp, mask = cand, score, segp_c, mask_c
+            if loc is not None:
+                # refine and filter from the found pose like a tracked frame; keep the object
+                # axes of frame 0 (the search may return any of the box's 24 symmetric labellings)
+                rot = np.asarray(loc.pose.rotation)
+                if rot_prev is not None:
+                    rot = snap_to_symmetry(rot, rot_prev)
+                prior = Pose(jnp.asarray(rot), loc.pose.translation)
+                started = False  # restart the filter
+        if prior is not None:
+            loc = locate_jit(
+                prior, jnp.asarray(segp), jnp.asarray(mask), jnp.asarray(float(size)), k
+            )
+            edges_px, usable = usable_edges(loc.pose, size, k, cfg)
+            pts, ids = detect.edge_points(gray, edges_px, usable, search=cfg.search_px)
+            n_pts = min(len(pts), cfg.max_points)
+            sel = np.linspace(0, len(pts) - 1, n_pts).astype(int) if n_pts else np.zeros(0, int)
+            pp, pi, pw = (
+                np.zeros((cfg.max_points, 2)),
+                np.zeros(cfg.max_points, int),
+                np.zeros(cfg.max_points),
+            )
+            pp[:n_pts], pi[:n_pts], pw[:n_pts] = pts[sel], ids[sel], 1.0
+            ref = finish(
+                state,
+                loc.pose,
+                jnp.asarray(pp),
+                jnp.asarray(pi),
+                jnp.asarray(pw),
+                jnp.asarray(float(size)),
+                k,
+                loc.valid,
+                not started,
+                prior.rotation,
+                jnp.asarray(1.0 if (started and rot_prev2 is not None) else 0.0),
+            )
+            state = ref.filter_state
+            loc = loc._replace(pose=ref.pose, valid=ref.valid, rms=ref.rms)
+            if bool(loc.valid):
+                started = True
+        ok = loc is not None and bool(loc.valid)
+        if not ok and started:
+            state = kf.predict(fcfg, state)
+        t2 = time.perf_counter()
+        t_det += t1 - t0
+        t_est += t2 - t1
+        if ok:
+            misses = 0
+            rot = np.asarray(loc.pose.rotation)
+            if r0 is None:
+                r0 = rot
+            rot_prev2, rot_prev = rot_prev, rot
+            asc = loc.association
+            wts = np.asarray(asc.weights)
+            segs = np.asarray(asc.endpoints).copy()
+            segs[wts <= 0] = np.nan
+            out["segments"][i] = segs
+            out["edge_ids"][i] = np.where(wts > 0, np.asarray(asc.edge_ids), -1)
+            out["measured_position"][i] = np.asarray(loc.pose.translation)
+            out["coverage"][i] = float(asc.coverage)
+            out["rms_px"][i] = float(loc.rms)
+        else:
+            misses += 1
+            if rot_prev is not None and rot_prev2 is not None and misses < cfg.lost_after:
+                # coast: keep turning at the last angular velocity
+                step_rot = rot_prev @ rot_prev2.T
+                rot_prev2, rot_prev = rot_prev, step_rot @ rot_prev
+            if misses >= cfg.lost_after:
+                rot_prev2 = None
+        out["valid"][i] = ok
+        if started:
+            mean = np.asarray(state.mean)
+            out["position"][i], out["velocity"][i], out["acceleration"][i] = (
+                mean[:3],
+                mean[3:6],
+                mean[6:],
+            )
+        if rot_prev is not None:
+            out["pose_rotation"][i] = rot_prev
+    rotation = np.tile(np.eye(3), (t_n, 1, 1))
+    if r0 is not None:
+        rotation = out["pose_rotation"] @ r0.T
+        first = int(np.argmax(out["valid"]))
+        rotation[:first] = np.eye(3)
+    timing = {"detection_ms": 1e3 * t_det / t_n, "estimation_ms": 1e3 * t_est / t_n}
+    timing["total_ms"] = timing["detection_ms"] + timing["estimation_ms"]
+    return BoxTrack(rotation=rotation, timing_ms=timing, **out)

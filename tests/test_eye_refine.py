@@ -1,0 +1,113 @@
+"""Synthetic tests of the box model, the refinement and the filter (no rendering)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hec_jax.geometry import SceneConfig, make_cube_scenes, rotation_error_deg
+from hec_jax.geometry import filter as kf
+from hec_jax.geometry.box_model import Pose, face_visibility, image_face_visibility, project_corners
+from hec_jax.geometry.refine import so3_exp, so3_log, two_frame_motion
+
+CFG = SceneConfig()
+_two_frame = jax.jit(jax.vmap(two_frame_motion, in_axes=(0, 0, None, None)))
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    return make_cube_scenes(np.random.default_rng(1), 300, CFG, motion="mixed", noise_px=0.5)
+
+
+def _run(scenes):
+    return _two_frame(
+        jnp.asarray(scenes.pixels_before),
+        jnp.asarray(scenes.pixels_after),
+        CFG.edge,
+        jnp.asarray(CFG.intrinsics),
+    )
+
+
+def test_so3_roundtrip():
+    w = np.random.default_rng(0).normal(size=(50, 3))
+    w *= (np.random.default_rng(1).uniform(0, 3.0, 50) / np.linalg.norm(w, axis=-1))[:, None]
+    np.testing.assert_allclose(np.asarray(so3_log(so3_exp(jnp.asarray(w)))), w, atol=1e-9)
+
+
+def test_image_visibility_matches_pose():
+    sc = make_cube_scenes(np.random.default_rng(2), 200, CFG, noise_px=0.0)
+    centre = sc.corners_before.mean(1)
+    # rotation from corners: columns = directions of the x, y, z edge families / edge
+    c = sc.corners_before
+    rot = np.stack([c[:, 4] - c[:, 0], c[:, 2] - c[:, 0], c[:, 1] - c[:, 0]], -1) / CFG.edge
+    pose = Pose(jnp.asarray(rot), jnp.asarray(centre))
+    vis_pose = np.asarray(face_visibility(pose, CFG.edge))
+    vis_img, _ = image_face_visibility(jnp.asarray(sc.pixels_before))
+    np.testing.assert_array_equal(np.asarray(vis_img), vis_pose)
+    np.testing.assert_allclose(
+        np.asarray(project_corners(pose, CFG.edge, jnp.asarray(CFG.intrinsics))),
+        sc.pixels_before,
+        atol=1e-8,
+    )
+
+
+def test_two_frame_exact_without_noise():
+    sc = make_cube_scenes(np.random.default_rng(3), 100, CFG, noise_px=0.0)
+    out = _run(sc)
+    assert np.all(np.asarray(out.valid))
+    assert np.max(rotation_error_deg(np.asarray(out.rotation), sc.rotation)) < 1e-8
+    np.testing.assert_allclose(np.asarray(out.translation), sc.translation, atol=1e-9)
+
+
+def test_two_frame_beats_ippe_by_half(noisy):
+    """Issue 5 target: median rotation error <= 0.5 x OpenCV IPPE_SQUARE on the most frontal face."""
+    cv2 = pytest.importorskip("cv2")
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from eye import _frontal_face, opencv_pnp
+
+    out = _run(noisy)
+    ours = rotation_error_deg(np.asarray(out.rotation), noisy.rotation)
+    ippe = [
+        rotation_error_deg(
+            opencv_pnp(
+                noisy.pixels_before[i],
+                noisy.pixels_after[i],
+                _frontal_face(noisy.corners_before[i]),
+                CFG.intrinsics,
+                CFG.edge,
+            )[0],
+            noisy.rotation[i],
+        )
+        for i in range(len(noisy.pair))
+    ]
+    assert cv2 is not None
+    assert np.median(ours) <= 0.5 * np.median(ippe), (np.median(ours), np.median(ippe))
+
+
+def test_two_frame_grad_finite(noisy):
+    def loss(pb):
+        return jnp.sum(
+            two_frame_motion(
+                pb, jnp.asarray(noisy.pixels_after[0]), CFG.edge, jnp.asarray(CFG.intrinsics)
+            ).translation
+        )
+
+    g = jax.grad(loss)(jnp.asarray(noisy.pixels_before[0]))
+    assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_filter_recovers_constant_acceleration():
+    fc = kf.FilterConfig(dt=1 / 30, jerk_psd=1.0)
+    t = np.arange(60) / 30
+    acc = np.array([1.0, -2.0, 0.5])
+    pos = 0.5 * acc[None] * t[:, None] ** 2 + np.array([0.1, 0.0, 1.0])
+    noise = np.random.default_rng(0).normal(scale=1e-4, size=pos.shape)
+    state = kf.init(fc, jnp.asarray(pos[0] + noise[0]))
+    upd = jax.jit(lambda s, z: kf.update(fc, s, z, 1e-8 * jnp.eye(3), jnp.asarray(True)))
+    for z in pos[1:] + noise[1:]:
+        state = upd(state, jnp.asarray(z))
+    np.testing.assert_allclose(np.asarray(state.mean[6:]), acc, atol=0.2)
+    np.testing.assert_allclose(np.asarray(state.mean[3:6]), acc * t[-1], atol=0.02)

@@ -1,0 +1,115 @@
+"""Tracking on rendered frames of the swinging cube (rendered once per module, 24 frames)."""
+
+import mujoco
+import numpy as np
+import pytest
+
+from hec_jax.geometry import rotation_error_deg
+from hec_jax.geometry.render import render_rollout
+from hec_jax.geometry.track import track_box
+from hec_jax.mjx_scene import SCENE_XML
+
+FPS = 30.0
+EDGE = 0.1
+
+
+def render_swing(angle: float, n_frames: int):
+    m = mujoco.MjModel.from_xml_path(str(SCENE_XML))
+    d = mujoco.MjData(m)
+    d.qpos[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "hinge")]] = angle
+    arm = [
+        m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j)]
+        for j in ("shoulder", "elbow", "wrist")
+    ]
+    return render_rollout(m, d, n_frames, FPS, "eye", "cube", hold_dofs=arm)
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return render_swing(0.5, 24)
+
+
+@pytest.fixture(scope="module")
+def track(seq):
+    return track_box(seq.frames, seq.intrinsics, EDGE, FPS)
+
+
+def test_intrinsics_from_mjcf(seq):
+    f = 240.0 / np.tan(np.deg2rad(45.0) / 2)
+    np.testing.assert_allclose(seq.intrinsics, [[f, 0, 320], [0, f, 240], [0, 0, 1]])
+
+
+def test_tracks_every_frame(seq, track):
+    assert track.valid.mean() >= 0.9
+    err = np.linalg.norm(track.measured_position - seq.position, axis=-1)[track.valid]
+    assert np.median(err) < 0.02  # a coarse sanity bound (2 cm), not the issue's target
+
+
+@pytest.mark.xfail(
+    reason="issue 5 rendered-sequence targets not met yet (6.5 mm, 22 cm/s, 5.8 m/s^2, 5 deg)",
+    strict=True,
+)
+def test_issue_targets(seq, track):
+    v = track.valid
+    rms = lambda a, b: np.sqrt(np.mean(np.sum((a - b) ** 2, -1)[v]))  # noqa: E731
+    phi = seq.rotation @ seq.rotation[0].T
+    assert rms(track.position, seq.position) <= 0.005
+    assert rms(track.velocity, seq.velocity) <= 0.05
+    assert rms(track.acceleration, seq.acceleration) <= 0.5
+    assert np.median(rotation_error_deg(track.rotation, phi)[v]) <= 1.0
+
+
+@pytest.mark.parametrize(
+    "frames, match",
+    [
+        (np.zeros((3, 48, 64, 3), np.float32), "uint8"),
+        (np.zeros((3, 48, 64), np.uint8), "shape"),
+        (np.zeros((0, 48, 64, 3), np.uint8), "at least one"),
+    ],
+)
+def test_bad_frames_raise(frames, match):
+    with pytest.raises(ValueError, match=match):
+        track_box(frames, np.eye(3), EDGE, FPS)
+
+
+def test_bad_arguments_raise(seq):
+    with pytest.raises(ValueError):
+        track_box(seq.frames[:2], np.eye(2), EDGE, FPS)
+    with pytest.raises(ValueError):
+        track_box(seq.frames[:2], seq.intrinsics, -1.0, FPS)
+    with pytest.raises(ValueError):
+        track_box(seq.frames[:2], seq.intrinsics, EDGE, 0.0)
+
+
+def test_no_box_visible_gives_invalid(seq):
+    frames = np.zeros((6, 480, 640, 3), np.uint8)
+    out = track_box(frames, seq.intrinsics, EDGE, FPS)
+    assert not out.valid.any()
+    assert np.all(np.isfinite(out.position))
+
+
+def test_loss_of_track_is_detected_and_recovered(seq):
+    frames = seq.frames.copy()
+    frames[8:12] = 0  # camera blacked out for 4 frames
+    out = track_box(frames, seq.intrinsics, EDGE, FPS)
+    assert not out.valid[8:12].any()
+    assert out.valid[14:].mean() >= 0.8
+    err = np.linalg.norm(out.measured_position - seq.position, axis=-1)[14:][out.valid[14:]]
+    assert np.median(err) < 0.02
+
+
+@pytest.mark.xfail(
+    reason="occlusion recovery not working yet: ~20% of frames valid after the occluder leaves",
+    strict=True,
+)
+def test_partial_occlusion_degrades_gracefully(seq):
+    frames = seq.frames.copy()
+    k = seq.intrinsics
+    for i in range(6, 12):  # grey bar over the left half of the cube (a hand in front)
+        u, v = (k[:2, :2] @ (seq.position[i, :2] / seq.position[i, 2]) + k[:2, 2]).astype(int)
+        frames[i, v - 30 : v + 30, u - 30 : u] = 90
+    out = track_box(frames, seq.intrinsics, EDGE, FPS)
+    assert out.valid[14:].mean() >= 0.8
+    good = out.valid
+    err = np.linalg.norm(out.position - seq.position, axis=-1)[good]
+    assert np.all(np.isfinite(out.position)) and np.median(err) < 0.02
