@@ -26,7 +26,7 @@ case "$cmd" in
   install) install ;;
   main)
     install
-    exec "$VENV/bin/python" benchmarks/eye.py --out "${HEC_OUT:-runs/eye_benchmark}" "$@"
+    exec "$VENV/bin/python" experiments/catching.py --out "${HEC_OUT:-runs/catching}" "$@"
     ;;
   test)
     install

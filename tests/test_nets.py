@@ -200,3 +200,17 @@ def test_short_learning_run_lowers_energy_and_peak_force(learning_run):
     assert np.all(np.diff(peak) < 0)
     assert peak[-1] < 0.5 * frozen_peak
     assert np.all(logs["margins"] > 0)  # strict Eq. 49 at every sample
+
+
+def test_catching_velocity_term_only_before_contact():
+    """Sec. 6.2: relative velocity is reduced before contact, the force controlled after it."""
+    cfg = LearnerConfig(task="catching", mu=0.01, f_desired=2.0)
+    inp = _inputs_2d(True, [-3.0, 1.0])
+    v_tc = jnp.array([-1.0, 0.4])
+    before = nets.task_energy(cfg, inp.x_e, inp.xd_e, inp, v_tc, touched=False)
+    after = nets.task_energy(cfg, inp.x_e, inp.xd_e, inp, v_tc, touched=True)
+    x_r = np.asarray(inp.x_o - inp.x_e)
+    n = x_r / np.linalg.norm(x_r)
+    e_cf = 0.5 * np.sum((-cfg.f_desired * n - np.array([-3.0, 1.0])) ** 2)
+    np.testing.assert_allclose(after, cfg.mu * e_cf, rtol=1e-12)
+    assert before > after

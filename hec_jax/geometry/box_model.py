@@ -107,3 +107,32 @@ def corner_visibility(face_visible: Array) -> Array:
 def project_edges(pose: Pose, size, intrinsics: Array) -> Array:
     """(..., 12, 2, 2) pixel end points [px] of the 12 edges."""
     return project_corners(pose, size, intrinsics)[..., EDGES, :]
+
+
+# ---------------------------------------------------------------------------------------------
+# NumPy twins for the per-frame host code of the tracker (no JAX dispatch; same conventions).
+
+
+def project_corners_np(
+    rotation: np.ndarray, translation: np.ndarray, size, intrinsics
+) -> np.ndarray:
+    """NumPy :func:`project_corners` for one pose: (8, 2) [px]."""
+    c = (CUBE_CORNERS_UNIT * size) @ np.asarray(rotation).T + np.asarray(translation)
+    k = np.asarray(intrinsics)
+    return (c[:, :2] / c[:, 2:3]) @ k[:2, :2].T + k[:2, 2]
+
+
+def face_visibility_np(rotation: np.ndarray, translation: np.ndarray, size) -> np.ndarray:
+    """NumPy :func:`face_visibility` for one pose: (6,) bool."""
+    c = (CUBE_CORNERS_UNIT * size) @ np.asarray(rotation).T + np.asarray(translation)
+    centres = c[FACES].mean(1)
+    normals = FACE_NORMALS @ np.asarray(rotation).T
+    return np.sum(normals * centres, -1) < 0
+
+
+def image_face_area_np(pixels: np.ndarray) -> np.ndarray:
+    """NumPy twin of the areas of :func:`image_face_visibility`: (6,) [px^2] (0 if turned away)."""
+    p = pixels[FACES]
+    q = np.roll(p, -1, axis=-2)
+    shoelace = 0.5 * np.sum(p[..., 0] * q[..., 1] - p[..., 1] * q[..., 0], axis=-1)
+    return np.maximum(-shoelace * FACE_ORIENTATION, 0.0)

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jax import Array
 
@@ -80,3 +81,49 @@ def update(
 ) -> FilterState:
     """Predict one frame ahead, then correct with the measurement (if ``use``)."""
     return correct(predict(config, state), position, cov, use)
+
+
+def filter_sequence(
+    config: FilterConfig, positions: Array, covs: Array, valid: Array
+) -> tuple[FilterState, FilterState]:
+    """Causal pass over a sequence (one ``lax.scan``): (filtered, predicted) states, stacked (T, ...).
+
+    positions (T, 3) [m], covs (T, 3, 3) [m^2], valid (T,) bool. The filter starts at frame 0 from
+    the first valid position with the wide ``init_std``; invalid frames are predictions only.
+    """
+    first = jnp.argmax(valid)
+    state0 = init(config, positions[first])
+    f, q = transition(config)
+    cov_pred0 = state0.cov
+
+    def step(state, x):
+        z, r, use, is_first = x
+        pred = FilterState(f @ state.mean, f @ state.cov @ f.T + q)
+        pred = jax.tree.map(lambda a, b: jnp.where(is_first, a, b), state, pred)
+        new = correct(pred, z, r, use)
+        return new, (new, pred)
+
+    idx = jnp.arange(positions.shape[0])
+    safe_pos = jnp.where(valid[:, None], positions, positions[first])
+    safe_cov = jnp.where(valid[:, None, None], covs, jnp.eye(3))
+    _, (filt, pred) = jax.lax.scan(step, state0, (safe_pos, safe_cov, valid, idx == 0))
+    del cov_pred0
+    return filt, pred
+
+
+def rts_smooth(config: FilterConfig, filtered: FilterState, predicted: FilterState) -> FilterState:
+    """Rauch-Tung-Striebel smoother over the output of :func:`filter_sequence` (offline; (T, ...))."""
+    f, _ = transition(config)
+
+    def step(nxt, x):
+        filt_mean, filt_cov, pred_mean, pred_cov = x
+        gain = jnp.linalg.solve(pred_cov, f @ filt_cov).T  # P_k F^T P_{k+1|k}^-1
+        mean = filt_mean + gain @ (nxt.mean - pred_mean)
+        cov = filt_cov + gain @ (nxt.cov - pred_cov) @ gain.T
+        out = FilterState(mean, 0.5 * (cov + cov.T))
+        return out, out
+
+    last = jax.tree.map(lambda a: a[-1], filtered)
+    xs = (filtered.mean[:-1], filtered.cov[:-1], predicted.mean[1:], predicted.cov[1:])
+    _, smoothed = jax.lax.scan(step, last, xs, reverse=True)
+    return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), smoothed, last)

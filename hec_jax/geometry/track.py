@@ -24,6 +24,7 @@ import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -34,11 +35,13 @@ from hec_jax.geometry import filter as kf
 from hec_jax.geometry.box_model import (
     EDGE_FACES,
     EDGE_FAMILY,
+    EDGES,
     Pose,
     edge_visibility,
     face_visibility,
-    image_face_visibility,
-    project_corners,
+    face_visibility_np,
+    image_face_area_np,
+    project_corners_np,
     project_edges,
 )
 from hec_jax.geometry.camera import check_intrinsics
@@ -46,9 +49,10 @@ from hec_jax.geometry.refine import (
     edge_residuals,
     levenberg_marquardt,
     refine_edges,
-    so3_exp,
+    retract,
     so3_log,
 )
+from hec_jax.geometry.smooth import SmootherConfig, smooth_track
 from hec_jax.geometry.synthetic import random_rotation
 
 
@@ -212,18 +216,6 @@ def locate(
     return Located(pose, asc, fit.rms, valid, cov)
 
 
-class Refined(NamedTuple):
-    """Final fit of a frame on the edge points. Attributes: pose, rms [px], points used, valid,
-    position_cov (3, 3) [m^2], filter_state."""
-
-    pose: Pose
-    rms: Array
-    used: Array
-    valid: Array
-    position_cov: Array
-    filter_state: kf.FilterState
-
-
 def refine_points(
     pose: Pose,
     points: Array,
@@ -237,23 +229,36 @@ def refine_points(
 ):
     """Robust LM on the distances of edge points (P, 2) to their model edges, with a Gaussian prior
     on the rotation (the constant-angular-velocity prediction, std ``rotation_prior_deg``; weight 0
-    or 1). Returns (fit, used, position covariance)."""
+    or 1). Returns (fit, used, position covariance (3, 3) [m^2], information (6, 6)).
+
+    ``information`` is the inverse covariance of the pose increment (dw, dt) [rad, m] from the edge
+    points alone (the prior left out, so that a smoother can use it as an independent
+    measurement): J^T W J / s^2, s^2 the residual variance (floored at ``sigma_floor_px``).
+    """
     ends = jnp.stack([points, points], axis=1)
     scale = cfg.sigma_floor_px / jnp.deg2rad(cfg.rotation_prior_deg)  # [px / rad]
 
-    def residual(p):
-        r = edge_residuals(p, ends, ids, size, intrinsics)
-        prior = so3_log(p.rotation @ prior_rotation.T) * scale
-        return jnp.concatenate([r, prior])
+    def data(p):
+        return edge_residuals(p, ends, ids, size, intrinsics)
 
-    w = jnp.concatenate([jnp.repeat(0.5 * weights, 2), jnp.full(3, 1.0) * prior_weight])
+    def residual(p):
+        prior = so3_log(p.rotation @ prior_rotation.T) * scale
+        return jnp.concatenate([data(p), prior])
+
+    w_data = jnp.repeat(0.5 * weights, 2)
+    w = jnp.concatenate([w_data, jnp.full(3, 1.0) * prior_weight])
     fit = levenberg_marquardt(residual, pose, w, cfg.iters, cfg.huber_px)
     used = jnp.sum(weights > 0)
     s2 = jnp.maximum(fit.cost / jnp.maximum(2 * used - 6, 1), cfg.sigma_floor_px**2)
+    r = data(fit.pose)
+    jac = jax.jacfwd(lambda d: data(retract(fit.pose, d)))(jnp.zeros(6, r.dtype))
+    a = jnp.abs(r)
+    w_irls = w_data * jnp.where(a <= cfg.huber_px, 1.0, cfg.huber_px / jnp.maximum(a, cfg.huber_px))
+    info = jac.T @ (w_irls[:, None] * jac) / s2
     # covariance of the centre given the rotation (the marginal one is inflated by the weakly
     # observed tilt of a nearly frontal face, which barely moves the centre)
     cov = s2 * jnp.linalg.inv(fit.information[3:, 3:] + 1e-9 * jnp.eye(3))
-    return fit, used, 0.5 * (cov + cov.T)
+    return fit, used, 0.5 * (cov + cov.T), 0.5 * (info + info.T)
 
 
 def _make_locate(cfg: TrackConfig):
@@ -263,50 +268,79 @@ def _make_locate(cfg: TrackConfig):
     return jax.jit(run)
 
 
+class Finished(NamedTuple):
+    """Host-bound result of one tracked frame (fetched in one transfer)."""
+
+    rotation: Array
+    translation: Array
+    rms: Array
+    valid: Array
+    information: Array
+    filter_state: kf.FilterState
+    predicted: kf.FilterState
+    asc_endpoints: Array
+    asc_ids: Array
+    asc_weights: Array
+    coverage: Array
+
+
 def _make_finish(cfg: TrackConfig, fcfg: kf.FilterConfig):
-    def finish(
-        state, pose, points, ids, weights, size, intrinsics, lsd_valid, first, prior_rot, prior_w
-    ):
-        fit, used, cov = refine_points(
-            pose, points, ids, weights, size, intrinsics, cfg, prior_rot, prior_w
+    def finish(state, loc, points, ids, weights, size, intrinsics, first, prior_rot, prior_w):
+        fit, used, cov, info = refine_points(
+            loc.pose, points, ids, weights, size, intrinsics, cfg, prior_rot, prior_w
         )
         p = fit.pose
         finite = jnp.all(jnp.isfinite(p.rotation)) & jnp.all(jnp.isfinite(p.translation))
         valid = (
-            lsd_valid & finite & (fit.rms <= cfg.max_rms_px) & (used >= 12) & (p.translation[2] > 0)
+            loc.valid & finite & (fit.rms <= cfg.max_rms_px) & (used >= 12) & (p.translation[2] > 0)
         )
         pred = kf.predict(fcfg, state)
         fresh = kf.init(fcfg, p.translation)
         upd = kf.correct(pred, p.translation, cov, valid)
         new = jax.tree.map(lambda a, b: jnp.where(first & valid, a, b), fresh, upd)
-        return Refined(p, fit.rms, used, valid, cov, new)
+        asc = loc.association
+        return Finished(
+            p.rotation,
+            p.translation,
+            fit.rms,
+            valid,
+            info,
+            new,
+            kf.predict(fcfg, new),
+            asc.endpoints,
+            asc.edge_ids,
+            asc.weights,
+            asc.coverage,
+        )
 
     return jax.jit(finish)
 
 
-def usable_edges(pose: Pose, size, intrinsics, cfg: TrackConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(edges (12, 2, 2) [px], usable (12,)): visible, long enough, and not within ``min_separation_px`` of another
-    visible edge of the same family (a face seen nearly edge-on cannot be resolved)."""
-    e = np.asarray(project_edges(pose, size, intrinsics))
-    vis_f = np.asarray(face_visibility(pose, size))
-    vis = np.asarray(edge_visibility(vis_f))
+def usable_edges(
+    rotation: np.ndarray, translation: np.ndarray, size, intrinsics, cfg: TrackConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """(edges (12, 2, 2) [px], usable (12,)) of a pose (NumPy): visible, long enough, and not
+    within ``min_separation_px`` of another visible edge of the same family (a face seen nearly
+    edge-on cannot be resolved)."""
+    corners = project_corners_np(rotation, translation, size, intrinsics)
+    e = corners[EDGES]
+    vis_f = face_visibility_np(rotation, translation, size)
+    vis = np.any(vis_f[EDGE_FACES], axis=-1)
     d = e[:, 1] - e[:, 0]
     length = np.linalg.norm(d, axis=-1)
     usable = vis & (length > cfg.min_edge_px)
     # of two same-family edges closer than the separation (a face seen nearly edge-on) keep the
     # one bordering the larger visible face: it carries the image step.
-    _, area = image_face_visibility(project_corners(pose, size, intrinsics))
-    border = np.max(np.where(vis_f[EDGE_FACES], np.asarray(area)[EDGE_FACES], 0.0), axis=1)
+    area = image_face_area_np(corners)
+    border = np.max(np.where(vis_f[EDGE_FACES], area[EDGE_FACES], 0.0), axis=1)
     mid = e.mean(1)
-    keep = usable.copy()
-    for i in np.flatnonzero(usable):
-        n = np.array([-d[i, 1], d[i, 0]]) / length[i]
-        for j in np.flatnonzero(vis):
-            close = abs((mid[j] - e[i, 0]) @ n) < cfg.min_separation_px
-            if j != i and EDGE_FAMILY[j] == EDGE_FAMILY[i] and close and border[j] >= border[i]:
-                keep[i] = False
-    usable = keep
-    return e, usable
+    n = np.stack([-d[:, 1], d[:, 0]], -1) / np.maximum(length, 1e-9)[:, None]
+    dist = np.abs(np.einsum("ijk,ik->ij", mid[None, :, :] - e[:, None, 0, :], n))  # (i, j)
+    same = EDGE_FAMILY[:, None] == EDGE_FAMILY[None, :]
+    other = ~np.eye(12, dtype=bool)
+    beaten = same & other & vis[None, :] & (dist < cfg.min_separation_px)
+    beaten &= border[None, :] >= border[:, None]
+    return e, usable & ~np.any(beaten, axis=1)
 
 
 def _make_search(cfg: TrackConfig):
@@ -337,18 +371,28 @@ class BoxTrack(NamedTuple):
     """Output of :func:`track_box` (NumPy arrays; camera frame of the intrinsics: x right, y down,
     z forward).
 
+    The main fields are offline estimates (:mod:`smooth`: the whole sequence, rotations on SO(3)
+    with an angular-acceleration prior, centres by a constant-acceleration RTS smoother); the
+    ``causal_*`` fields are what was known at each frame (per-frame fit, forward Kalman filter).
+
     Attributes:
-        position: (T, 3) box centre [m] (filtered).
-        rotation: (T, 3, 3) rotation of the box from frame 0 to frame t (Phi of Eq. 1).
-        velocity: (T, 3) [m/s], acceleration: (T, 3) [m/s^2] of the centre (filtered).
+        position: (T, 3) box centre [m] (smoothed).
+        rotation: (T, 3, 3) rotation of the box from the first valid frame to frame t (Phi of
+            Eq. 1, smoothed).
+        velocity: (T, 3) [m/s], acceleration: (T, 3) [m/s^2] of the centre (smoothed).
         valid: (T,) bool, the frame's own measurement passed the checks.
-        pose_rotation: (T, 3, 3) R_cam_box of the frame's fit (object axes chosen at frame 0).
-        measured_position: (T, 3) the frame's fitted centre before filtering [m].
+        pose_rotation: (T, 3, 3) R_cam_box, smoothed (object axes chosen at the first valid frame).
+        causal_position, causal_velocity, causal_acceleration: (T, 3) forward filter
+            [m, m/s, m/s^2] (zeros before the first valid frame).
+        causal_rotation: (T, 3, 3) Phi from the per-frame fits (coasted where not valid).
+        measured_position: (T, 3) the frame's fitted centre [m] (NaN where not valid).
+        information: (T, 6, 6) information of the frame's fit over (dw, dt) [1/rad^2, 1/m^2].
         coverage: (T,) fraction of the visible model edge length explained by segments.
         rms_px: (T,) RMS edge residual [px].
         segments: (T, M, 2, 2) the associated segments (clipped) [px], NaN where unassigned.
         edge_ids: (T, M) their model edge ids (-1 where unassigned).
-        timing_ms: dict of mean per-frame times [ms] (detection, estimation, total).
+        timing_ms: dict of mean per-frame times [ms]: detection, estimation (incl. the causal
+            filter), total = detection + estimation, smoothing (offline pass, per frame).
     """
 
     position: np.ndarray
@@ -357,7 +401,12 @@ class BoxTrack(NamedTuple):
     acceleration: np.ndarray
     valid: np.ndarray
     pose_rotation: np.ndarray
+    causal_position: np.ndarray
+    causal_velocity: np.ndarray
+    causal_acceleration: np.ndarray
+    causal_rotation: np.ndarray
     measured_position: np.ndarray
+    information: np.ndarray
     coverage: np.ndarray
     rms_px: np.ndarray
     segments: np.ndarray
@@ -404,8 +453,21 @@ def _window(corners_px: np.ndarray, margin: float):
     return (lo[0] - pad, lo[1] - pad, hi[0] + pad, hi[1] + pad)
 
 
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(w, np.float64).reshape(3, 1))[0]
+
+
+def _log(rotation: np.ndarray) -> np.ndarray:
+    return cv2.Rodrigues(np.asarray(rotation, np.float64))[0].ravel()
+
+
 def track_box(
-    frames, intrinsics, size: float, fps: float, config: TrackConfig = TrackConfig()
+    frames,
+    intrinsics,
+    size: float,
+    fps: float,
+    config: TrackConfig = TrackConfig(),
+    smoother: SmootherConfig | None = None,
 ) -> BoxTrack:
     """Pose, velocity and acceleration of a single box of edge ``size`` [m] in a camera sequence.
 
@@ -414,10 +476,14 @@ def track_box(
         intrinsics: (3, 3) camera matrix (pinhole, image on [0, W] x [0, H]).
         size: the cube's edge [m].
         fps: frame rate [1/s].
+        config: tracker parameters.
+        smoother: offline smoother parameters (default: ``SmootherConfig`` with the tracker's
+            ``jerk_psd``).
 
     Returns:
         :class:`BoxTrack`. Frames where the box was not found have ``valid == False`` (their state
-        is the filter's prediction, or zeros before the first detection).
+        is the filter's prediction / the smoother's interpolation, or zeros before the first
+        detection for the causal filter).
 
     Raises:
         ValueError: frames not (T, H, W, 3) uint8, bad intrinsics, size or fps.
@@ -429,41 +495,42 @@ def track_box(
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"fps must be finite and positive, got {fps}")
     cfg = config
+    scfg = smoother if smoother is not None else SmootherConfig(jerk_psd=cfg.jerk_psd)
     locate_jit, finish, search, fcfg = _compiled(cfg, fps)
-    k = jnp.asarray(intrinsics, jnp.float64)
+    f_np, q_np = (np.asarray(x) for x in kf.transition(fcfg))
+    k = np.asarray(intrinsics, np.float64)
+    size_a = np.float64(size)
     t_n, h, w, _ = frames.shape
     m = cfg.max_segments
     out = {
-        "position": np.zeros((t_n, 3)),
-        "velocity": np.zeros((t_n, 3)),
-        "acceleration": np.zeros((t_n, 3)),
+        "causal_position": np.zeros((t_n, 3)),
+        "causal_velocity": np.zeros((t_n, 3)),
+        "causal_acceleration": np.zeros((t_n, 3)),
         "valid": np.zeros(t_n, bool),
         "pose_rotation": np.tile(np.eye(3), (t_n, 1, 1)),
         "measured_position": np.full((t_n, 3), np.nan),
+        "information": np.zeros((t_n, 6, 6)),
         "coverage": np.zeros(t_n),
         "rms_px": np.full(t_n, np.nan),
         "segments": np.full((t_n, m, 2, 2), np.nan),
         "edge_ids": np.full((t_n, m), -1),
     }
     background = detect.background_model(frames) if t_n >= 5 else None
-    state = kf.init(fcfg, jnp.zeros(3))
+    state = jax.device_get(kf.init(fcfg, jnp.zeros(3)))
+    predicted = state
     started = False  # filter initialised
     misses = cfg.lost_after  # start in the "lost" state
     rot_prev, rot_prev2 = None, None
-    r0 = None
     t_det = t_est = 0.0
     for i in range(t_n):
         t0 = time.perf_counter()
         gray = detect.to_gray(frames[i])
         prior = None
         if misses < cfg.lost_after and rot_prev is not None:
-            omega = np.zeros(3)
-            if rot_prev2 is not None:
-                omega = np.asarray(so3_log(jnp.asarray(rot_prev @ rot_prev2.T)))
-            pred = kf.predict(fcfg, state)
-            rot = np.asarray(so3_exp(jnp.asarray(omega))) @ rot_prev
-            prior = Pose(jnp.asarray(rot), pred.mean[:3])
-            corners = np.asarray(project_corners(prior, size, k))
+            omega = _log(rot_prev @ rot_prev2.T) if rot_prev2 is not None else np.zeros(3)
+            rot = _rodrigues(omega) @ rot_prev
+            prior = (rot, np.asarray(predicted.mean[:3]))
+            corners = project_corners_np(*prior, size, k)
             seg = detect.detect_segments(gray, _window(corners, cfg.roi_margin))
         else:
             regions = []
@@ -483,19 +550,15 @@ def track_box(
                     candidates.append((seg, np.median(pts, 0), edge_px))
         segp, mask = detect.pad_segments(seg, m)
         t1 = time.perf_counter()
+        fin = None
         if prior is None:
             loc, best = None, -np.inf
             for seg_c, centre, edge_px in candidates:
                 segp_c, mask_c = detect.pad_segments(seg_c, m)
                 if not mask_c.any():
                     continue
-                cand = search(
-                    jnp.asarray(centre),
-                    jnp.asarray(float(edge_px)),
-                    jnp.asarray(segp_c),
-                    jnp.asarray(mask_c),
-                    jnp.asarray(float(size)),
-                    k,
+                cand = jax.device_get(
+                    search(centre, np.float64(edge_px), segp_c, mask_c, size_a, k)
                 )
                 score = float(cand.association.coverage) - 0.1 * float(cand.rms)
                 if bool(cand.valid) and score > best:
@@ -506,60 +569,58 @@ def track_box(
                 rot = np.asarray(loc.pose.rotation)
                 if rot_prev is not None:
                     rot = snap_to_symmetry(rot, rot_prev)
-                prior = Pose(jnp.asarray(rot), loc.pose.translation)
+                prior = (rot, np.asarray(loc.pose.translation))
                 started = False  # restart the filter
         if prior is not None:
-            loc = locate_jit(
-                prior, jnp.asarray(segp), jnp.asarray(mask), jnp.asarray(float(size)), k
-            )
-            edges_px, usable = usable_edges(loc.pose, size, k, cfg)
+            loc = locate_jit(Pose(*prior), segp, mask, size_a, k)
+            pose_np = jax.device_get(loc.pose)
+            edges_px, usable = usable_edges(pose_np.rotation, pose_np.translation, size, k, cfg)
             pts, ids = detect.edge_points(gray, edges_px, usable, search=cfg.search_px)
             n_pts = min(len(pts), cfg.max_points)
             sel = np.linspace(0, len(pts) - 1, n_pts).astype(int) if n_pts else np.zeros(0, int)
             pp, pi, pw = (
                 np.zeros((cfg.max_points, 2)),
-                np.zeros(cfg.max_points, int),
+                np.zeros(cfg.max_points, np.int32),
                 np.zeros(cfg.max_points),
             )
             pp[:n_pts], pi[:n_pts], pw[:n_pts] = pts[sel], ids[sel], 1.0
-            ref = finish(
-                state,
-                loc.pose,
-                jnp.asarray(pp),
-                jnp.asarray(pi),
-                jnp.asarray(pw),
-                jnp.asarray(float(size)),
-                k,
-                loc.valid,
-                not started,
-                prior.rotation,
-                jnp.asarray(1.0 if (started and rot_prev2 is not None) else 0.0),
+            use_prior = started and rot_prev2 is not None
+            fin = jax.device_get(
+                finish(
+                    state,
+                    loc,
+                    pp,
+                    pi,
+                    pw,
+                    size_a,
+                    k,
+                    np.bool_(not started),
+                    np.asarray(prior[0], np.float64),
+                    np.float64(1.0 if use_prior else 0.0),
+                )
             )
-            state = ref.filter_state
-            loc = loc._replace(pose=ref.pose, valid=ref.valid, rms=ref.rms)
-            if bool(loc.valid):
+            state, predicted = fin.filter_state, fin.predicted
+            if bool(fin.valid):
                 started = True
-        ok = loc is not None and bool(loc.valid)
+        ok = fin is not None and bool(fin.valid)
         if not ok and started:
-            state = kf.predict(fcfg, state)
+            state = kf.FilterState(f_np @ state.mean, f_np @ state.cov @ f_np.T + q_np)
+            predicted = kf.FilterState(f_np @ state.mean, f_np @ state.cov @ f_np.T + q_np)
         t2 = time.perf_counter()
         t_det += t1 - t0
         t_est += t2 - t1
         if ok:
             misses = 0
-            rot = np.asarray(loc.pose.rotation)
-            if r0 is None:
-                r0 = rot
-            rot_prev2, rot_prev = rot_prev, rot
-            asc = loc.association
-            wts = np.asarray(asc.weights)
-            segs = np.asarray(asc.endpoints).copy()
+            rot_prev2, rot_prev = rot_prev, np.asarray(fin.rotation)
+            wts = fin.asc_weights
+            segs = np.array(fin.asc_endpoints)
             segs[wts <= 0] = np.nan
             out["segments"][i] = segs
-            out["edge_ids"][i] = np.where(wts > 0, np.asarray(asc.edge_ids), -1)
-            out["measured_position"][i] = np.asarray(loc.pose.translation)
-            out["coverage"][i] = float(asc.coverage)
-            out["rms_px"][i] = float(loc.rms)
+            out["edge_ids"][i] = np.where(wts > 0, fin.asc_ids, -1)
+            out["measured_position"][i] = fin.translation
+            out["information"][i] = fin.information
+            out["coverage"][i] = float(fin.coverage)
+            out["rms_px"][i] = float(fin.rms)
         else:
             misses += 1
             if rot_prev is not None and rot_prev2 is not None and misses < cfg.lost_after:
@@ -571,18 +632,40 @@ def track_box(
         out["valid"][i] = ok
         if started:
             mean = np.asarray(state.mean)
-            out["position"][i], out["velocity"][i], out["acceleration"][i] = (
-                mean[:3],
-                mean[3:6],
-                mean[6:],
-            )
+            out["causal_position"][i] = mean[:3]
+            out["causal_velocity"][i] = mean[3:6]
+            out["causal_acceleration"][i] = mean[6:]
         if rot_prev is not None:
             out["pose_rotation"][i] = rot_prev
-    rotation = np.tile(np.eye(3), (t_n, 1, 1))
-    if r0 is not None:
-        rotation = out["pose_rotation"] @ r0.T
-        first = int(np.argmax(out["valid"]))
-        rotation[:first] = np.eye(3)
-    timing = {"detection_ms": 1e3 * t_det / t_n, "estimation_ms": 1e3 * t_est / t_n}
+    valid = out["valid"]
+    causal_pose_rotation = out["pose_rotation"].copy()
+    if valid.any():
+        first = int(np.argmax(valid))
+        causal_pose_rotation[:first] = causal_pose_rotation[first]
+    t3 = time.perf_counter()
+    sm = smooth_track(
+        causal_pose_rotation, out["measured_position"], out["information"], valid, 1.0 / fps, scfg
+    )
+    t_smooth = time.perf_counter() - t3
+
+    def relative(pose_rotation):
+        if not valid.any():
+            return np.tile(np.eye(3), (t_n, 1, 1))
+        return pose_rotation @ pose_rotation[int(np.argmax(valid))].T
+
+    out["pose_rotation"] = sm.rotation if valid.any() else out["pose_rotation"]
+    timing = {
+        "detection_ms": 1e3 * t_det / t_n,
+        "estimation_ms": 1e3 * t_est / t_n,
+        "smoothing_ms": 1e3 * t_smooth / t_n,
+    }
     timing["total_ms"] = timing["detection_ms"] + timing["estimation_ms"]
-    return BoxTrack(rotation=rotation, timing_ms=timing, **out)
+    return BoxTrack(
+        position=sm.position,
+        rotation=relative(sm.rotation),
+        velocity=sm.velocity,
+        acceleration=sm.acceleration,
+        causal_rotation=relative(causal_pose_rotation),
+        timing_ms=timing,
+        **out,
+    )
