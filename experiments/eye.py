@@ -96,6 +96,10 @@ def main(argv=None) -> dict:
         true_velocity=seq.velocity,
         true_acceleration=seq.acceleration,
         true_rotation=phi,
+        causal_position=tr.causal_position,
+        causal_velocity=tr.causal_velocity,
+        causal_acceleration=tr.causal_acceleration,
+        causal_rotation=tr.causal_rotation,
     )
     import matplotlib
 
@@ -103,23 +107,29 @@ def main(argv=None) -> dict:
     import matplotlib.pyplot as plt
 
     fig, axes = plt.subplots(3, 3, figsize=(12, 8), sharex=True)
-    for row, (name, est, true) in enumerate(
+    for row, (name, est, causal, true) in enumerate(
         [
-            ("position [m]", tr.position, seq.position),
-            ("velocity [m/s]", tr.velocity, seq.velocity),
-            ("acceleration [m/s^2]", tr.acceleration, seq.acceleration),
+            ("position [m]", tr.position, tr.causal_position, seq.position),
+            ("velocity [m/s]", tr.velocity, tr.causal_velocity, seq.velocity),
+            ("acceleration [m/s^2]", tr.acceleration, tr.causal_acceleration, seq.acceleration),
         ]
     ):
         for ax_i in range(3):
             ax = axes[row, ax_i]
             ax.plot(seq.times, true[:, ax_i], "k-", label="true")
-            ax.plot(seq.times, np.where(tr.valid, est[:, ax_i], np.nan), "r.", ms=3, label="eye")
+            ax.plot(
+                seq.times, np.where(tr.valid, causal[:, ax_i], np.nan), "b.", ms=2, label="causal"
+            )
+            ax.plot(seq.times, est[:, ax_i], "r-", lw=1, label="smoothed")
             ax.set_title(f"{name} {'xyz'[ax_i]} (camera)")
     axes[0, 0].legend()
     save_figure(fig, folder / "state.png")
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(6, 3))
-    ax.plot(seq.times, np.where(tr.valid, rot_err, np.nan), ".")
+    causal_err = rotation_error_deg(tr.causal_rotation, phi)
+    ax.plot(seq.times, np.where(tr.valid, causal_err, np.nan), "b.", ms=3, label="causal")
+    ax.plot(seq.times, np.where(tr.valid, rot_err, np.nan), "r.", ms=3, label="smoothed")
+    ax.legend()
     ax.set_xlabel("t [s]")
     ax.set_ylabel("rotation error [deg]")
     save_figure(fig, folder / "rotation_error.png")

@@ -50,6 +50,7 @@ class TaskConfig:
     x_home: tuple[float, float] = (0.65, 0.60)  # X_d: hand equilibrium (x, z) [m]
     swing_steps: int = 1500  # samples per swing [1 ms]
     swings: int = 10
+    final_steps: int = 0  # a continuous run after the swings (weights carried over), 0: none
     contact_threshold: float = 1e-3  # |F_int| above this counts as contact [N]
     controller: ControllerConfig = field(default_factory=ControllerConfig)
 
@@ -154,22 +155,29 @@ def make_experiment(config: TaskConfig, pendulum: PendulumConditions):
     """Builds ``run(keys, switches) -> logs``: swings x steps logs for a batch of seeds.
 
     ``keys``: (n_seeds, 2) PRNG keys (network initialisation); ``switches``: a :class:`Switches`.
-    Returns a dict of arrays with leading axes (n_seeds, swings, swing_steps).
+    Returns a dict of arrays with leading axes (n_seeds, swings, swing_steps); with
+    ``config.final_steps > 0`` also ``final``: the logs (n_seeds, 1, final_steps) of one continuous
+    run from the same release after the swings, with the learner's state carried over.
     """
     loop = build_loop(config, pendulum)
-    f_ext = jnp.zeros((config.swing_steps, 3))
 
-    def one_swing(ls, sw):
+    def one_swing(ls, sw, steps):
         d0 = loop.initial_data()
         ps0 = loop.initial_policy_state(d0, ls, sw)
+        f_ext = jnp.zeros((steps, 3))
         (_, (_, ls, _)), traj = rollout(loop.mx, loop.ids, d0, loop.policy, ps0, f_ext, pendulum)
         ls = ls._replace(was_inside=jnp.asarray(False))
-        log = dict(traj.aux, f_contact=traj.f_contact, t=traj.t)
+        log = dict(traj.aux, f_contact=traj.f_contact, t=traj.t, qpos=traj.qpos, qvel=traj.qvel)
         return ls, log
 
     def run_one_seed(key, sw):
         ls0 = loop.learner_init(key, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
-        _, logs = jax.lax.scan(lambda ls, _: one_swing(ls, sw), ls0, None, length=config.swings)
+        ls, logs = jax.lax.scan(
+            lambda ls, _: one_swing(ls, sw, config.swing_steps), ls0, None, length=config.swings
+        )
+        if config.final_steps > 0:
+            _, final = one_swing(ls, sw, config.final_steps)
+            logs = dict(logs, final=jax.tree_util.tree_map(lambda x: x[None], final))
         return logs
 
     return jax.jit(jax.vmap(run_one_seed, in_axes=(0, None)))

@@ -112,6 +112,7 @@ def _smooth(rotations, positions, information, valid, dt, cfg: SmootherConfig):
 
 
 _JIT: dict = {}
+PAD = 32  # sequence lengths are padded to a multiple of this (one compilation per size)
 
 
 def smooth_track(
@@ -138,10 +139,18 @@ def smooth_track(
     key = (cfg, float(dt))
     if key not in _JIT:
         _JIT[key] = jax.jit(lambda r, p, i, v: _smooth(r, p, i, v, dt, cfg))
+    # pad to a multiple of PAD frames (unmeasured: only the priors act there) to share compilations
+    n = -(-t_n // PAD) * PAD
+    pad = n - t_n
+
+    def ext(x, fill):
+        x = np.asarray(x, np.float64)
+        return np.concatenate([x, np.repeat(fill, pad, axis=0)]) if pad else x
+
     out = _JIT[key](
-        np.asarray(rotations, np.float64),
-        np.asarray(positions, np.float64),
-        np.asarray(information, np.float64),
-        valid,
+        ext(rotations, np.asarray(rotations)[-1:]),
+        ext(positions, np.zeros((1, 3))),
+        ext(information, np.zeros((1, 6, 6))),
+        np.concatenate([valid, np.zeros(pad, bool)]),
     )
-    return SmoothedTrack(*(np.asarray(x) for x in out))
+    return SmoothedTrack(*(np.asarray(x)[:t_n] for x in out))

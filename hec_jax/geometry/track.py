@@ -72,6 +72,8 @@ class TrackConfig:
         roi_margin: detection window around the predicted box, in box image sizes [-].
         lost_after: bad frames in a row before a new search from scratch.
         init_starts: rotations tried by the search from scratch.
+        max_speed: after a loss, a new detection must lie within max_speed x the time since the
+            last valid frame (+ half the box) of its centre [m/s].
         sigma_floor_px: floor of the per-pixel residual standard deviation for the filter [px].
         filter: the constant-acceleration filter's parameters (dt set from fps).
     """
@@ -88,6 +90,7 @@ class TrackConfig:
     roi_margin: float = 0.6
     lost_after: int = 3
     init_starts: int = 96
+    max_speed: float = 5.0
     sigma_floor_px: float = 0.1
     jerk_psd: float = 50.0
     rotation_prior_deg: float = 0.5
@@ -522,88 +525,123 @@ def track_box(
     misses = cfg.lost_after  # start in the "lost" state
     rot_prev, rot_prev2 = None, None
     t_det = t_est = 0.0
+    last_good = None  # (frame, centre [m]) of the last valid frame
+    rot_anchor = None  # labelling reference for re-acquisitions
+
+    def acquire(gray, gate):
+        """Search from scratch: (prior (R, t), segments, mask) of the best valid candidate, or None.
+        ``gate`` = (predicted centre (3,) [m], radius [m]) rejects far candidates (or None)."""
+        regions = detect.foreground_regions(gray, background) if background is not None else []
+        candidates = []
+        for (x0, y0, x1, y1), area in regions:
+            pad = 0.2 * max(x1 - x0, y1 - y0) + 4
+            seg = detect.detect_segments(gray, (x0 - pad, y0 - pad, x1 + pad, y1 + pad))
+            centre = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
+            candidates.append((seg, centre, np.sqrt(area) / 1.2))
+        if not regions:
+            seg = detect.detect_segments(gray)
+            if len(seg):
+                pts = seg.reshape(-1, 2)
+                edge_px = max(0.5 * float(np.ptp(pts, 0).max()), 8.0)
+                candidates.append((seg, np.median(pts, 0), edge_px))
+        found, best = None, -np.inf
+        for seg_c, centre, edge_px in candidates:
+            segp_c, mask_c = detect.pad_segments(seg_c, m)
+            if not mask_c.any():
+                continue
+            cand = jax.device_get(search(centre, np.float64(edge_px), segp_c, mask_c, size_a, k))
+            score = float(cand.association.coverage) - 0.1 * float(cand.rms)
+            t_c = np.asarray(cand.pose.translation)
+            near = gate is None or np.linalg.norm(t_c - gate[0]) <= gate[1]
+            if bool(cand.valid) and near and score > best:
+                found, best = (cand, segp_c, mask_c), score
+        if found is None:
+            return None
+        cand, segp_c, mask_c = found
+        # keep the object axes of frame 0 (the search may return any of the 24 labellings): the
+        # labelling nearest to the last tracked rotation (coasted over short gaps)
+        rot = np.asarray(cand.pose.rotation)
+        if rot_anchor is not None:
+            rot = snap_to_symmetry(rot, rot_anchor)
+        return (rot, np.asarray(cand.pose.translation)), segp_c, mask_c
+
+    def fit(prior, segp, mask, gray, first):
+        loc = locate_jit(Pose(*prior), segp, mask, size_a, k)
+        pose_np = jax.device_get(loc.pose)
+        edges_px, usable = usable_edges(pose_np.rotation, pose_np.translation, size, k, cfg)
+        pts, ids = detect.edge_points(gray, edges_px, usable, search=cfg.search_px)
+        n_pts = min(len(pts), cfg.max_points)
+        sel = np.linspace(0, len(pts) - 1, n_pts).astype(int) if n_pts else np.zeros(0, int)
+        pp, pi, pw = (
+            np.zeros((cfg.max_points, 2)),
+            np.zeros(cfg.max_points, np.int32),
+            np.zeros(cfg.max_points),
+        )
+        pp[:n_pts], pi[:n_pts], pw[:n_pts] = pts[sel], ids[sel], 1.0
+        use_prior = (not first) and rot_prev2 is not None
+        return jax.device_get(
+            finish(
+                state,
+                loc,
+                pp,
+                pi,
+                pw,
+                size_a,
+                k,
+                np.bool_(first),
+                np.asarray(prior[0], np.float64),
+                np.float64(1.0 if use_prior else 0.0),
+            )
+        )
+
     for i in range(t_n):
         t0 = time.perf_counter()
         gray = detect.to_gray(frames[i])
-        prior = None
-        if misses < cfg.lost_after and rot_prev is not None:
+        fin = None
+        tracking = misses < cfg.lost_after and rot_prev is not None
+        if tracking:
             omega = _log(rot_prev @ rot_prev2.T) if rot_prev2 is not None else np.zeros(3)
-            rot = _rodrigues(omega) @ rot_prev
-            prior = (rot, np.asarray(predicted.mean[:3]))
+            prior = (_rodrigues(omega) @ rot_prev, np.asarray(predicted.mean[:3]))
             corners = project_corners_np(*prior, size, k)
             seg = detect.detect_segments(gray, _window(corners, cfg.roi_margin))
-        else:
-            regions = []
-            if background is not None:
-                regions = detect.foreground_regions(gray, background)
-            candidates = []
-            for (x0, y0, x1, y1), area in regions:
-                pad = 0.2 * max(x1 - x0, y1 - y0) + 4
-                seg = detect.detect_segments(gray, (x0 - pad, y0 - pad, x1 + pad, y1 + pad))
-                centre = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
-                candidates.append((seg, centre, np.sqrt(area) / 1.2))
-            if not regions:
-                seg = detect.detect_segments(gray)
-                if len(seg):
-                    pts = seg.reshape(-1, 2)
-                    edge_px = max(0.5 * float(np.ptp(pts, 0).max()), 8.0)
-                    candidates.append((seg, np.median(pts, 0), edge_px))
-        segp, mask = detect.pad_segments(seg, m)
+            segp, mask = detect.pad_segments(seg, m)
         t1 = time.perf_counter()
-        fin = None
-        if prior is None:
-            loc, best = None, -np.inf
-            for seg_c, centre, edge_px in candidates:
-                segp_c, mask_c = detect.pad_segments(seg_c, m)
-                if not mask_c.any():
-                    continue
-                cand = jax.device_get(
-                    search(centre, np.float64(edge_px), segp_c, mask_c, size_a, k)
-                )
-                score = float(cand.association.coverage) - 0.1 * float(cand.rms)
-                if bool(cand.valid) and score > best:
-                    loc, best, segp, mask = cand, score, segp_c, mask_c
-            if loc is not None:
-                # refine and filter from the found pose like a tracked frame; keep the object
-                # axes of frame 0 (the search may return any of the box's 24 symmetric labellings)
-                rot = np.asarray(loc.pose.rotation)
-                if rot_prev is not None:
-                    rot = snap_to_symmetry(rot, rot_prev)
-                prior = (rot, np.asarray(loc.pose.translation))
-                started = False  # restart the filter
-        if prior is not None:
-            loc = locate_jit(Pose(*prior), segp, mask, size_a, k)
-            pose_np = jax.device_get(loc.pose)
-            edges_px, usable = usable_edges(pose_np.rotation, pose_np.translation, size, k, cfg)
-            pts, ids = detect.edge_points(gray, edges_px, usable, search=cfg.search_px)
-            n_pts = min(len(pts), cfg.max_points)
-            sel = np.linspace(0, len(pts) - 1, n_pts).astype(int) if n_pts else np.zeros(0, int)
-            pp, pi, pw = (
-                np.zeros((cfg.max_points, 2)),
-                np.zeros(cfg.max_points, np.int32),
-                np.zeros(cfg.max_points),
-            )
-            pp[:n_pts], pi[:n_pts], pw[:n_pts] = pts[sel], ids[sel], 1.0
-            use_prior = started and rot_prev2 is not None
-            fin = jax.device_get(
-                finish(
-                    state,
-                    loc,
-                    pp,
-                    pi,
-                    pw,
-                    size_a,
-                    k,
-                    np.bool_(not started),
-                    np.asarray(prior[0], np.float64),
-                    np.float64(1.0 if use_prior else 0.0),
-                )
-            )
-            state, predicted = fin.filter_state, fin.predicted
-            if bool(fin.valid):
-                started = True
+        # innovation gate while the filter runs: a fit must lie within 3 sigma of the predicted
+        # centre plus half the box (a partly occluded box can fit an occluder's edges)
+        gate = None
+        if started and misses < cfg.lost_after:
+            p_cov = np.asarray(predicted.cov)[:3, :3]
+            radius = 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(p_cov))) + 0.5 * size
+            gate = (np.asarray(predicted.mean[:3]), radius)
+        elif last_good is not None:
+            # after a loss: no faster than ``max_speed`` since the last valid frame
+            gate = (last_good[1], cfg.max_speed * (i - last_good[0]) / fps + 0.5 * size)
+
+        def gated(f, gate=gate):
+            if f is None or not bool(f.valid):
+                return False
+            return gate is None or np.linalg.norm(np.asarray(f.translation) - gate[0]) <= gate[1]
+
+        if tracking:
+            fin = fit(prior, segp, mask, gray, not started)
+        if not gated(fin):
+            # lost, or the tracked fit failed: search this frame from scratch (near the
+            # prediction while the filter runs; anywhere, with a new filter, once lost)
+            fin = None
+            got = acquire(gray, gate)
+            if got is not None:
+                prior, segp, mask = got
+                first = not (started and misses < cfg.lost_after)
+                fin2 = fit(prior, segp, mask, gray, first)
+                if gated(fin2):
+                    fin = fin2
+                    if first or not started:
+                        started = False
         ok = fin is not None and bool(fin.valid)
-        if not ok and started:
+        if ok:
+            state, predicted = fin.filter_state, fin.predicted
+            started = True
+        elif started:
             state = kf.FilterState(f_np @ state.mean, f_np @ state.cov @ f_np.T + q_np)
             predicted = kf.FilterState(f_np @ state.mean, f_np @ state.cov @ f_np.T + q_np)
         t2 = time.perf_counter()
@@ -611,6 +649,9 @@ def track_box(
         t_est += t2 - t1
         if ok:
             misses = 0
+            last_good = (i, np.asarray(fin.translation))
+            if tracking and gated(fin):
+                rot_anchor = np.asarray(fin.rotation)
             rot_prev2, rot_prev = rot_prev, np.asarray(fin.rotation)
             wts = fin.asc_weights
             segs = np.array(fin.asc_endpoints)

@@ -158,6 +158,35 @@ def _hold_pendulum(d: mjx.Data, ids: SceneIds, c: PendulumConditions) -> mjx.Dat
     return d.replace(qpos=qpos, qvel=qvel)
 
 
+@_allow_promotion
+def observe_stages(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """Step 1 of a control step: position and velocity stages (and their sensors) at the state."""
+    d = mjx.fwd_position(m, d)
+    d = mjx.sensor_pos(m, d)
+    d = mjx.fwd_velocity(m, d)
+    return mjx.sensor_vel(m, d)
+
+
+@_allow_promotion
+def dynamics_stages(
+    m: mjx.Model, ids: SceneIds, d: mjx.Data, ctrl: jax.Array
+) -> tuple[mjx.Data, jax.Array]:
+    """Step 3 of a control step: actuation, acceleration and constraint solve at torques ``ctrl``.
+
+    Returns the data before integration (call ``mjx.euler`` to advance) and the world-frame contact
+    force on the hand [N] (3,) from this solve. Pure and differentiable in ``ctrl`` (forward mode
+    always; reverse mode only with one solver iteration).
+    """
+    d = mjx.fwd_actuation(m, d.replace(ctrl=ctrl))
+    d = mjx.fwd_acceleration(m, d)
+    if d._impl.efc_J.size == 0:
+        d = d.replace(qacc=d.qacc_smooth)
+    else:
+        d = mjx.solve(m, d)
+    d = mjx.sensor_acc(m, d)
+    return d, hand_contact_force(m, d, ids)
+
+
 def rollout(
     m: mjx.Model,
     ids: SceneIds,
@@ -190,39 +219,25 @@ def rollout(
         if conditions is not None:
             d = _hold_pendulum(d, ids, conditions)
         xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.hand_body, :3].set(f_ext_k)
-        d = d.replace(xfrc_applied=xfrc)
-        with _mjx_ctx():
-            d = mjx.fwd_position(m, d)
-            d = mjx.sensor_pos(m, d)
-            d = mjx.fwd_velocity(m, d)
-            d = mjx.sensor_vel(m, d)
+        d = observe_stages(m, d.replace(xfrc_applied=xfrc))
         f_int = f_contact_prev + f_ext_k
         ctrl, ps, aux = policy(ps, m, SimStep(d=d, f_int=f_int, t=d.time))
-        d = d.replace(ctrl=ctrl)
-        with _mjx_ctx():
-            d = mjx.fwd_actuation(m, d)
-            d = mjx.fwd_acceleration(m, d)
-            if d._impl.efc_J.size == 0:
-                d = d.replace(qacc=d.qacc_smooth)
-            else:
-                d = mjx.solve(m, d)
-            d = mjx.sensor_acc(m, d)
-        f_contact = hand_contact_force(m, d, ids)
+        d_acc, f_contact = dynamics_stages(m, ids, d, ctrl)
         row = Trajectory(
-            t=d.time,
-            qpos=d.qpos,
-            qvel=d.qvel,
+            t=d_acc.time,
+            qpos=d_acc.qpos,
+            qvel=d_acc.qvel,
             ctrl=ctrl,
             f_int=f_int,
             f_contact=f_contact,
             f_ext=f_ext_k,
-            x_hand=d.site_xpos[ids.hand_site],
-            x_cube=d.site_xpos[ids.cube_site],
-            sensor_force=d.sensordata[ids.force_sensor_adr : ids.force_sensor_adr + 3],
+            x_hand=d_acc.site_xpos[ids.hand_site],
+            x_cube=d_acc.site_xpos[ids.cube_site],
+            sensor_force=d_acc.sensordata[ids.force_sensor_adr : ids.force_sensor_adr + 3],
             aux=aux,
         )
         with _mjx_ctx():
-            d = mjx.euler(m, d)
+            d = mjx.euler(m, d_acc)
         return (d, ps, f_contact), row
 
     (d, ps, _), traj = jax.lax.scan(body, (d0, policy_state0, jnp.zeros(3)), f_ext)
