@@ -15,11 +15,13 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 
 import jax  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
+if "--float32" not in sys.argv:
+    jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
@@ -43,6 +45,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--steps", type=int, default=200)
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
+    ap.add_argument("--float32", action="store_true", help="MJX in float32 (default float64)")
     args = ap.parse_args(argv)
     T = args.steps
 
@@ -139,7 +142,11 @@ def main(argv=None):
             )
         )
 
-    print(f"\nCPU: {jax.devices()[0].device_kind}, {T} steps per rollout (dt = 1 ms)\n")
+    dtype = "float32" if args.float32 else "float64"
+    print(
+        f"\nJAX device: {jax.devices()[0].device_kind} ({jax.default_backend()}), MJX {dtype}; "
+        f"MuJoCo C on {os.cpu_count()} CPU cores; {T} steps per rollout (dt = 1 ms)\n"
+    )
     print(f"{'what':46s} {'batch':>6s} {'result':>18s}  notes")
     for what, b, res, note in rows:
         print(f"{what:46s} {b:6d} {res:>18s}  {note}")

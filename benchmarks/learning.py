@@ -26,7 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import jax  # noqa: E402
 
-jax.config.update("jax_enable_x64", True)
+if "--float32" not in sys.argv:
+    jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 
@@ -61,7 +62,9 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=500, help="rollout length")
     p.add_argument("--batches", type=int, nargs="+", default=[1, 16, 128])
     p.add_argument("--repeats", type=int, default=2000, help="calls for the latency timing")
+    p.add_argument("--float32", action="store_true", help="float32 (default float64)")
     args = p.parse_args(argv)
+    dtype = jnp.float32 if args.float32 else jnp.float64
     folder = start_run(args.out, args.seed, {k: v for k, v in vars(args).items() if k != "seed"})
     config = tl.TaskConfig(learner=LearnerConfig(task="catching", r_b=0.085, eta=(0.3,) * 3))
     pendulum = default_conditions()
@@ -75,7 +78,7 @@ def main(argv=None):
     # --- latency of one step -----------------------------------------------------------------
     d0 = loop.initial_data()
     step = SimStep(d=d0, f_int=jnp.zeros(3), t=d0.time)
-    ls = loop.learner_init(jax.random.PRNGKey(args.seed), jnp.float64)
+    ls = loop.learner_init(jax.random.PRNGKey(args.seed), dtype)
     c_init, c_apply = make_impedance_controller(config.controller)
     _, l_update = make_online_learner(lc, tl.sphere_fn)
     obs = jax.jit(observe, static_argnums=1)(loop.mx, loop.ids, step)
@@ -120,9 +123,7 @@ def main(argv=None):
 
     def learn_rollout(key):
         d = start(key)
-        ps = loop.initial_policy_state(
-            d, loop.learner_init(key, jnp.float64), tl.switches("learned")
-        )
+        ps = loop.initial_policy_state(d, loop.learner_init(key, dtype), tl.switches("learned"))
         (_, _), traj = rollout(loop.mx, loop.ids, d, loop.policy, ps, f_ext, None)
         return traj.x_hand
 
@@ -151,7 +152,8 @@ def main(argv=None):
         )
 
     lines = [
-        f"Device: {jax.devices()[0]} ({jax.default_backend()}), float64, {args.steps}-step rollouts.",
+        f"Device: {jax.devices()[0]} ({jax.default_backend()}), {jnp.dtype(dtype).name}, "
+        f"{args.steps}-step rollouts.",
         "",
         "| one jitted step | latency [us] |",
         "|---|---|",
