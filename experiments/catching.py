@@ -26,25 +26,17 @@ import numpy as np  # noqa: E402
 
 from experiments import task_loop as tl  # noqa: E402
 from hec_jax.mjx_scene import default_conditions  # noqa: E402
-from hec_jax.nets import LearnerConfig, gain_alpha  # noqa: E402
+from hec_jax.nets import gain_alpha  # noqa: E402
 from hec_jax.runs import save_figure, start_run, write_json  # noqa: E402
 
 
 def parse(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", type=Path, default=Path("runs/catching"))
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--seeds", type=int, default=5, help="network initialisations (vmapped)")
+    tl.add_common_args(p, "runs/catching")
     p.add_argument("--swings", type=int, default=10)
     p.add_argument("--swing-s", type=float, default=2.0, help="duration of one swing [s]")
-    p.add_argument("--release-angle", type=float, default=-0.5, help="[rad]")
-    p.add_argument("--eta", type=float, default=0.3, help="learning rate of all three nets")
     p.add_argument("--mu", type=float, default=1e-3, help="weight of E_cf (Eq. 59)")
     p.add_argument("--f-cd", type=float, default=1.0, help="desired contact force F_cd [N]")
-    p.add_argument("--radius", type=float, default=0.25, help="virtual sphere r [m]")
-    p.add_argument("--r-b", type=float, default=0.085, help="R_b of Eq. 62 [m]")
-    p.add_argument("--contact-stiffness", type=float, default=1e5, help="nominal k_c [N/m]")
-    p.add_argument("--x-home", type=float, nargs=2, default=(0.65, 0.60), help="X_d (x, z) [m]")
     return p.parse_args(argv)
 
 
@@ -77,15 +69,7 @@ def swing_metrics(logs, s: int, w: int, config: tl.TaskConfig) -> dict:
 
 def main(argv=None):
     args = parse(argv)
-    learner = LearnerConfig(
-        task="catching",
-        radius=args.radius,
-        r_b=args.r_b,
-        eta=(args.eta,) * 3,
-        mu=args.mu,
-        f_desired=args.f_cd,
-        contact_stiffness=args.contact_stiffness,
-    )
+    learner = tl.learner_from_args(args, "catching", args.f_cd)
     config = tl.TaskConfig(
         learner=learner,
         x_home=tuple(args.x_home),
@@ -93,14 +77,7 @@ def main(argv=None):
         swings=args.swings,
     )
     pendulum = default_conditions(release_angle=args.release_angle)
-    settings = dict(
-        {k: v for k, v in vars(args).items() if k != "seed"},
-        out=str(args.out),
-        pendulum=pendulum._asdict(),
-        learner=repr(learner),
-        task_config=repr(config),
-        task="catching",
-    )
+    settings = tl.run_settings(args, "catching", pendulum, learner, config)
     folder = start_run(args.out, args.seed, settings)
     t0 = time.perf_counter()
     logs, timing = tl.run_conditions(config, pendulum, args.seed, args.seeds)

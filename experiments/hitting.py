@@ -29,20 +29,16 @@ import numpy as np  # noqa: E402
 
 from experiments import task_loop as tl  # noqa: E402
 from hec_jax.mjx_scene import default_conditions  # noqa: E402
-from hec_jax.nets import LearnerConfig, gain_beta  # noqa: E402
+from hec_jax.nets import gain_beta  # noqa: E402
 from hec_jax.runs import save_figure, start_run, write_json  # noqa: E402
 
 
 def parse(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--out", type=Path, default=Path("runs/hitting"))
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--seeds", type=int, default=5, help="network initialisations (vmapped)")
+    tl.add_common_args(p, "runs/hitting")
     p.add_argument("--duration", type=float, default=12.0, help="continuous run [s]")
     p.add_argument("--train-swings", type=int, default=10, help="swings before the run")
     p.add_argument("--train-swing-s", type=float, default=2.0, help="one training swing [s]")
-    p.add_argument("--release-angle", type=float, default=-0.5, help="[rad]")
-    p.add_argument("--eta", type=float, default=0.3, help="learning rate of all three nets")
     p.add_argument(
         "--mu",
         type=float,
@@ -51,10 +47,6 @@ def parse(argv=None):
         " and drives K_o to +180 N/m, which ends all further hits (measured)",
     )
     p.add_argument("--f-hd", type=float, default=5.0, help="desired contact force F_hd [N]")
-    p.add_argument("--radius", type=float, default=0.25, help="virtual sphere r [m]")
-    p.add_argument("--r-b", type=float, default=0.085, help="R_b of Eq. 66 [m]")
-    p.add_argument("--contact-stiffness", type=float, default=1e5, help="nominal k_c [N/m]")
-    p.add_argument("--x-home", type=float, nargs=2, default=(0.65, 0.60), help="X_d (x, z) [m]")
     return p.parse_args(argv)
 
 
@@ -87,15 +79,7 @@ def hit_metrics(f: np.ndarray, dt: float, threshold: float) -> dict:
 
 def main(argv=None):
     args = parse(argv)
-    learner = LearnerConfig(
-        task="hitting",
-        radius=args.radius,
-        r_b=args.r_b,
-        eta=(args.eta,) * 3,
-        mu=args.mu,
-        f_desired=args.f_hd,
-        contact_stiffness=args.contact_stiffness,
-    )
+    learner = tl.learner_from_args(args, "hitting", args.f_hd)
     config = tl.TaskConfig(
         learner=learner,
         x_home=tuple(args.x_home),
@@ -104,14 +88,7 @@ def main(argv=None):
         final_steps=int(round(args.duration / 1e-3)),
     )
     pendulum = default_conditions(release_angle=args.release_angle)
-    settings = dict(
-        {k: v for k, v in vars(args).items() if k != "seed"},
-        out=str(args.out),
-        pendulum=pendulum._asdict(),
-        learner=repr(learner),
-        task_config=repr(config),
-        task="hitting",
-    )
+    settings = tl.run_settings(args, "hitting", pendulum, learner, config)
     folder = start_run(args.out, args.seed, settings)
     t0 = time.perf_counter()
     all_logs, timing = tl.run_conditions(config, pendulum, args.seed, args.seeds)

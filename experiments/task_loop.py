@@ -200,7 +200,48 @@ def run_conditions(config: TaskConfig, pendulum: PendulumConditions, seed: int, 
 
 
 # ---------------------------------------------------------------------------------------------
-# Metrics and figures shared by catching.py and hitting.py (NumPy boundary).
+# Command line, metrics and files shared by catching.py and hitting.py (NumPy boundary).
+
+
+def add_common_args(parser, out_default: str) -> None:
+    """Flags every task script takes (the task-specific ones are added by the script)."""
+    from pathlib import Path
+
+    parser.add_argument("--out", type=Path, default=Path(out_default))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seeds", type=int, default=5, help="network initialisations (vmapped)")
+    parser.add_argument("--release-angle", type=float, default=-0.5, help="[rad]")
+    parser.add_argument("--eta", type=float, default=0.3, help="learning rate of all three nets")
+    parser.add_argument("--radius", type=float, default=0.25, help="virtual sphere r [m]")
+    parser.add_argument("--r-b", type=float, default=0.085, help="R_b of Eqs. 62/66 [m]")
+    parser.add_argument("--contact-stiffness", type=float, default=1e5, help="nominal k_c [N/m]")
+    parser.add_argument(
+        "--x-home", type=float, nargs=2, default=(0.65, 0.60), help="X_d (x, z) [m]"
+    )
+
+
+def learner_from_args(args, task: str, f_desired: float) -> LearnerConfig:
+    return LearnerConfig(
+        task=task,
+        radius=args.radius,
+        r_b=args.r_b,
+        eta=(args.eta,) * 3,
+        mu=args.mu,
+        f_desired=f_desired,
+        contact_stiffness=args.contact_stiffness,
+    )
+
+
+def run_settings(args, task: str, pendulum, learner, config) -> dict:
+    """What ``config.json`` records beside seed, versions and device."""
+    return dict(
+        {k: v for k, v in vars(args).items() if k != "seed"},
+        out=str(args.out),
+        pendulum=pendulum._asdict(),
+        learner=repr(learner),
+        task_config=repr(config),
+        task=task,
+    )
 
 
 def contact_events(f_norm: np.ndarray, threshold: float, min_gap: int) -> list[tuple[int, int]]:
