@@ -166,6 +166,14 @@ def _norm(v: Array) -> Array:
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
 
 
+def desired_force(config: LearnerConfig, x_r: Array, in_contact: Array) -> tuple[Array, Array]:
+    """(n, F_d): unit vector hand -> object (0 at X_r = 0) and the desired force on the hand,
+    -f_d n while in contact, 0 otherwise (F_cd of Eq. 61 / F_hd of Eq. 65)."""
+    rho = _norm(x_r)
+    n = jnp.where(rho > 0, x_r / jnp.where(rho > 0, rho, 1.0), 0.0)
+    return n, -config.f_desired * in_contact.astype(x_r.dtype) * n
+
+
 def task_energy(
     config: LearnerConfig,
     x_e: Array,
@@ -181,13 +189,10 @@ def task_energy(
     """
     x_r = inputs.x_o - x_e
     rho = _norm(x_r)
-    x_r0 = inputs.x_o - inputs.x_e
-    rho0 = _norm(x_r0)
-    n0 = jnp.where(rho0 > 0, x_r0 / jnp.where(rho0 > 0, rho0, 1.0), 0.0)
+    n0, f_d = desired_force(config, inputs.x_o - inputs.x_e, inputs.in_contact)
     contact = inputs.in_contact.astype(x_e.dtype)
     # F_int(X_e) = F_int + dF_int/dX_e (X_e - X_e0), dF_int/dX_e = -k_c n n^T in contact.
     f_int = inputs.f_int - contact * config.contact_stiffness * n0 * jnp.dot(n0, x_e - inputs.x_e)
-    f_d = -config.f_desired * contact * n0
     e_force = 0.5 * jnp.sum((f_d - f_int) ** 2)
     if config.task == "catching":
         alpha = gain_alpha(rho, config.radius, config.r_b)
@@ -258,9 +263,7 @@ def make_online_learner(
         (grad_w,) = pullback(cotangent)  # (dE/dF_act)^T (dF_o/dO) (dO/dw), Eq. 53
         lr = lambda g: eta.reshape((1, 3) + (1,) * (g.ndim - 2)).astype(g.dtype)  # noqa: E731
         params = jax.tree_util.tree_map(lambda w, g: w - lr(g) * g, state.params, grad_w)  # Eq. 52
-        contact = inputs.in_contact.astype(f_o.dtype)
-        n = jnp.where(rho > 0, x_r / jnp.where(rho > 0, rho, 1.0), 0.0)
-        f_d = -config.f_desired * contact * n
+        _, f_d = desired_force(config, x_r, inputs.in_contact)
         energy_f = state.energy_f + 0.5 * jnp.sum((f_d - inputs.f_int) ** 2) * config.dt
         new_state = LearnerState(
             params=params,
