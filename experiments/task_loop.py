@@ -80,12 +80,14 @@ def switches(condition: str) -> Switches:
 class Loop(NamedTuple):
     """The pieces of the closed loop (all pure; ``policy`` plugs into ``mjx_scene.rollout``)."""
 
-    mx: object  # MJX model with the pendulum conditions applied
+    mx: object  # MJX model with the default pendulum conditions applied
     ids: object  # static scene ids
     policy: object  # (policy_state, m, SimStep) -> (tau, policy_state, aux)
-    initial_data: object  # () -> MJX data at the release
+    initial_data: object  # () -> MJX data at the release (default conditions)
     initial_policy_state: object  # (data, learner_state, switches) -> policy state
     learner_init: object  # (key, dtype) -> LearnerState
+    model_for: object  # (PendulumConditions) -> MJX model (pure, vmappable)
+    data_for: object  # (mjx model, PendulumConditions) -> MJX data at the release
 
 
 def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
@@ -93,7 +95,8 @@ def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
     lc = config.learner
     m_c = load_mj_model()
     ids = scene_ids(m_c)
-    mx = apply_conditions(load_mjx_model(m_c), ids, pendulum)
+    mx_base = load_mjx_model(m_c)
+    mx = apply_conditions(mx_base, ids, pendulum)
     q_home = jnp.asarray(solve_posture(m_c, ids, config.x_home))
     c_init, c_apply = make_impedance_controller(config.controller)
     l_init, l_update = make_online_learner(lc, sphere_fn)
@@ -144,11 +147,47 @@ def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
     def initial_data():
         return make_data(mx, ids, pendulum, q_home)
 
+    def model_for(conditions):
+        return apply_conditions(mx_base, ids, conditions)
+
+    def data_for(m, conditions):
+        return make_data(m, ids, conditions, q_home)
+
     def initial_policy_state(d0, ls, sw):
         cs0 = c_init(observe(mx, ids, SimStep(d=d0, f_int=jnp.zeros(3), t=d0.time)))
         return (cs0, ls, sw)
 
-    return Loop(mx, ids, policy, initial_data, initial_policy_state, l_init)
+    return Loop(mx, ids, policy, initial_data, initial_policy_state, l_init, model_for, data_for)
+
+
+def _make_seed_run(config: TaskConfig, loop: Loop):
+    """(key, switches, conditions) -> logs of one seed: ``config.swings`` swings (world restarted
+    at the release each swing, learner state carried over), then the optional continuous run."""
+
+    def one_swing(ls, sw, conditions, m, steps):
+        d0 = loop.data_for(m, conditions)
+        ps0 = loop.initial_policy_state(d0, ls, sw)
+        f_ext = jnp.zeros((steps, 3))
+        (_, (_, ls, _)), traj = rollout(m, loop.ids, d0, loop.policy, ps0, f_ext, conditions)
+        ls = ls._replace(was_inside=jnp.asarray(False))
+        log = dict(traj.aux, f_contact=traj.f_contact, t=traj.t, qpos=traj.qpos, qvel=traj.qvel)
+        return ls, log
+
+    def run_one_seed(key, sw, conditions):
+        m = loop.model_for(conditions)
+        ls0 = loop.learner_init(key, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
+        ls, logs = jax.lax.scan(
+            lambda ls, _: one_swing(ls, sw, conditions, m, config.swing_steps),
+            ls0,
+            None,
+            length=config.swings,
+        )
+        if config.final_steps > 0:
+            _, final = one_swing(ls, sw, conditions, m, config.final_steps)
+            logs = dict(logs, final=jax.tree_util.tree_map(lambda x: x[None], final))
+        return logs
+
+    return run_one_seed
 
 
 def make_experiment(config: TaskConfig, pendulum: PendulumConditions):
@@ -159,28 +198,18 @@ def make_experiment(config: TaskConfig, pendulum: PendulumConditions):
     ``config.final_steps > 0`` also ``final``: the logs (n_seeds, 1, final_steps) of one continuous
     run from the same release after the swings, with the learner's state carried over.
     """
-    loop = build_loop(config, pendulum)
+    run_one_seed = _make_seed_run(config, build_loop(config, pendulum))
+    return jax.jit(jax.vmap(lambda key, sw: run_one_seed(key, sw, pendulum), in_axes=(0, None)))
 
-    def one_swing(ls, sw, steps):
-        d0 = loop.initial_data()
-        ps0 = loop.initial_policy_state(d0, ls, sw)
-        f_ext = jnp.zeros((steps, 3))
-        (_, (_, ls, _)), traj = rollout(loop.mx, loop.ids, d0, loop.policy, ps0, f_ext, pendulum)
-        ls = ls._replace(was_inside=jnp.asarray(False))
-        log = dict(traj.aux, f_contact=traj.f_contact, t=traj.t, qpos=traj.qpos, qvel=traj.qvel)
-        return ls, log
 
-    def run_one_seed(key, sw):
-        ls0 = loop.learner_init(key, jnp.float64 if jax.config.jax_enable_x64 else jnp.float32)
-        ls, logs = jax.lax.scan(
-            lambda ls, _: one_swing(ls, sw, config.swing_steps), ls0, None, length=config.swings
-        )
-        if config.final_steps > 0:
-            _, final = one_swing(ls, sw, config.final_steps)
-            logs = dict(logs, final=jax.tree_util.tree_map(lambda x: x[None], final))
-        return logs
+def make_sweep(config: TaskConfig):
+    """``run(keys, switches, conditions) -> logs`` over a batch of runs: ``keys`` (B, 2) and every
+    leaf of ``conditions`` (B,), one pendulum condition and network seed per run (``vmap``).
+    Not jitted here, so the caller can choose shardings."""
+    from hec_jax.mjx_scene import default_conditions
 
-    return jax.jit(jax.vmap(run_one_seed, in_axes=(0, None)))
+    run_one_seed = _make_seed_run(config, build_loop(config, default_conditions()))
+    return jax.vmap(run_one_seed, in_axes=(0, None, 0))
 
 
 def run_conditions(config: TaskConfig, pendulum: PendulumConditions, seed: int, n_seeds: int):

@@ -133,3 +133,13 @@ def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Pa
         },
     )
     return folder
+
+
+def enable_compile_cache() -> None:
+    """Use JAX's persistent compilation cache in the folder named by ``HEC_JAX_CACHE``, if set."""
+    folder = os.environ.get("HEC_JAX_CACHE")
+    if folder:
+        import jax
+
+        jax.config.update("jax_compilation_cache_dir", folder)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)

@@ -1,0 +1,246 @@
+"""Sweep over pendulum conditions and seeds with the online learning inside (``vmap``).
+
+    python experiments/sweep.py --out runs/sweep --seed 0
+    python experiments/sweep.py --out runs/sweep --shard-index 0 --num-shards 4   # one of 4 hosts
+    python experiments/sweep.py --out runs/sweep --merge-only                      # merge shards
+
+The grid is the product of the listed rod lengths, cube masses, release angles, hinge dampings and
+arrival phases, times ``--seeds`` network initialisations. Each run is one catching experiment
+(``experiments/task_loop.py``): ``--swings`` swings with the weights carried over, plus the plain
+impedance baseline (F_o = 0) under the same condition. Runs are processed in chunks of ``--chunk``
+(one ``vmap``); each finished chunk is written atomically to ``chunks/chunk_NNNNN.npz``, and a
+restarted sweep skips the chunks already there, so an interrupted sweep loses at most one chunk.
+With several devices (GPUs of one host, or CPU devices forced with
+``XLA_FLAGS=--xla_force_host_platform_device_count=N``) the run axis of a chunk is sharded across
+them with ``NamedSharding``; across hosts, ``--shard-index/--num-shards`` take every n-th chunk and
+``--merge-only`` merges the chunk files afterwards. Writes ``config.json``, ``metrics.json``
+(success rate, peak force ratio learned/plain) and ``peak_ratio_map.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from jax.sharding import Mesh, NamedSharding  # noqa: E402
+from jax.sharding import PartitionSpec as P  # noqa: E402
+
+from experiments import task_loop as tl  # noqa: E402
+from hec_jax.mjx_scene import PendulumConditions  # noqa: E402
+from hec_jax.runs import (  # noqa: E402
+    enable_compile_cache,
+    save_figure,
+    start_run,
+    write_json,
+    write_npz,
+)
+
+FIELDS = PendulumConditions._fields
+
+
+def parse(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    tl.add_common_args(p, "runs/sweep")
+    p.add_argument("--rod-length", type=float, nargs="+", default=[0.5, 0.6, 0.7], help="[m]")
+    p.add_argument("--cube-mass", type=float, nargs="+", default=[0.5, 0.7, 0.9], help="[kg]")
+    p.add_argument("--release-angles", type=float, nargs="+", default=[-0.45, -0.5, -0.55])
+    p.add_argument("--release-speed", type=float, nargs="+", default=[0.0], help="[rad/s]")
+    p.add_argument("--hinge-damping", type=float, nargs="+", default=[0.002], help="[N m s/rad]")
+    p.add_argument("--arrival-phase", type=float, nargs="+", default=[0.0], help="[s]")
+    p.add_argument("--swings", type=int, default=6)
+    p.add_argument("--swing-s", type=float, default=1.5, help="duration of one swing [s]")
+    p.add_argument("--mu", type=float, default=1e-3)
+    p.add_argument("--f-cd", type=float, default=1.0, help="desired contact force F_cd [N]")
+    p.add_argument("--chunk", type=int, default=16, help="runs per vmapped chunk")
+    p.add_argument("--shard-index", type=int, default=0)
+    p.add_argument("--num-shards", type=int, default=1)
+    p.add_argument("--merge-only", action="store_true")
+    args = p.parse_args(argv)
+    if not 0 <= args.shard_index < args.num_shards:
+        raise SystemExit("need 0 <= --shard-index < --num-shards")
+    if args.chunk < 1:
+        raise SystemExit("--chunk must be >= 1")
+    return args
+
+
+def grid(args) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """Flattened grid: condition fields (N,) each and the seed index (N,) of every run."""
+    axes = [
+        args.rod_length,
+        args.cube_mass,
+        args.release_angles,
+        args.release_speed,
+        args.hinge_damping,
+        args.arrival_phase,
+        list(range(args.seeds)),
+    ]
+    rows = np.array(list(itertools.product(*axes)), dtype=float)
+    conditions = {name: rows[:, i] for i, name in enumerate(FIELDS)}
+    return conditions, rows[:, -1].astype(int)
+
+
+def run_chunk(run, sharding, config, keys, conditions):
+    """Plain and learned runs of one chunk -> per-run metrics (NumPy)."""
+
+    def put(x):
+        return jax.device_put(x, sharding) if sharding is not None else x
+
+    keys = put(keys)
+    cond = PendulumConditions(**{k: put(jnp.asarray(v)) for k, v in conditions.items()})
+    out = {}
+    for name in ("plain", "learned"):
+        logs = run(keys, tl.switches(name), cond)
+        force = np.asarray(tl.force_norm(logs))  # (B, swings, steps)
+        out[f"peak_{name}_per_swing"] = force.max(-1)
+        if name == "learned":
+            margins = np.asarray(logs["margins"])
+            out["min_margin"] = margins.min(axis=(1, 2, 3))  # (B, 3)
+            out["settle_force"] = force[:, -1, -int(0.3 / config.controller.dt) :].mean(-1)
+    out["peak_plain"] = out["peak_plain_per_swing"][:, 0]
+    out["peak_learned"] = out["peak_learned_per_swing"][:, -1]
+    return out
+
+
+def main(argv=None):
+    args = parse(argv)
+    enable_compile_cache()
+    conditions, seed_index = grid(args)
+    n_runs = len(seed_index)
+    n_chunks = -(-n_runs // args.chunk)
+    settings = dict(
+        {k: v for k, v in vars(args).items() if k != "seed"},
+        n_runs=n_runs,
+        n_chunks=n_chunks,
+        devices=[str(d) for d in jax.devices()],
+    )
+    folder = Path(args.out)
+    chunk_dir = folder / "chunks"
+    if not args.merge_only:
+        start_run(folder / f"shard_{args.shard_index}", args.seed, settings)
+        learner = tl.learner_from_args(args, "catching", args.f_cd)
+        config = tl.TaskConfig(
+            learner=learner,
+            x_home=tuple(args.x_home),
+            swing_steps=int(round(args.swing_s / 1e-3)),
+            swings=args.swings,
+        )
+        n_dev = jax.device_count()
+        sharding = None
+        if n_dev > 1 and args.chunk % n_dev == 0:
+            sharding = NamedSharding(Mesh(np.array(jax.devices()), ("runs",)), P("runs"))
+        run = jax.jit(tl.make_sweep(config))
+        all_keys = jax.random.split(jax.random.PRNGKey(args.seed), args.seeds)
+        mine = [c for c in range(n_chunks) if c % args.num_shards == args.shard_index]
+        t_start = time.perf_counter()
+        done = 0
+        for c in mine:
+            path = chunk_dir / f"chunk_{c:05d}.npz"
+            if path.exists():
+                print(f"chunk {c + 1}/{n_chunks}: already there, skipped", flush=True)
+                continue
+            index = np.arange(c * args.chunk, min((c + 1) * args.chunk, n_runs))
+            padded = np.concatenate([index, np.full(args.chunk - len(index), index[-1])])
+            t0 = time.perf_counter()
+            res = run_chunk(
+                run,
+                sharding,
+                config,
+                all_keys[seed_index[padded]],
+                {k: v[padded] for k, v in conditions.items()},
+            )
+            res = {k: v[: len(index)] for k, v in res.items()}
+            write_npz(
+                path,
+                index=index,
+                seed_index=seed_index[index],
+                **res,
+                **{k: v[index] for k, v in conditions.items()},
+            )
+            done += 1
+            elapsed = time.perf_counter() - t_start
+            left = sum(not (chunk_dir / f"chunk_{k:05d}.npz").exists() for k in mine)
+            print(
+                f"chunk {c + 1}/{n_chunks} ({len(index)} runs) in {time.perf_counter() - t0:.1f} s;"
+                f" {left} left in this shard, about {elapsed / done * left:.0f} s",
+                flush=True,
+            )
+    return merge(folder, chunk_dir, conditions, seed_index, n_chunks, args)
+
+
+def merge(folder, chunk_dir, conditions, seed_index, n_chunks, args) -> dict:
+    """Merges whatever chunk files exist into ``metrics.json`` and the map."""
+    files = sorted(chunk_dir.glob("chunk_*.npz"))
+    if not files:
+        print("no chunk files yet")
+        return {}
+    parts = [dict(np.load(f)) for f in files]
+    data = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    order = np.argsort(data["index"])
+    data = {k: v[order] for k, v in data.items()}
+    ratio = data["peak_learned"] / data["peak_plain"]
+    success = ratio <= 0.5
+    metrics = {
+        "runs_done": int(len(order)),
+        "runs_total": int(len(seed_index)),
+        "chunks_done": len(files),
+        "chunks_total": n_chunks,
+        "success_rate_peak_at_most_half_plain": float(success.mean()),
+        "peak_ratio_learned_over_plain": tl.mean_std(ratio),
+        "strictly_stable_every_run": bool(np.all(data["min_margin"] > 0)),
+        "per_run": [
+            {
+                **{k: float(data[k][i]) for k in FIELDS},
+                "seed_index": int(data["seed_index"][i]),
+                "peak_plain": float(data["peak_plain"][i]),
+                "peak_learned": float(data["peak_learned"][i]),
+            }
+            for i in range(len(order))
+        ],
+    }
+    write_json(folder / "metrics.json", metrics)
+    plot_map(folder, data, ratio)
+    print(
+        f"merged {len(order)}/{len(seed_index)} runs: success {success.mean():.0%}, "
+        f"peak ratio learned/plain {ratio.mean():.2f} +- {ratio.std():.2f}"
+    )
+    return metrics
+
+
+def plot_map(folder, data, ratio):
+    """Mean learned/plain peak ratio over the two swept condition axes with most values."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    swept = sorted(FIELDS, key=lambda k: -len(np.unique(data[k])))[:2]
+    xs, ys = (np.unique(data[k]) for k in swept)
+    grid_ratio = np.full((len(ys), len(xs)), np.nan)
+    for j, y in enumerate(ys):
+        for i, x in enumerate(xs):
+            sel = (data[swept[0]] == x) & (data[swept[1]] == y)
+            if sel.any():
+                grid_ratio[j, i] = ratio[sel].mean()
+    fig, ax = plt.subplots(figsize=(5, 4))
+    im = ax.imshow(grid_ratio, origin="lower", aspect="auto", cmap="viridis")
+    ax.set_xticks(range(len(xs)), [f"{x:.3g}" for x in xs])
+    ax.set_yticks(range(len(ys)), [f"{y:.3g}" for y in ys])
+    ax.set(xlabel=swept[0], ylabel=swept[1], title="peak force learned / plain (mean)")
+    fig.colorbar(im)
+    save_figure(fig, folder / "peak_ratio_map.png")
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
