@@ -188,15 +188,20 @@ def merge(folder, chunk_dir, conditions, seed_index, n_chunks, args) -> dict:
     data = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     order = np.argsort(data["index"])
     data = {k: v[order] for k, v in data.items()}
-    ratio = data["peak_learned"] / data["peak_plain"]
-    success = ratio <= 0.5
+    # Conditions where the swing never reaches the waiting hand have nothing to catch.
+    reached = data["peak_plain"] > 1.0  # [N]
+    ratio = np.where(
+        reached, data["peak_learned"] / np.where(reached, data["peak_plain"], 1.0), np.nan
+    )
+    success = ratio[reached] <= 0.5
     metrics = {
         "runs_done": int(len(order)),
         "runs_total": int(len(seed_index)),
         "chunks_done": len(files),
         "chunks_total": n_chunks,
-        "success_rate_peak_at_most_half_plain": float(success.mean()),
-        "peak_ratio_learned_over_plain": tl.mean_std(ratio),
+        "runs_without_contact_in_plain": int((~reached).sum()),
+        "success_rate_peak_at_most_half_plain": float(success.mean()) if success.size else None,
+        "peak_ratio_learned_over_plain": tl.mean_std(ratio[reached]) if reached.any() else None,
         "strictly_stable_every_run": bool(np.all(data["min_margin"] > 0)),
         "per_run": [
             {
@@ -211,8 +216,9 @@ def merge(folder, chunk_dir, conditions, seed_index, n_chunks, args) -> dict:
     write_json(folder / "metrics.json", metrics)
     plot_map(folder, data, ratio)
     print(
-        f"merged {len(order)}/{len(seed_index)} runs: success {success.mean():.0%}, "
-        f"peak ratio learned/plain {ratio.mean():.2f} +- {ratio.std():.2f}"
+        f"merged {len(order)}/{len(seed_index)} runs ({int((~reached).sum())} never reach the "
+        f"hand): success {np.mean(success):.0%}, peak ratio learned/plain "
+        f"{np.nanmean(ratio):.2f} +- {np.nanstd(ratio):.2f}"
     )
     return metrics
 
@@ -230,8 +236,8 @@ def plot_map(folder, data, ratio):
     for j, y in enumerate(ys):
         for i, x in enumerate(xs):
             sel = (data[swept[0]] == x) & (data[swept[1]] == y)
-            if sel.any():
-                grid_ratio[j, i] = ratio[sel].mean()
+            if np.any(sel & np.isfinite(ratio)):
+                grid_ratio[j, i] = np.nanmean(ratio[sel])
     fig, ax = plt.subplots(figsize=(5, 4))
     im = ax.imshow(grid_ratio, origin="lower", aspect="auto", cmap="viridis")
     ax.set_xticks(range(len(xs)), [f"{x:.3g}" for x in xs])

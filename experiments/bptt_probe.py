@@ -1,0 +1,134 @@
+"""Reverse mode through a closed-loop MJX rollout with contact: dL/dw of the network weights (BPTT).
+
+    python experiments/bptt_probe.py --out runs/bptt_probe --seed 0 [--float32] [--iterations 1]
+
+Runs the catching loop with the frozen initial networks up to just before contact, then
+differentiates L = sum_t (1e-5 |F_contact|^2 + x_hand) over the next ``--steps`` samples (which
+include the impact) with respect to all network weights by reverse mode through the rollout
+(observation, learner forward pass, impedance law, MJX constraint solve, integration). Reports
+whether the gradient is finite and compares its projection on a random direction with central
+differences (float64), and the cost of value-and-gradient against the forward rollout. MJX's solver
+uses a ``while_loop`` (no reverse mode) unless ``opt.iterations == 1``, so the model is set to
+``--iterations`` (default 1).
+
+A probe for issue 6, not its solution: no truncation, no learning with these gradients yet.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import jax  # noqa: E402
+
+if "--float32" not in sys.argv:
+    jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+
+from experiments import task_loop as tl  # noqa: E402
+from hec_jax.mjx_scene import default_conditions, load_mj_model, rollout  # noqa: E402
+from hec_jax.nets import LearnerConfig  # noqa: E402
+from hec_jax.runs import enable_compile_cache, start_run, write_json  # noqa: E402
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--out", type=Path, default=Path("runs/bptt_probe"))
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--float32", action="store_true")
+    p.add_argument("--iterations", type=int, default=1, help="MJX solver iterations")
+    p.add_argument("--start", type=int, default=540, help="samples run forward first")
+    p.add_argument("--steps", type=int, default=60, help="samples differentiated through")
+    args = p.parse_args(argv)
+    enable_compile_cache()
+    folder = start_run(args.out, args.seed, {k: v for k, v in vars(args).items() if k != "seed"})
+    dtype = jnp.float32 if args.float32 else jnp.float64
+
+    load_mjx = tl.load_mjx_model
+
+    def with_iterations(m=None):
+        m = load_mj_model() if m is None else m
+        m.opt.iterations = args.iterations
+        m.opt.ls_iterations = max(args.iterations, 1)
+        return load_mjx(m)
+
+    tl.load_mjx_model = with_iterations  # the scene as it is, with the solver setting changed
+    config = tl.TaskConfig(learner=LearnerConfig(task="catching", r_b=0.085, eta=(0.3,) * 3))
+    loop = tl.build_loop(config, default_conditions())
+    tl.load_mjx_model = load_mjx
+    ls0 = loop.learner_init(jax.random.PRNGKey(args.seed), dtype)
+    d0 = loop.initial_data()
+    ps0 = loop.initial_policy_state(d0, ls0, tl.switches("frozen"))
+
+    def run(d, ps, n):
+        return rollout(loop.mx, loop.ids, d, loop.policy, ps, jnp.zeros((n, 3)), None)
+
+    (d_start, ps_start), _ = jax.jit(run, static_argnums=2)(d0, ps0, args.start)
+
+    def loss(params):
+        cs, ls, sw = ps_start
+        (_, _), traj = run(d_start, (cs, ls._replace(params=params), sw), args.steps)
+        return jnp.sum(traj.f_contact**2) * 1e-5 + jnp.sum(traj.x_hand[:, 0]), traj.f_contact
+
+    value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
+    forward = jax.jit(loss)
+    t0 = time.perf_counter()
+    (value, f_contact), grad = jax.block_until_ready(value_and_grad(ls0.params))
+    compile_grad = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    jax.block_until_ready(forward(ls0.params))
+    compile_fwd = time.perf_counter() - t0
+    t_grad = min(_timed(value_and_grad, ls0.params) for _ in range(3))
+    t_fwd = min(_timed(forward, ls0.params) for _ in range(3))
+
+    leaves = jax.tree_util.tree_leaves(grad)
+    finite = all(bool(jnp.all(jnp.isfinite(g))) for g in leaves)
+    direction = jax.tree_util.tree_map(
+        lambda w: jax.random.normal(jax.random.PRNGKey(args.seed + 1), w.shape, w.dtype),
+        ls0.params,
+    )
+    h = 1e-6 if dtype == jnp.float64 else 1e-2
+    shifted = [
+        forward(jax.tree_util.tree_map(lambda w, d, s=s: w + s * h * d, ls0.params, direction))[0]
+        for s in (1.0, -1.0)
+    ]
+    fd = float((shifted[0] - shifted[1]) / (2 * h))
+    ad = float(
+        sum(
+            jnp.sum(g * d)
+            for g, d in zip(leaves, jax.tree_util.tree_leaves(direction), strict=True)
+        )
+    )
+    contact_steps = int(jnp.sum(jnp.sum(f_contact**2, axis=-1) > 1e-6))
+    metrics = {
+        "dtype": jnp.dtype(dtype).name,
+        "solver_iterations": args.iterations,
+        "steps": args.steps,
+        "contact_steps": contact_steps,
+        "loss": float(value),
+        "gradient_finite": finite,
+        "directional_autodiff": ad,
+        "directional_central_difference": fd,
+        "directional_rel_error": abs(ad - fd) / max(abs(fd), 1e-30),
+        "cost_value_and_grad_over_forward": t_grad / t_fwd,
+        "seconds": {"value_and_grad": t_grad, "forward": t_fwd, "compile_grad": compile_grad,
+                    "compile_forward": compile_fwd},
+    }  # fmt: skip
+    write_json(folder / "metrics.json", metrics)
+    print(metrics)
+    return metrics
+
+
+def _timed(fn, x):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(x))
+    return time.perf_counter() - t0
+
+
+if __name__ == "__main__":
+    main()
