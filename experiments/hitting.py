@@ -83,6 +83,7 @@ def main(argv=None):
     config = tl.TaskConfig(
         learner=learner,
         x_home=tuple(args.x_home),
+        hinge_x=args.hinge_x,
         swing_steps=int(round(args.train_swing_s / 1e-3)),
         swings=args.train_swings,
         final_steps=int(round(args.duration / 1e-3)),

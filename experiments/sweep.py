@@ -132,6 +132,7 @@ def main(argv=None):
         config = tl.TaskConfig(
             learner=learner,
             x_home=tuple(args.x_home),
+            hinge_x=args.hinge_x,
             swing_steps=int(round(args.swing_s / 1e-3)),
             swings=args.swings,
         )

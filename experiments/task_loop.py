@@ -51,6 +51,7 @@ class TaskConfig:
     swing_steps: int = 1500  # samples per swing [1 ms]
     swings: int = 10
     final_steps: int = 0  # a continuous run after the swings (weights carried over), 0: none
+    hinge_x: float | None = None  # pendulum hinge x [m] in the world (None: scene.xml's 0.35)
     contact_threshold: float = 1e-3  # |F_int| above this counts as contact [N]
     controller: ControllerConfig = field(default_factory=ControllerConfig)
 
@@ -96,6 +97,9 @@ def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
     m_c = load_mj_model()
     ids = scene_ids(m_c)
     mx_base = load_mjx_model(m_c)
+    if config.hinge_x is not None:  # move the ceiling hinge (the rod's parent body) along x
+        ceiling = int(m_c.body_parentid[ids.rod_body])
+        mx_base = mx_base.replace(body_pos=mx_base.body_pos.at[ceiling, 0].set(config.hinge_x))
     mx = apply_conditions(mx_base, ids, pendulum)
     q_home = jnp.asarray(solve_posture(m_c, ids, config.x_home))
     c_init, c_apply = make_impedance_controller(config.controller)
@@ -247,6 +251,13 @@ def add_common_args(parser, out_default: str) -> None:
     parser.add_argument(
         "--x-home", type=float, nargs=2, default=(0.65, 0.60), help="X_d (x, z) [m]"
     )
+    parser.add_argument("--hinge-x", type=float, default=None, help="pendulum hinge x [m]")
+    parser.add_argument("--eta-b", type=float, default=None, help="VVN learning rate")
+    parser.add_argument("--eta-m", type=float, default=None, help="VIN learning rate")
+    parser.add_argument("--contact-damping", type=float, default=0.0, help="nominal b_c [N s/m]")
+    parser.add_argument(
+        "--vel-after-contact", action="store_true", help="keep E_cv after contact (Eq. 59)"
+    )
 
 
 def learner_from_args(args, task: str, f_desired: float) -> LearnerConfig:
@@ -254,10 +265,16 @@ def learner_from_args(args, task: str, f_desired: float) -> LearnerConfig:
         task=task,
         radius=args.radius,
         r_b=args.r_b,
-        eta=(args.eta,) * 3,
+        eta=(
+            args.eta,
+            args.eta if args.eta_b is None else args.eta_b,
+            args.eta if args.eta_m is None else args.eta_m,
+        ),
         mu=args.mu,
         f_desired=f_desired,
         contact_stiffness=args.contact_stiffness,
+        contact_damping=args.contact_damping,
+        velocity_after_contact=args.vel_after_contact,
     )
 
 

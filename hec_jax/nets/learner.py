@@ -72,7 +72,12 @@ class LearnerConfig:
         f_desired: desired contact force magnitude f_d [N] (F_cd or F_hd = -f_d n in contact).
         contact_stiffness: nominal k_c [N/m] for dF_int/dX_e = -k_c n n^T in contact.
         m_e, b_e, k_e: target impedance diagonals [kg], [N s/m], [N/m] (fix U of Eq. 51).
-        gate_receding: pause learning while the object recedes without contact.
+        gate_receding: pause learning while the object recedes without contact (in catching with
+            ``velocity_after_contact``, only until the first contact of the encounter).
+        velocity_after_contact: keep E_cv after the first contact (Eq. 59 as printed); False: E_cv
+            only before it (see the module docstring).
+        contact_damping: nominal b_c [N s/m] of the contact for dF_int/dX_e' = -b_c n n^T in
+            contact (its gradient enters with dt instead of dt^2); 0: stiffness only.
         net: network structure.
     """
 
@@ -88,6 +93,8 @@ class LearnerConfig:
     b_e: tuple[float, ...] = (40.0, 40.0)
     k_e: tuple[float, ...] = (400.0, 400.0)
     gate_receding: bool = True
+    velocity_after_contact: bool = False
+    contact_damping: float = 0.0
     net: nets.NetConfig = field(default_factory=nets.NetConfig)
 
     def __post_init__(self):
@@ -193,11 +200,14 @@ def task_energy(
     contact = inputs.in_contact.astype(x_e.dtype)
     # F_int(X_e) = F_int + dF_int/dX_e (X_e - X_e0), dF_int/dX_e = -k_c n n^T in contact.
     f_int = inputs.f_int - contact * config.contact_stiffness * n0 * jnp.dot(n0, x_e - inputs.x_e)
+    # ... and -b_c n n^T (X_e' - X_e0') with the nominal contact damping.
+    f_int = f_int - contact * config.contact_damping * n0 * jnp.dot(n0, xd_e - inputs.xd_e)
     e_force = 0.5 * jnp.sum((f_d - f_int) ** 2)
     if config.task == "catching":
         alpha = gain_alpha(rho, config.radius, config.r_b)
         e_vel = 0.5 * jnp.sum((alpha * xd_r_tc - (inputs.xd_o - xd_e)) ** 2)  # Eq. 60
-        e_vel = jnp.where(touched, 0.0, e_vel)  # before contact only (Sec. 6.2)
+        if not config.velocity_after_contact:
+            e_vel = jnp.where(touched, 0.0, e_vel)  # before contact only (Sec. 6.2)
     else:
         beta = gain_beta(rho, config.radius, config.r_b)
         e_vel = 0.5 * jnp.sum((beta * inputs.xd_o - xd_e) ** 2)  # Eq. 64
@@ -258,7 +268,10 @@ def make_online_learner(
         learning = inside
         if config.gate_receding:
             receding = jnp.dot(x_r, xd_r) > 0
-            learning = learning & ~(receding & ~inputs.in_contact)
+            gate = receding & ~inputs.in_contact
+            if config.velocity_after_contact and config.task == "catching":
+                gate = gate & ~touched  # after the first contact the learning goes on
+            learning = learning & ~gate
         cotangent = jnp.where(learning, de_df_act, 0.0).astype(f_o.dtype)
         (grad_w,) = pullback(cotangent)  # (dE/dF_act)^T (dF_o/dO) (dO/dw), Eq. 53
         lr = lambda g: eta.reshape((1, 3) + (1,) * (g.ndim - 2)).astype(g.dtype)  # noqa: E731

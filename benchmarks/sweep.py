@@ -1,0 +1,123 @@
+"""Sweep throughput: closed-loop learning rollouts over 1, 2, 4, ... devices vs MuJoCo C.
+
+    python benchmarks/sweep.py [--batch 4096] [--steps 500] [--float32]
+
+One run prints a table: steps/s of the catching loop with online learning (``experiments/sweep.py``'s
+vmapped function: MJX physics + impedance control + learner), its run axis laid out over the first
+n devices with ``NamedSharding`` for n = 1, 2, 4, ... up to all devices, against MuJoCo C's
+``mujoco.rollout`` (physics only, zero torques, all host cores) on the same scene and batch, measured
+in the same run. The gradient cost (value and gradient over forward) is measured by
+``experiments/bptt_probe.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import jax  # noqa: E402
+
+if "--float32" not in sys.argv:
+    jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+from jax.sharding import Mesh, NamedSharding  # noqa: E402
+from jax.sharding import PartitionSpec as P  # noqa: E402
+from mujoco import rollout as mj_rollout  # noqa: E402
+
+from experiments import task_loop as tl  # noqa: E402
+from hec_jax.mjx_scene import PendulumConditions, default_conditions, load_mj_model  # noqa: E402
+from hec_jax.nets import LearnerConfig  # noqa: E402
+
+
+def best_of(fn, repeat=3):
+    best = np.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--batch", type=int, default=256)
+    p.add_argument("--steps", type=int, default=500)
+    p.add_argument("--float32", action="store_true")
+    args = p.parse_args(argv)
+    B, T = args.batch, args.steps
+    config = tl.TaskConfig(
+        learner=LearnerConfig(task="catching", r_b=0.085, eta=(0.3,) * 3),
+        swing_steps=T,
+        swings=1,
+    )
+    sweep = tl.make_sweep(config)
+    base = default_conditions()
+    release = jnp.linspace(-0.55, -0.45, B)  # distinct runs: vmap cannot hoist the work
+    conditions = PendulumConditions(
+        **{k: jnp.broadcast_to(v, (B,)) for k, v in base._asdict().items()}
+    )._replace(release_angle=release)
+    keys = jax.random.split(jax.random.PRNGKey(0), B)
+    sw = tl.switches("learned")
+
+    rows = []
+    n_dev = jax.device_count()
+    counts = [n for n in (1, 2, 4, 8, 16) if n <= n_dev and B % n == 0]
+    rates = {}
+    for n in counts:
+        sharding = NamedSharding(Mesh(np.array(jax.devices()[:n]), ("runs",)), P("runs"))
+        put = lambda x, s=sharding: jax.device_put(x, s)  # noqa: E731
+        k_n = put(keys)
+        c_n = jax.tree_util.tree_map(put, conditions)
+        fn = jax.jit(lambda k, c: jnp.max(jnp.abs(sweep(k, sw, c)["f_contact"]), axis=(-2, -1)))
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(k_n, c_n))
+        compile_s = time.perf_counter() - t0
+        wall = best_of(lambda fn=fn, k_n=k_n, c_n=c_n: jax.block_until_ready(fn(k_n, c_n)))
+        rates[n] = B * T / wall
+        rows.append(
+            (f"MJX learning loop, {n} device(s)", f"{rates[n]:.3g}", f"compile {compile_s:.0f} s")
+        )
+
+    m = load_mj_model()
+    d = mujoco.MjData(m)
+    nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    states = np.zeros((B, nstate))
+    for i, angle in enumerate(np.asarray(release)):
+        mujoco.mj_resetData(m, d)
+        d.qpos[m.jnt_qposadr[m.joint("hinge").id]] = angle
+        mujoco.mj_getState(m, d, states[i], mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    ctrl = np.zeros((B, T, m.nu))
+    threads = os.cpu_count() or 1
+    datas = [mujoco.MjData(m) for _ in range(threads)]
+    with mj_rollout.Rollout(nthread=threads) as r:
+        r.rollout([m] * B, datas, states, ctrl)
+        wall = best_of(lambda: r.rollout([m] * B, datas, states, ctrl))
+    c_rate = B * T / wall
+    rows.append((f"MuJoCo C mujoco.rollout, physics only, {threads} threads", f"{c_rate:.3g}", ""))
+
+    dtype = "float32" if args.float32 else "float64"
+    print(
+        f"\n{jax.devices()[0].device_kind} x {n_dev} ({jax.default_backend()}), {dtype}, "
+        f"batch {B}, {T} steps per run\n"
+    )
+    print(f"{'what':55s} {'steps/s':>10s}  notes")
+    for what, rate, note in rows:
+        print(f"{what:55s} {rate:>10s}  {note}")
+    print("\nratios:")
+    for n in counts:
+        print(
+            f"  {n} device(s): learning loop / mujoco.rollout = {rates[n] / c_rate:.2f}, "
+            f"speed-up over 1 device = {rates[n] / rates[counts[0]]:.2f}"
+        )
+
+
+if __name__ == "__main__":
+    main()
