@@ -119,8 +119,9 @@ def test_virtual_force_signs_and_regions():
 
 @settings(max_examples=50, deadline=None)
 @given(
-    st.lists(st.floats(-50, 50), min_size=6, max_size=6),
-    st.lists(st.floats(0.01, 50), min_size=3, max_size=3),
+    # No subnormals: XLA on CPU flushes them to zero (so 2e-309 would come back as 0.0).
+    st.lists(st.floats(-50, 50, allow_subnormal=False), min_size=6, max_size=6),
+    st.lists(st.floats(0.01, 50, allow_subnormal=False), min_size=3, max_size=3),
 )
 def test_eq49_projection(vals, target):
     """project_stable lands in the strict stable set, is idempotent and keeps stable values."""
