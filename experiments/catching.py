@@ -70,13 +70,7 @@ def swing_metrics(logs, s: int, w: int, config: tl.TaskConfig) -> dict:
 def main(argv=None):
     args = parse(argv)
     learner = tl.learner_from_args(args, "catching", args.f_cd)
-    config = tl.TaskConfig(
-        learner=learner,
-        x_home=tuple(args.x_home),
-        hinge_x=args.hinge_x,
-        swing_steps=int(round(args.swing_s / 1e-3)),
-        swings=args.swings,
-    )
+    config = tl.config_from_args(args, learner, args.swing_s, args.swings)
     pendulum = default_conditions(release_angle=args.release_angle)
     settings = tl.run_settings(args, "catching", pendulum, learner, config)
     folder = start_run(args.out, args.seed, settings)

@@ -80,13 +80,8 @@ def hit_metrics(f: np.ndarray, dt: float, threshold: float) -> dict:
 def main(argv=None):
     args = parse(argv)
     learner = tl.learner_from_args(args, "hitting", args.f_hd)
-    config = tl.TaskConfig(
-        learner=learner,
-        x_home=tuple(args.x_home),
-        hinge_x=args.hinge_x,
-        swing_steps=int(round(args.train_swing_s / 1e-3)),
-        swings=args.train_swings,
-        final_steps=int(round(args.duration / 1e-3)),
+    config = tl.config_from_args(
+        args, learner, args.train_swing_s, args.train_swings, final_s=args.duration
     )
     pendulum = default_conditions(release_angle=args.release_angle)
     settings = tl.run_settings(args, "hitting", pendulum, learner, config)

@@ -129,13 +129,7 @@ def main(argv=None):
     if not args.merge_only:
         start_run(folder / f"shard_{args.shard_index}", args.seed, settings)
         learner = tl.learner_from_args(args, "catching", args.f_cd)
-        config = tl.TaskConfig(
-            learner=learner,
-            x_home=tuple(args.x_home),
-            hinge_x=args.hinge_x,
-            swing_steps=int(round(args.swing_s / 1e-3)),
-            swings=args.swings,
-        )
+        config = tl.config_from_args(args, learner, args.swing_s, args.swings)
         n_dev = jax.device_count()
         sharding = None
         if n_dev > 1 and args.chunk % n_dev == 0:

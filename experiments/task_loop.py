@@ -278,6 +278,21 @@ def learner_from_args(args, task: str, f_desired: float) -> LearnerConfig:
     )
 
 
+def config_from_args(
+    args, learner: LearnerConfig, swing_s: float, swings: int, final_s: float = 0.0
+) -> TaskConfig:
+    """The TaskConfig of a task script: world set-up from the common flags, durations in [s]."""
+    dt = ControllerConfig().dt
+    return TaskConfig(
+        learner=learner,
+        x_home=tuple(args.x_home),
+        hinge_x=args.hinge_x,
+        swing_steps=int(round(swing_s / dt)),
+        swings=swings,
+        final_steps=int(round(final_s / dt)),
+    )
+
+
 def run_settings(args, task: str, pendulum, learner, config) -> dict:
     """What ``config.json`` records beside seed, versions and device."""
     return dict(
