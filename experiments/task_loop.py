@@ -62,19 +62,62 @@ def sphere_fn(x_r, xd_r, xdd_r, radius) -> SphereGeometry:
     return SphereGeometry(sk.dx_o, sk.dxd_o, sk.dxdd_o)
 
 
+class EyeInput(NamedTuple):
+    """The object's state as the eye reports it (task plane (x, z), world frame), for camera runs.
+
+    Two estimates: ``old`` (index 0) is used until ``t_switch``, ``new`` (index 1) from then on (the
+    camera's latency decides when a frame's estimate arrives). Between frames the state is
+    predicted from the estimate with the filter's constant-acceleration model:
+    X_o(t) = x + xd tau + xdd tau^2 / 2, tau = t - t_stamp.
+
+    Attributes:
+        use: () 1.0: take X_o, X_o', X_o'' from here; 0.0: from the simulator (ground truth).
+        seen: () 1.0 once the eye has an estimate; before that F_o = 0 and no learning.
+        t_stamp: [s] (2,) time of each estimate's state (mid-exposure of its frame).
+        t_switch: [s] () from this time on the new estimate is used.
+        x: [m] (2, 2), xd: [m/s] (2, 2), xdd: [m/s^2] (2, 2): (estimate, axis).
+    """
+
+    use: jax.Array
+    seen: jax.Array
+    t_stamp: jax.Array
+    t_switch: jax.Array
+    x: jax.Array
+    xd: jax.Array
+    xdd: jax.Array
+
+
+def truth_eye() -> EyeInput:
+    """The object state comes from the simulator (``--eye truth``)."""
+    z = jnp.zeros((2, 2))
+    one = jnp.asarray(1.0)
+    return EyeInput(jnp.asarray(0.0), one, jnp.zeros(2), jnp.asarray(jnp.inf), z, z, z)
+
+
+def eye_object_state(eye: EyeInput, t: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """(X_o, X_o', X_o'') at time ``t`` predicted from the estimate in force at ``t``."""
+    i = (t >= eye.t_switch).astype(jnp.int32)
+    tau = t - eye.t_stamp[i]
+    x, xd, xdd = eye.x[i], eye.xd[i], eye.xdd[i]
+    return x + xd * tau + 0.5 * xdd * tau**2, xd + xdd * tau, xdd
+
+
 class Switches(NamedTuple):
-    """Pytree leaves selecting the condition (so one compile serves all three)."""
+    """Pytree leaves selecting the condition (so one compile serves all three) and the source of
+    the object's state (simulator or eye)."""
 
     use_virtual: jax.Array  # () 0.0 or 1.0
     learn: jax.Array  # () 0.0 or 1.0
+    eye: EyeInput = None  # None: ground truth (see ``switches``)
 
 
-def switches(condition: str) -> Switches:
+def switches(condition: str, eye: EyeInput | None = None) -> Switches:
     if condition not in CONDITIONS:
         raise ValueError(f"condition must be one of {CONDITIONS}, got {condition!r}")
     return Switches(
         use_virtual=jnp.asarray(0.0 if condition == "plain" else 1.0),
         learn=jnp.asarray(1.0 if condition == "learned" else 0.0),
+        eye=truth_eye() if eye is None else eye,
     )
 
 
@@ -113,20 +156,31 @@ def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
     def policy(ps, m, step: SimStep):
         cs, ls, sw = ps
         obs = observe(m, ids, step)
+        x_o_true = obs.x_o
         xdd_e = (obs.xd_e - cs.xd_e_prev) / dt  # one sample old, as the controller's
         xdd_o = (obs.xd_o - cs.xd_o_prev) / dt
+        # the object as the eye sees it (camera runs) or as simulated (sw.eye.use == 0)
+        use_eye = sw.eye.use > 0
+        x_eye, xd_eye, xdd_eye = eye_object_state(sw.eye, step.t)
+        obs = obs._replace(
+            x_o=jnp.where(use_eye, x_eye, obs.x_o),
+            xd_o=jnp.where(use_eye, xd_eye, obs.xd_o),
+            xdd_o=jnp.where(use_eye, xdd_eye, xdd_o),
+        )
+        xdd_o = obs.xdd_o
+        seen = sw.eye.seen > 0  # no estimate yet: no virtual force and no learning
         in_contact = jnp.sqrt(jnp.sum(obs.f_int**2)) > config.contact_threshold
         inputs = LearnerInputs(
             obs.x_e, obs.xd_e, xdd_e, obs.x_o, obs.xd_o, xdd_o, obs.f_int, in_contact
         )
         ls_new, out = l_update(ls, inputs)
-        keep = sw.learn > 0
+        keep = (sw.learn > 0) & seen
         ls_new = ls_new._replace(
             params=jax.tree_util.tree_map(
                 lambda new, old: jnp.where(keep, new, old), ls_new.params, ls.params
             )
         )
-        o = out.impedance * sw.use_virtual  # (2, 3): K_o, B_o, M_o per axis
+        o = out.impedance * (sw.use_virtual * seen)  # (2, 3): K_o, B_o, M_o per axis
         vp = VirtualParams(m_o=o[:, 2], b_o=o[:, 1], k_o=o[:, 0], r=jnp.asarray(lc.radius))
         tau, cs, info = c_apply(params, vp, target, cs, obs)
         aux = dict(
@@ -134,6 +188,7 @@ def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
             xd_e=obs.xd_e,
             x_o=obs.x_o,
             xd_o=obs.xd_o,
+            x_o_true=x_o_true,
             f_int=obs.f_int,
             f_o=info.f_o,
             k_o=o[:, 0],

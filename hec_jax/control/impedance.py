@@ -249,7 +249,10 @@ def make_impedance_controller(cfg: ControllerConfig | None = None) -> tuple[Init
     def apply(params, vparams, target, state, obs):
         _check_obs_shapes(obs)
         xdd_e = (obs.xd_e - state.xd_e_prev) / cfg.dt  # [m/s^2], one sample old
-        xdd_o = (obs.xd_o - state.xd_o_prev) / cfg.dt
+        if obs.xdd_o is None:
+            xdd_o = (obs.xd_o - state.xd_o_prev) / cfg.dt
+        else:  # from an estimator (a piecewise prediction would spike under differencing)
+            xdd_o = obs.xdd_o
         sk = sphere_kinematics(obs.x_o - obs.x_e, obs.xd_o - obs.xd_e, xdd_o - xdd_e, vparams.r)
         f_o = virtual_force(vparams, sk)  # Eq. 47
         tau_cmd, cond = impedance_torque(obs, params, target, f_o, state.q_posture, cfg)

@@ -40,6 +40,8 @@ class TaskObs(NamedTuple):
         f_int: [N] (2,) interaction force exerted ON the end-effector by the environment (Eq. 39).
         x_o: [m] (2,) object position X_o (cube centre).
         xd_o: [m/s] (2,) object velocity X_o'.
+        xdd_o: [m/s^2] (2,) object acceleration X_o'' when an estimator provides one (e.g. the
+            eye's filter); ``None`` (default): the controller differentiates ``xd_o`` over one sample.
     """
 
     q: jax.Array
@@ -53,6 +55,7 @@ class TaskObs(NamedTuple):
     f_int: jax.Array
     x_o: jax.Array
     xd_o: jax.Array
+    xdd_o: jax.Array | None = None
 
 
 _AX = np.array(TASK_AXES)

@@ -195,6 +195,7 @@ def rollout(
     policy_state0: Any,
     f_ext: jax.Array,
     conditions: PendulumConditions | None = None,
+    f_contact0: jax.Array | None = None,
 ) -> tuple[tuple[mjx.Data, Any], Trajectory]:
     """Runs ``policy`` in closed loop for ``f_ext.shape[0]`` steps in one ``lax.scan``
     (pure, jittable).
@@ -207,6 +208,8 @@ def rollout(
         policy_state0: initial policy state (pytree).
         f_ext: [N] (T, 3) world force applied at the hand centre at each step (zeros for none).
         conditions: if given, the pendulum is held in its release state until ``arrival_phase``.
+        f_contact0: [N] (3,) contact force on the hand solved at the step before ``d0`` (the first
+            force measurement), to continue a rollout in segments; default zeros.
 
     Returns:
         ((final data, final policy state), Trajectory).
@@ -240,7 +243,8 @@ def rollout(
             d = mjx.euler(m, d_acc)
         return (d, ps, f_contact), row
 
-    (d, ps, _), traj = jax.lax.scan(body, (d0, policy_state0, jnp.zeros(3)), f_ext)
+    f0 = jnp.zeros(3, dtype=f_ext.dtype) if f_contact0 is None else f_contact0
+    (d, ps, _), traj = jax.lax.scan(body, (d0, policy_state0, f0), f_ext)
     return (d, ps), traj
 
 
