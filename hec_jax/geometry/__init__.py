@@ -15,10 +15,20 @@ from hec_jax.geometry.parallel_motion import (
 )
 from hec_jax.geometry.refine import TwoFrameMotion, two_frame_motion
 from hec_jax.geometry.synthetic import SceneConfig, make_cube_scenes, rotation_error_deg
-from hec_jax.geometry.track import BoxTrack, TrackConfig, track_box
+from hec_jax.geometry.track import (
+    BoxPrediction,
+    BoxTrack,
+    BoxTracker,
+    TrackConfig,
+    TrackStep,
+    track_box,
+)
 
 __all__ = [
+    "BoxPrediction",
     "BoxTrack",
+    "BoxTracker",
+    "TrackStep",
     "TrackConfig",
     "TwoFrameMotion",
     "track_box",

@@ -13,6 +13,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 
@@ -40,17 +41,22 @@ class FilterState(NamedTuple):
 
 def transition(config: FilterConfig) -> tuple[Array, Array]:
     """(F, Q) (9, 9) of one frame interval."""
-    dt, q = config.dt, config.jerk_psd
-    f1 = jnp.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
-    q1 = q * jnp.array(
+    f, q = transition_np(config.jerk_psd, config.dt)
+    return jnp.asarray(f), jnp.asarray(q)
+
+
+def transition_np(jerk_psd: float, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(F, Q) (9, 9) of an interval ``dt`` [s] of any length (NumPy, for use between frames)."""
+    f1 = np.array([[1.0, dt, 0.5 * dt * dt], [0.0, 1.0, dt], [0.0, 0.0, 1.0]])
+    q1 = jerk_psd * np.array(
         [
             [dt**5 / 20, dt**4 / 8, dt**3 / 6],
             [dt**4 / 8, dt**3 / 3, dt**2 / 2],
             [dt**3 / 6, dt**2 / 2, dt],
         ]
     )
-    eye = jnp.eye(3)
-    return jnp.kron(f1, eye), jnp.kron(q1, eye)
+    eye = np.eye(3)
+    return np.kron(f1, eye), np.kron(q1, eye)
 
 
 def init(config: FilterConfig, position: Array) -> FilterState:

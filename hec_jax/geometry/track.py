@@ -75,6 +75,9 @@ class TrackConfig:
         max_speed: after a loss, a new detection must lie within max_speed x the time since the
             last valid frame (+ half the box) of its centre [m/s].
         sigma_floor_px: floor of the per-pixel residual standard deviation for the filter [px].
+        background_every, background_frames: without a given background, :class:`BoxTracker`
+            keeps every ``background_every``-th frame, up to the last ``background_frames``, and
+            uses their per-pixel median as the background once it holds 5 (static camera).
         filter: the constant-acceleration filter's parameters (dt set from fps).
     """
 
@@ -97,6 +100,8 @@ class TrackConfig:
     min_separation_px: float = 2.0
     search_px: float = 1.5
     init_gates: tuple[float, ...] = (0.35, 0.15, 0.06)  # in box image sizes, then gates_px
+    background_every: int = 3
+    background_frames: int = 25
     seed: int = field(default=0)
 
 
@@ -464,73 +469,182 @@ def _log(rotation: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(rotation, np.float64))[0].ravel()
 
 
-def track_box(
-    frames,
-    intrinsics,
-    size: float,
-    fps: float,
-    config: TrackConfig = TrackConfig(),
-    smoother: SmootherConfig | None = None,
-) -> BoxTrack:
-    """Pose, velocity and acceleration of a single box of edge ``size`` [m] in a camera sequence.
+def _check_frame(frame) -> np.ndarray:
+    """Validate one (H, W, 3) uint8 RGB frame; raises ValueError with the reason."""
+    frame = np.asarray(frame)
+    if frame.dtype != np.uint8:
+        raise ValueError(f"frame must be uint8 RGB, got dtype {frame.dtype}")
+    if frame.ndim != 3 or frame.shape[-1] != 3:
+        raise ValueError(f"frame must have shape (H, W, 3), got {frame.shape}")
+    if frame.shape[0] < 8 or frame.shape[1] < 8:
+        raise ValueError(f"frame must be at least 8x8 px, got {frame.shape}")
+    return frame
+
+
+class TrackStep(NamedTuple):
+    """Output of :meth:`BoxTracker.update` for one frame (NumPy; camera frame of the intrinsics).
+
+    Everything here was known when the frame arrived (causal): the constant-acceleration filter
+    (:mod:`filter`) after this frame's measurement, or its prediction where the frame gave none.
+
+    Attributes:
+        frame: index of the frame since construction / :meth:`BoxTracker.reset` [-].
+        valid: bool, this frame's fit passed the checks and updated the filter.
+        initialised: bool, the filter holds a state (False before the first detection and after a
+            loss until the next one); where False, position/velocity/acceleration are zeros.
+        position, velocity, acceleration: (3,) filtered box centre [m, m/s, m/s^2].
+        position_cov: (3, 3) its covariance [m^2] (identity where not initialised).
+        pose_rotation: (3, 3) R_cam_box (the frame's fit; coasted at the last angular velocity
+            over short gaps; identity before the first detection).
+        angular_velocity: (3,) [rad/s], camera frame, from the last two rotations (zeros if
+            unknown): R(t + dt) ~ exp(dt [w]x) R(t).
+        measured_position: (3,) the frame's own fitted centre [m] (NaN where not valid).
+        information: (6, 6) information of the frame's fit over (dw, dt) [1/rad^2, 1/m^2].
+        coverage: fraction of the visible model edge length explained by segments.
+        rms_px: RMS edge residual [px] (NaN where not valid).
+        segments: (M, 2, 2) the associated segments (clipped) [px], NaN where unassigned.
+        edge_ids: (M,) their model edge ids (-1 where unassigned).
+        timing_ms: {"detection_ms", "estimation_ms", "total_ms"} of this frame [ms].
+    """
+
+    frame: int
+    valid: np.bool_
+    initialised: np.bool_
+    position: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    position_cov: np.ndarray
+    pose_rotation: np.ndarray
+    angular_velocity: np.ndarray
+    measured_position: np.ndarray
+    information: np.ndarray
+    coverage: float
+    rms_px: float
+    segments: np.ndarray
+    edge_ids: np.ndarray
+    timing_ms: dict
+
+
+class BoxPrediction(NamedTuple):
+    """State extrapolated from the last frame by :meth:`BoxTracker.predict` (NumPy).
+
+    Attributes:
+        initialised: bool, False when the filter holds no state (then zeros / identity).
+        position, velocity, acceleration: (3,) [m, m/s, m/s^2] at the requested time.
+        position_cov: (3, 3) [m^2].
+        pose_rotation: (3, 3) R_cam_box turned on at the last angular velocity.
+    """
+
+    initialised: np.bool_
+    position: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    position_cov: np.ndarray
+    pose_rotation: np.ndarray
+
+
+class BoxTracker:
+    """Online form of :func:`track_box`: one camera frame in, the causal state out.
+
+    Holds the static setup (intrinsics, size, compiled functions) and the tracker's memory (filter
+    state, last rotations, loss counter) between frames; :func:`track_box` is a loop of
+    :meth:`update` followed by the offline smoother, and gives the same causal fields.
 
     Args:
-        frames: (T, H, W, 3) uint8 RGB.
         intrinsics: (3, 3) camera matrix (pinhole, image on [0, W] x [0, H]).
         size: the cube's edge [m].
-        fps: frame rate [1/s].
+        fps: frame rate [1/s] (the filter's time step is 1 / fps).
         config: tracker parameters.
-        smoother: offline smoother parameters (default: ``SmootherConfig`` with the tracker's
-            ``jerk_psd``).
-
-    Returns:
-        :class:`BoxTrack`. Frames where the box was not found have ``valid == False`` (their state
-        is the filter's prediction / the smoother's interpolation, or zeros before the first
-        detection for the causal filter).
+        background: optional (H, W) uint8 gray or (H, W, 3) uint8 RGB image of the static scene
+            without the box; used to find the box when searching from scratch (first frame, after
+            a loss). Without it the tracker builds one from the frames it sees (per-pixel median
+            of every ``config.background_every``-th frame, once it holds 5; valid for a static
+            camera and a moving box) and, until then, searches the segments of the whole image
+            (which fails in cluttered scenes: pass a background there).
 
     Raises:
-        ValueError: frames not (T, H, W, 3) uint8, bad intrinsics, size or fps.
+        ValueError: bad intrinsics, size, fps or background.
     """
-    frames = detect.check_frames(frames)
-    check_intrinsics(intrinsics)
-    if not (np.isfinite(size) and size > 0):
-        raise ValueError(f"size must be finite and positive, got {size}")
-    if not (np.isfinite(fps) and fps > 0):
-        raise ValueError(f"fps must be finite and positive, got {fps}")
-    cfg = config
-    scfg = smoother if smoother is not None else SmootherConfig(jerk_psd=cfg.jerk_psd)
-    locate_jit, finish, search, fcfg = _compiled(cfg, fps)
-    f_np, q_np = (np.asarray(x) for x in kf.transition(fcfg))
-    k = np.asarray(intrinsics, np.float64)
-    size_a = np.float64(size)
-    t_n, h, w, _ = frames.shape
-    m = cfg.max_segments
-    out = {
-        "causal_position": np.zeros((t_n, 3)),
-        "causal_velocity": np.zeros((t_n, 3)),
-        "causal_acceleration": np.zeros((t_n, 3)),
-        "valid": np.zeros(t_n, bool),
-        "pose_rotation": np.tile(np.eye(3), (t_n, 1, 1)),
-        "measured_position": np.full((t_n, 3), np.nan),
-        "information": np.zeros((t_n, 6, 6)),
-        "coverage": np.zeros(t_n),
-        "rms_px": np.full(t_n, np.nan),
-        "segments": np.full((t_n, m, 2, 2), np.nan),
-        "edge_ids": np.full((t_n, m), -1),
-    }
-    background = detect.background_model(frames) if t_n >= 5 else None
-    state = jax.device_get(kf.init(fcfg, jnp.zeros(3)))
-    predicted = state
-    started = False  # filter initialised
-    misses = cfg.lost_after  # start in the "lost" state
-    rot_prev, rot_prev2 = None, None
-    t_det = t_est = 0.0
-    last_good = None  # (frame, centre [m]) of the last valid frame
-    rot_anchor = None  # labelling reference for re-acquisitions
 
-    def acquire(gray, gate):
+    def __init__(
+        self,
+        intrinsics,
+        size: float,
+        fps: float,
+        config: TrackConfig = TrackConfig(),
+        background=None,
+    ):
+        check_intrinsics(intrinsics)
+        if not (np.isfinite(size) and size > 0):
+            raise ValueError(f"size must be finite and positive, got {size}")
+        if not (np.isfinite(fps) and fps > 0):
+            raise ValueError(f"fps must be finite and positive, got {fps}")
+        if background is not None:
+            background = np.asarray(background)
+            if background.dtype != np.uint8:
+                raise ValueError(f"background must be uint8, got dtype {background.dtype}")
+            if background.ndim == 3 and background.shape[-1] == 3:
+                background = detect.to_gray(background)
+            if background.ndim != 2:
+                raise ValueError(f"background must be (H, W) or (H, W, 3), got {background.shape}")
+        self.config = config
+        self.size = float(size)
+        self.fps = float(fps)
+        self.intrinsics = np.asarray(intrinsics, np.float64)
+        self.background = background
+        self._given_background = background is not None
+        self._locate, self._finish, self._search, self._fcfg = _compiled(config, fps)
+        self._f, self._q = (np.asarray(x) for x in kf.transition(self._fcfg))
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the track (the next frame is searched from scratch, frame index 0)."""
+        self._state = jax.device_get(kf.init(self._fcfg, jnp.zeros(3)))
+        self._predicted = self._state
+        self._started = False  # filter initialised
+        self._misses = self.config.lost_after  # start in the "lost" state
+        self._rot_prev = None
+        self._rot_prev2 = None
+        self._last_good = None  # (frame, centre [m]) of the last valid frame
+        self._rot_anchor = None  # labelling reference for re-acquisitions
+        self._frame = 0
+        self._bg_frames: list[np.ndarray] = []
+        self._bg_dirty = False
+        if not self._given_background:
+            self.background = None
+
+    @property
+    def frame(self) -> int:
+        """Number of frames processed since construction / :meth:`reset`."""
+        return self._frame
+
+    def _angular_velocity(self) -> np.ndarray:
+        if self._rot_prev is None or self._rot_prev2 is None:
+            return np.zeros(3)
+        return _log(self._rot_prev @ self._rot_prev2.T) * self.fps
+
+    def predict(self, dt: float) -> BoxPrediction:
+        """The state ``dt`` [s] after the last processed frame (constant-acceleration model;
+        rotation at the last angular velocity). ``dt`` may be fractional, e.g. the time to the
+        next control step between frames; ``dt = 0`` returns the filtered state."""
+        rot = np.eye(3) if self._rot_prev is None else self._rot_prev
+        if not self._started:
+            z = np.zeros(3)
+            return BoxPrediction(np.bool_(False), z, z, z, np.eye(3), rot)
+        f, q = kf.transition_np(self._fcfg.jerk_psd, float(dt))
+        mean = f @ np.asarray(self._state.mean)
+        cov = f @ np.asarray(self._state.cov) @ f.T + q
+        rot = _rodrigues(self._angular_velocity() * dt) @ rot
+        return BoxPrediction(np.bool_(True), mean[:3], mean[3:6], mean[6:], cov[:3, :3], rot)
+
+    def _acquire(self, gray, gate):
         """Search from scratch: (prior (R, t), segments, mask) of the best valid candidate, or None.
         ``gate`` = (predicted centre (3,) [m], radius [m]) rejects far candidates (or None)."""
+        m, k = self.config.max_segments, self.intrinsics
+        if self._bg_dirty:
+            self.background = np.median(np.stack(self._bg_frames), axis=0).astype(np.uint8)
+            self._bg_dirty = False
+        background = self.background
         regions = detect.foreground_regions(gray, background) if background is not None else []
         candidates = []
         for (x0, y0, x1, y1), area in regions:
@@ -549,7 +663,9 @@ def track_box(
             segp_c, mask_c = detect.pad_segments(seg_c, m)
             if not mask_c.any():
                 continue
-            cand = jax.device_get(search(centre, np.float64(edge_px), segp_c, mask_c, size_a, k))
+            cand = jax.device_get(
+                self._search(centre, np.float64(edge_px), segp_c, mask_c, np.float64(self.size), k)
+            )
             score = float(cand.association.coverage) - 0.1 * float(cand.rms)
             t_c = np.asarray(cand.pose.translation)
             near = gate is None or np.linalg.norm(t_c - gate[0]) <= gate[1]
@@ -561,14 +677,15 @@ def track_box(
         # keep the object axes of frame 0 (the search may return any of the 24 labellings): the
         # labelling nearest to the last tracked rotation (coasted over short gaps)
         rot = np.asarray(cand.pose.rotation)
-        if rot_anchor is not None:
-            rot = snap_to_symmetry(rot, rot_anchor)
+        if self._rot_anchor is not None:
+            rot = snap_to_symmetry(rot, self._rot_anchor)
         return (rot, np.asarray(cand.pose.translation)), segp_c, mask_c
 
-    def fit(prior, segp, mask, gray, first):
-        loc = locate_jit(Pose(*prior), segp, mask, size_a, k)
+    def _fit(self, prior, segp, mask, gray, first) -> Finished:
+        cfg, k, size_a = self.config, self.intrinsics, np.float64(self.size)
+        loc = self._locate(Pose(*prior), segp, mask, size_a, k)
         pose_np = jax.device_get(loc.pose)
-        edges_px, usable = usable_edges(pose_np.rotation, pose_np.translation, size, k, cfg)
+        edges_px, usable = usable_edges(pose_np.rotation, pose_np.translation, self.size, k, cfg)
         pts, ids = detect.edge_points(gray, edges_px, usable, search=cfg.search_px)
         n_pts = min(len(pts), cfg.max_points)
         sel = np.linspace(0, len(pts) - 1, n_pts).astype(int) if n_pts else np.zeros(0, int)
@@ -578,10 +695,10 @@ def track_box(
             np.zeros(cfg.max_points),
         )
         pp[:n_pts], pi[:n_pts], pw[:n_pts] = pts[sel], ids[sel], 1.0
-        use_prior = (not first) and rot_prev2 is not None
+        use_prior = (not first) and self._rot_prev2 is not None
         return jax.device_get(
-            finish(
-                state,
+            self._finish(
+                self._state,
                 loc,
                 pp,
                 pi,
@@ -594,28 +711,46 @@ def track_box(
             )
         )
 
-    for i in range(t_n):
+    def update(self, frame) -> TrackStep:
+        """Process the next camera frame ((H, W, 3) uint8 RGB, 1 / fps after the previous one).
+
+        Raises:
+            ValueError: frame not (H, W, 3) uint8, or not the background's size.
+        """
+        frame = _check_frame(frame)
+        shape = self.background.shape if self._given_background else None
+        if shape is None and self._bg_frames:
+            shape = self._bg_frames[0].shape
+        if shape is not None and shape != frame.shape[:2]:
+            raise ValueError(f"frame {frame.shape[:2]} does not match the background {shape}")
+        cfg, k = self.config, self.intrinsics
+        m, i = cfg.max_segments, self._frame
         t0 = time.perf_counter()
-        gray = detect.to_gray(frames[i])
+        gray = detect.to_gray(frame)
+        if not self._given_background and i % cfg.background_every == 0:
+            self._bg_frames = [*self._bg_frames, gray][-cfg.background_frames :]
+            self._bg_dirty = len(self._bg_frames) >= 5  # median taken when a search needs it
         fin = None
-        tracking = misses < cfg.lost_after and rot_prev is not None
+        tracking = self._misses < cfg.lost_after and self._rot_prev is not None
         if tracking:
+            rot_prev, rot_prev2 = self._rot_prev, self._rot_prev2
             omega = _log(rot_prev @ rot_prev2.T) if rot_prev2 is not None else np.zeros(3)
-            prior = (_rodrigues(omega) @ rot_prev, np.asarray(predicted.mean[:3]))
-            corners = project_corners_np(*prior, size, k)
+            prior = (_rodrigues(omega) @ rot_prev, np.asarray(self._predicted.mean[:3]))
+            corners = project_corners_np(*prior, self.size, k)
             seg = detect.detect_segments(gray, _window(corners, cfg.roi_margin))
             segp, mask = detect.pad_segments(seg, m)
         t1 = time.perf_counter()
         # innovation gate while the filter runs: a fit must lie within 3 sigma of the predicted
         # centre plus half the box (a partly occluded box can fit an occluder's edges)
         gate = None
-        if started and misses < cfg.lost_after:
-            p_cov = np.asarray(predicted.cov)[:3, :3]
-            radius = 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(p_cov))) + 0.5 * size
-            gate = (np.asarray(predicted.mean[:3]), radius)
-        elif last_good is not None:
+        if self._started and self._misses < cfg.lost_after:
+            p_cov = np.asarray(self._predicted.cov)[:3, :3]
+            radius = 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(p_cov))) + 0.5 * self.size
+            gate = (np.asarray(self._predicted.mean[:3]), radius)
+        elif self._last_good is not None:
             # after a loss: no faster than ``max_speed`` since the last valid frame
-            gate = (last_good[1], cfg.max_speed * (i - last_good[0]) / fps + 0.5 * size)
+            since = (i - self._last_good[0]) / self.fps
+            gate = (self._last_good[1], cfg.max_speed * since + 0.5 * self.size)
 
         def gated(f, gate=gate):
             if f is None or not bool(f.valid):
@@ -623,63 +758,148 @@ def track_box(
             return gate is None or np.linalg.norm(np.asarray(f.translation) - gate[0]) <= gate[1]
 
         if tracking:
-            fin = fit(prior, segp, mask, gray, not started)
+            fin = self._fit(prior, segp, mask, gray, not self._started)
         if not gated(fin):
             # lost, or the tracked fit failed: search this frame from scratch (near the
             # prediction while the filter runs; anywhere, with a new filter, once lost)
             fin = None
-            got = acquire(gray, gate)
+            got = self._acquire(gray, gate)
             if got is not None:
                 prior, segp, mask = got
-                first = not (started and misses < cfg.lost_after)
-                fin2 = fit(prior, segp, mask, gray, first)
+                first = not (self._started and self._misses < cfg.lost_after)
+                fin2 = self._fit(prior, segp, mask, gray, first)
                 if gated(fin2):
                     fin = fin2
-                    if first or not started:
-                        started = False
+                    if first or not self._started:
+                        self._started = False
         ok = fin is not None and bool(fin.valid)
         if ok:
-            state, predicted = fin.filter_state, fin.predicted
-            started = True
-        elif started:
-            state = kf.FilterState(f_np @ state.mean, f_np @ state.cov @ f_np.T + q_np)
-            predicted = kf.FilterState(f_np @ state.mean, f_np @ state.cov @ f_np.T + q_np)
+            self._state, self._predicted = fin.filter_state, fin.predicted
+            self._started = True
+        elif self._started:
+            f, q = self._f, self._q
+            mean, cov = self._state.mean, self._state.cov
+            self._state = kf.FilterState(f @ mean, f @ cov @ f.T + q)
+            mean, cov = self._state.mean, self._state.cov
+            self._predicted = kf.FilterState(f @ mean, f @ cov @ f.T + q)
         t2 = time.perf_counter()
-        t_det += t1 - t0
-        t_est += t2 - t1
+        segs = np.full((m, 2, 2), np.nan)
+        edge_ids = np.full(m, -1)
+        measured = np.full(3, np.nan)
+        information = np.zeros((6, 6))
+        coverage, rms = 0.0, np.nan
         if ok:
-            misses = 0
-            last_good = (i, np.asarray(fin.translation))
+            self._misses = 0
+            self._last_good = (i, np.asarray(fin.translation))
             if tracking and gated(fin):
-                rot_anchor = np.asarray(fin.rotation)
-            rot_prev2, rot_prev = rot_prev, np.asarray(fin.rotation)
+                self._rot_anchor = np.asarray(fin.rotation)
+            self._rot_prev2, self._rot_prev = self._rot_prev, np.asarray(fin.rotation)
             wts = fin.asc_weights
             segs = np.array(fin.asc_endpoints)
             segs[wts <= 0] = np.nan
-            out["segments"][i] = segs
-            out["edge_ids"][i] = np.where(wts > 0, fin.asc_ids, -1)
-            out["measured_position"][i] = fin.translation
-            out["information"][i] = fin.information
-            out["coverage"][i] = float(fin.coverage)
-            out["rms_px"][i] = float(fin.rms)
+            edge_ids = np.where(wts > 0, fin.asc_ids, -1)
+            measured = np.asarray(fin.translation, np.float64)
+            information = np.asarray(fin.information)
+            coverage, rms = float(fin.coverage), float(fin.rms)
         else:
-            misses += 1
-            if rot_prev is not None and rot_prev2 is not None and misses < cfg.lost_after:
+            self._misses += 1
+            rot_prev, rot_prev2 = self._rot_prev, self._rot_prev2
+            if rot_prev is not None and rot_prev2 is not None and self._misses < cfg.lost_after:
                 # coast: keep turning at the last angular velocity
-                step_rot = rot_prev @ rot_prev2.T
-                rot_prev2, rot_prev = rot_prev, step_rot @ rot_prev
-            if misses >= cfg.lost_after:
-                rot_prev2 = None
-        out["valid"][i] = ok
-        if started:
-            mean = np.asarray(state.mean)
-            out["causal_position"][i] = mean[:3]
-            out["causal_velocity"][i] = mean[3:6]
-            out["causal_acceleration"][i] = mean[6:]
-        if rot_prev is not None:
-            out["pose_rotation"][i] = rot_prev
-    valid = out["valid"]
-    causal_pose_rotation = out["pose_rotation"].copy()
+                self._rot_prev2, self._rot_prev = rot_prev, (rot_prev @ rot_prev2.T) @ rot_prev
+            if self._misses >= cfg.lost_after:
+                self._rot_prev2 = None
+        self._frame += 1
+        if self._started:
+            mean = np.asarray(self._state.mean, np.float64)
+            pos, vel, acc = mean[:3], mean[3:6], mean[6:]
+            pos_cov = np.asarray(self._state.cov, np.float64)[:3, :3]
+        else:
+            pos = vel = acc = np.zeros(3)
+            pos_cov = np.eye(3)
+        timing = {"detection_ms": 1e3 * (t1 - t0), "estimation_ms": 1e3 * (t2 - t1)}
+        timing["total_ms"] = timing["detection_ms"] + timing["estimation_ms"]
+        return TrackStep(
+            frame=i,
+            valid=np.bool_(ok),
+            initialised=np.bool_(self._started),
+            position=pos,
+            velocity=vel,
+            acceleration=acc,
+            position_cov=pos_cov,
+            pose_rotation=np.eye(3) if self._rot_prev is None else np.array(self._rot_prev),
+            angular_velocity=self._angular_velocity(),
+            measured_position=measured,
+            information=information,
+            coverage=coverage,
+            rms_px=rms,
+            segments=segs,
+            edge_ids=edge_ids,
+            timing_ms=timing,
+        )
+
+
+def track_box(
+    frames,
+    intrinsics,
+    size: float,
+    fps: float,
+    config: TrackConfig = TrackConfig(),
+    smoother: SmootherConfig | None = None,
+    background=None,
+) -> BoxTrack:
+    """Pose, velocity and acceleration of a single box of edge ``size`` [m] in a camera sequence.
+
+    A loop of :meth:`BoxTracker.update` over the frames (the ``causal_*`` fields), then the offline
+    smoother (:mod:`smooth`) over the per-frame fits (the main fields).
+
+    Args:
+        frames: (T, H, W, 3) uint8 RGB.
+        intrinsics: (3, 3) camera matrix (pinhole, image on [0, W] x [0, H]).
+        size: the cube's edge [m].
+        fps: frame rate [1/s].
+        config: tracker parameters.
+        smoother: offline smoother parameters (default: ``SmootherConfig`` with the tracker's
+            ``jerk_psd``).
+        background: the static scene without the box ((H, W) gray or (H, W, 3) RGB uint8), or
+            None: then the per-pixel median of the sequence (5 frames or more) is used.
+
+    Returns:
+        :class:`BoxTrack`. Frames where the box was not found have ``valid == False`` (their state
+        is the filter's prediction / the smoother's interpolation, or zeros before the first
+        detection for the causal filter).
+
+    Raises:
+        ValueError: frames not (T, H, W, 3) uint8, bad intrinsics, size or fps.
+    """
+    frames = detect.check_frames(frames)
+    check_intrinsics(intrinsics)
+    if not (np.isfinite(size) and size > 0):
+        raise ValueError(f"size must be finite and positive, got {size}")
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be finite and positive, got {fps}")
+    cfg = config
+    scfg = smoother if smoother is not None else SmootherConfig(jerk_psd=cfg.jerk_psd)
+    t_n = len(frames)
+    if background is None and t_n >= 5:
+        background = detect.background_model(frames)
+    tracker = BoxTracker(intrinsics, size, fps, cfg, background)
+    steps = [tracker.update(f) for f in frames]
+    valid = np.array([s.valid for s in steps], bool)
+    stack = lambda name: np.stack([getattr(s, name) for s in steps])  # noqa: E731
+    out = {
+        "causal_position": stack("position"),
+        "causal_velocity": stack("velocity"),
+        "causal_acceleration": stack("acceleration"),
+        "valid": valid,
+        "measured_position": stack("measured_position"),
+        "information": stack("information"),
+        "coverage": np.array([s.coverage for s in steps]),
+        "rms_px": np.array([s.rms_px for s in steps]),
+        "segments": stack("segments"),
+        "edge_ids": stack("edge_ids"),
+    }
+    causal_pose_rotation = stack("pose_rotation")
     if valid.any():
         first = int(np.argmax(valid))
         causal_pose_rotation[:first] = causal_pose_rotation[first]
@@ -694,18 +914,18 @@ def track_box(
             return np.tile(np.eye(3), (t_n, 1, 1))
         return pose_rotation @ pose_rotation[int(np.argmax(valid))].T
 
-    out["pose_rotation"] = sm.rotation if valid.any() else out["pose_rotation"]
     timing = {
-        "detection_ms": 1e3 * t_det / t_n,
-        "estimation_ms": 1e3 * t_est / t_n,
-        "smoothing_ms": 1e3 * t_smooth / t_n,
+        key: float(np.mean([s.timing_ms[key] for s in steps]))
+        for key in ("detection_ms", "estimation_ms")
     }
+    timing["smoothing_ms"] = 1e3 * t_smooth / t_n
     timing["total_ms"] = timing["detection_ms"] + timing["estimation_ms"]
     return BoxTrack(
         position=sm.position,
         rotation=relative(sm.rotation),
         velocity=sm.velocity,
         acceleration=sm.acceleration,
+        pose_rotation=sm.rotation if valid.any() else stack("pose_rotation"),
         causal_rotation=relative(causal_pose_rotation),
         timing_ms=timing,
         **out,

@@ -1,0 +1,78 @@
+"""The online tracker (``BoxTracker``): same causal path as ``track_box``, extrapolation, reset."""
+
+import numpy as np
+import pytest
+from test_eye_track import EDGE, FPS, render_swing
+
+from hec_jax.geometry import BoxTracker, TrackStep, track_box
+from hec_jax.geometry.detect import background_model
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return render_swing(0.5, 24)
+
+
+@pytest.fixture(scope="module")
+def steps(seq):
+    tracker = BoxTracker(seq.intrinsics, EDGE, FPS, background=background_model(seq.frames))
+    return tracker, [tracker.update(f) for f in seq.frames]
+
+
+def test_update_matches_track_box(seq, steps):
+    _, st = steps
+    tr = track_box(seq.frames, seq.intrinsics, EDGE, FPS)
+    assert isinstance(st[0], TrackStep)
+    np.testing.assert_array_equal([s.valid for s in st], tr.valid)
+    np.testing.assert_array_equal([s.position for s in st], tr.causal_position)
+    np.testing.assert_array_equal([s.velocity for s in st], tr.causal_velocity)
+    np.testing.assert_array_equal([s.acceleration for s in st], tr.causal_acceleration)
+    np.testing.assert_array_equal([s.measured_position for s in st], tr.measured_position)
+    np.testing.assert_array_equal([s.edge_ids for s in st], tr.edge_ids)
+    assert [s.frame for s in st] == list(range(len(seq.frames)))
+    s = st[-1]
+    assert s.initialised and s.pose_rotation.shape == (3, 3) and s.segments.shape[1:] == (2, 2)
+    assert set(s.timing_ms) == {"detection_ms", "estimation_ms", "total_ms"}
+
+
+def test_predict_extrapolates_the_filter(seq, steps):
+    tracker, st = steps
+    now = tracker.predict(0.0)
+    np.testing.assert_allclose(now.position, st[-1].position)
+    np.testing.assert_allclose(now.velocity, st[-1].velocity)
+    dt = 0.4 / FPS
+    later = tracker.predict(dt)
+    p, v, a = st[-1].position, st[-1].velocity, st[-1].acceleration
+    np.testing.assert_allclose(later.position, p + v * dt + 0.5 * a * dt**2)
+    np.testing.assert_allclose(later.velocity, v + a * dt)
+    assert np.all(np.linalg.eigvalsh(later.position_cov - now.position_cov) > 0)
+    # between frames the prediction is closer to the truth at that time than the last estimate
+    # (the truth is interpolated linearly over one frame here)
+    s = seq.position[-1] + 0.4 * (seq.position[-1] - seq.position[-2])
+    assert np.linalg.norm(later.position - s) < 0.02
+
+
+def test_reset_and_no_background(seq):
+    # no background given: whole-image search, then the median of the frames seen (from frame 12)
+    tracker = BoxTracker(seq.intrinsics, EDGE, FPS)
+    out = [tracker.update(f) for f in seq.frames][-6:]
+    assert np.mean([s.valid for s in out]) >= 0.6
+    err = [np.linalg.norm(s.measured_position - seq.position[s.frame]) for s in out if s.valid]
+    assert np.median(err) < 0.02
+    tracker.reset()
+    assert tracker.frame == 0 and not tracker.predict(0.1).initialised
+    assert tracker.update(np.zeros_like(seq.frames[0])).valid == False  # noqa: E712
+
+
+def test_bad_input_raises(seq):
+    tracker = BoxTracker(seq.intrinsics, EDGE, FPS, background=seq.frames[0])
+    with pytest.raises(ValueError, match="uint8"):
+        tracker.update(seq.frames[0].astype(np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        tracker.update(seq.frames[0, ..., 0])
+    with pytest.raises(ValueError, match="match"):
+        tracker.update(np.zeros((64, 64, 3), np.uint8))
+    with pytest.raises(ValueError):
+        BoxTracker(seq.intrinsics, EDGE, FPS, background=np.zeros((4, 4, 4), np.uint8))
+    with pytest.raises(ValueError):
+        BoxTracker(seq.intrinsics, 0.0, FPS)
