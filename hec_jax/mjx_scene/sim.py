@@ -196,6 +196,7 @@ def rollout(
     f_ext: jax.Array,
     conditions: PendulumConditions | None = None,
     f_contact0: jax.Array | None = None,
+    active: jax.Array | None = None,
 ) -> tuple[tuple[mjx.Data, Any], Trajectory]:
     """Runs ``policy`` in closed loop for ``f_ext.shape[0]`` steps in one ``lax.scan``
     (pure, jittable).
@@ -210,6 +211,9 @@ def rollout(
         conditions: if given, the pendulum is held in its release state until ``arrival_phase``.
         f_contact0: [N] (3,) contact force on the hand solved at the step before ``d0`` (the first
             force measurement), to continue a rollout in segments; default zeros.
+        active: (T,) bool; steps where it is False leave the state (data, policy state, force
+            measurement) unchanged and their rows are meaningless: segments of different lengths
+            then share one compiled scan. Default: all steps active.
 
     Returns:
         ((final data, final policy state), Trajectory).
@@ -217,7 +221,8 @@ def rollout(
     if f_ext.ndim != 2 or f_ext.shape[1] != 3:
         raise ValueError(f"f_ext must have shape (T, 3), got {f_ext.shape}")
 
-    def body(carry, f_ext_k):
+    def body(carry, xs):
+        f_ext_k, active_k = xs
         d, ps, f_contact_prev = carry
         if conditions is not None:
             d = _hold_pendulum(d, ids, conditions)
@@ -241,10 +246,13 @@ def rollout(
         )
         with _mjx_ctx():
             d = mjx.euler(m, d_acc)
-        return (d, ps, f_contact), row
+        new = (d, ps, f_contact)
+        if active is not None:
+            new = jax.tree_util.tree_map(lambda n, o: jnp.where(active_k, n, o), new, carry)
+        return new, row
 
     f0 = jnp.zeros(3, dtype=f_ext.dtype) if f_contact0 is None else f_contact0
-    (d, ps, _), traj = jax.lax.scan(body, (d0, policy_state0, f0), f_ext)
+    (d, ps, _), traj = jax.lax.scan(body, (d0, policy_state0, f0), (f_ext, active))
     return (d, ps), traj
 
 
