@@ -243,6 +243,7 @@ def run_camera(
         "eye_ms": np.zeros((n_seeds, config.swings, n_f)),
         "render_ms": np.zeros((n_seeds, config.swings, n_f)),
         "sim_ms": np.zeros((config.swings, n_f)),
+        "swing_wall_s": np.zeros(config.swings),
     }
     video: list[np.ndarray] = []
     swing_logs = []
@@ -300,6 +301,7 @@ def run_camera(
                 d_qpos = np.asarray(d.qpos)
                 rows_all.append(rows)
             ls = ls._replace(was_inside=jnp.zeros_like(ls.was_inside))
+            eye["swing_wall_s"][swing] = time.perf_counter() - t_wall - eye["swing_wall_s"].sum()
             swing_logs.append(
                 {k: np.concatenate([r[k] for r in rows_all], axis=1) for k in rows_all[0]}
             )
@@ -346,6 +348,10 @@ def eye_metrics(eye: dict, logs: dict, swing_s: float, n_seeds: int) -> dict:
         "wall_s": wall,
         "real_time_factor": sim_s / wall,  # simulated time of one world / wall time
         "real_time_factor_all_worlds": n_seeds * sim_s / wall,
+        # without the first swing (compilation)
+        "real_time_factor_warm": float(
+            swing_s * (len(eye["swing_wall_s"]) - 1) / max(eye["swing_wall_s"][1:].sum(), 1e-9)
+        ),
     }
 
 
@@ -376,3 +382,71 @@ def run_conditions_camera(
         timing[f"{condition}_camera"] = eye["wall_s"]
         video = frames if want else video
     return camera_logs, truth, timing, eyes, video
+
+
+# ---------------------------------------------------------------------------------------------
+# Command line and report shared by catching.py and hitting.py (NumPy boundary).
+
+
+def add_camera_args(parser, default: str = "camera") -> None:
+    """``--eye camera|truth`` and the camera's timing."""
+    parser.add_argument(
+        "--eye",
+        choices=("camera", "truth"),
+        default=default,
+        help="object state from rendered camera frames through the eye, or from the simulator",
+    )
+    parser.add_argument("--fps", type=float, default=30.0, help="camera frame rate [1/s]")
+    parser.add_argument(
+        "--latency-ms", type=float, default=1e3 / 30.0, help="exposure end -> controller [ms]"
+    )
+    parser.add_argument("--exposure-ms", type=float, default=4.0, help="exposure time [ms]")
+
+
+def camera_from_args(args) -> CameraConfig:
+    return CameraConfig(
+        fps=args.fps, latency_s=1e-3 * args.latency_ms, exposure_s=1e-3 * args.exposure_ms
+    )
+
+
+def run_task(args, config: tl.TaskConfig, pendulum):
+    """All three conditions with the object state from ``args.eye``.
+
+    Returns ``(logs, extra)``: ``logs`` {condition: logs} as ``task_loop.run_conditions``;
+    ``extra`` holds ``timing`` and, for camera runs, ``truth`` (the ground-truth-state logs of
+    the same seeds), ``eyes`` (per-frame eye records of frozen and learned) and ``video``.
+    """
+    if args.eye == "truth":
+        logs, timing = tl.run_conditions(config, pendulum, args.seed, args.seeds)
+        return logs, {"timing": timing}
+    cam = camera_from_args(args)
+    logs, truth, timing, eyes, video = run_conditions_camera(
+        config, pendulum, args.seed, args.seeds, cam
+    )
+    return logs, {"timing": timing, "truth": truth, "eyes": eyes, "video": video}
+
+
+def camera_report(folder: Path, config: tl.TaskConfig, logs: dict, extra: dict, peak_of) -> dict:
+    """Metrics of a camera run against its ground-truth twin; writes ``hand_eye.mp4``.
+
+    ``peak_of(logs, condition) -> (n_seeds,)`` is the task's peak-force measure. Returns
+    {"eye": per-condition :func:`eye_metrics`, "truth_peak_force": mean/std per condition,
+    "camera_over_truth_peak": ratio of the means per condition}.
+    """
+    if "eyes" not in extra:
+        return {}
+    swing_s = config.swing_steps * config.controller.dt
+    truth = extra["truth"]
+    n_seeds = logs["learned"]["x_e"].shape[0]
+    out = {"eye": {}, "truth_peak_force": {}, "camera_over_truth_peak": {}}
+    for condition in tl.CONDITIONS:
+        pt, pc = peak_of(truth[condition], condition), peak_of(logs[condition], condition)
+        out["truth_peak_force"][condition] = tl.mean_std(pt)
+        out["camera_over_truth_peak"][condition] = float(np.mean(pc) / np.mean(pt))
+        if condition in extra["eyes"]:
+            out["eye"][condition] = eye_metrics(
+                extra["eyes"][condition], logs[condition], swing_s, n_seeds
+            )
+    out["eye"]["fps"] = float(extra["eyes"]["learned"]["fps"])
+    write_video(folder / "hand_eye.mp4", extra["video"], out["eye"]["fps"])
+    return out
