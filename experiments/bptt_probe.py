@@ -31,7 +31,12 @@ if "--float32" not in sys.argv:
 import jax.numpy as jnp  # noqa: E402
 
 from experiments import task_loop as tl  # noqa: E402
-from hec_jax.mjx_scene import default_conditions, load_mj_model, rollout  # noqa: E402
+from hec_jax.mjx_scene import (  # noqa: E402
+    default_conditions,
+    differentiable,
+    load_mj_model,
+    rollout,
+)
 from hec_jax.nets import LearnerConfig  # noqa: E402
 from hec_jax.runs import enable_compile_cache, start_run, write_json  # noqa: E402
 
@@ -41,20 +46,36 @@ def main(argv=None):
     p.add_argument("--out", type=Path, default=Path("runs/bptt_probe"))
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--float32", action="store_true")
-    p.add_argument("--iterations", type=int, default=1, help="MJX solver iterations")
+    p.add_argument(
+        "--solver",
+        choices=("implicit", "unrolled"),
+        default="implicit",
+        help="implicit: hec_jax.mjx_scene.differentiable (any iterations); unrolled: reverse mode "
+        "through MJX's own solve (needs --iterations 1)",
+    )
+    p.add_argument(
+        "--iterations",
+        type=int,
+        default=None,
+        help="MJX solver iterations (default: 1 for unrolled, the scene's own for implicit)",
+    )
     p.add_argument("--start", type=int, default=540, help="samples run forward first")
     p.add_argument("--steps", type=int, default=60, help="samples differentiated through")
     args = p.parse_args(argv)
     enable_compile_cache()
     folder = start_run(args.out, args.seed, {k: v for k, v in vars(args).items() if k != "seed"})
     dtype = jnp.float32 if args.float32 else jnp.float64
+    if args.iterations is None:
+        args.iterations = 1 if args.solver == "unrolled" else int(load_mj_model().opt.iterations)
+    sim_rollout = rollout if args.solver == "unrolled" else differentiable.rollout
 
     load_mjx = tl.load_mjx_model
 
     def with_iterations(m=None):
         m = load_mj_model() if m is None else m
-        m.opt.iterations = args.iterations
-        m.opt.ls_iterations = max(args.iterations, 1)
+        if args.solver == "unrolled":
+            m.opt.iterations = args.iterations
+            m.opt.ls_iterations = max(args.iterations, 1)
         return load_mjx(m)
 
     tl.load_mjx_model = with_iterations  # the scene as it is, with the solver setting changed
@@ -65,26 +86,29 @@ def main(argv=None):
     d0 = loop.initial_data()
     ps0 = loop.initial_policy_state(d0, ls0, tl.switches("frozen"))
 
-    def run(d, ps, n):
-        return rollout(loop.mx, loop.ids, d, loop.policy, ps, jnp.zeros((n, 3)), None)
+    def run(d, ps, n, fn=rollout):
+        return fn(loop.mx, loop.ids, d, loop.policy, ps, jnp.zeros((n, 3)), None)
 
     (d_start, ps_start), _ = jax.jit(run, static_argnums=2)(d0, ps0, args.start)
 
-    def loss(params):
+    def loss(params, fn=sim_rollout):
         cs, ls, sw = ps_start
-        (_, _), traj = run(d_start, (cs, ls._replace(params=params), sw), args.steps)
+        (_, _), traj = run(d_start, (cs, ls._replace(params=params), sw), args.steps, fn)
         return jnp.sum(traj.f_contact**2) * 1e-5 + jnp.sum(traj.x_hand[:, 0]), traj.f_contact
 
     value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))
-    forward = jax.jit(loss)
+    forward = jax.jit(loss)  # the differentiated function (for the finite differences)
+    forward_plain = jax.jit(lambda p: loss(p, rollout))  # the ordinary rollout (cost baseline)
     t0 = time.perf_counter()
     (value, f_contact), grad = jax.block_until_ready(value_and_grad(ls0.params))
     compile_grad = time.perf_counter() - t0
     t0 = time.perf_counter()
-    jax.block_until_ready(forward(ls0.params))
+    jax.block_until_ready(forward_plain(ls0.params))
     compile_fwd = time.perf_counter() - t0
+    jax.block_until_ready(forward(ls0.params))
     t_grad = min(_timed(value_and_grad, ls0.params) for _ in range(3))
-    t_fwd = min(_timed(forward, ls0.params) for _ in range(3))
+    t_fwd = min(_timed(forward_plain, ls0.params) for _ in range(3))
+    value_plain = float(forward_plain(ls0.params)[0])
 
     leaves = jax.tree_util.tree_leaves(grad)
     finite = all(bool(jnp.all(jnp.isfinite(g))) for g in leaves)
@@ -107,10 +131,12 @@ def main(argv=None):
     contact_steps = int(jnp.sum(jnp.sum(f_contact**2, axis=-1) > 1e-6))
     metrics = {
         "dtype": jnp.dtype(dtype).name,
+        "solver": args.solver,
         "solver_iterations": args.iterations,
         "steps": args.steps,
         "contact_steps": contact_steps,
         "loss": float(value),
+        "loss_plain_rollout": value_plain,
         "gradient_finite": finite,
         "directional_autodiff": ad,
         "directional_central_difference": fd,

@@ -1,0 +1,163 @@
+"""Exact, finite reverse-mode derivatives through MJX's constraint solve (issue 6).
+
+MJX's ``solve`` iterates a Newton (or CG) method with a line search inside a ``while_loop``: reverse
+mode cannot run through it at all unless ``opt.iterations == 1``, and with one iteration the
+derivative is the derivative of *one truncated Newton step with an early-stopped line search*, not
+of the solution of the constraint problem. That derivative is inexact (the line search's stopping
+tests are discrete; one iteration is not converged) and, in float32, non-finite: the line search's
+Newton update ``alpha - deriv_0 / deriv_1`` is differentiated where ``deriv_1`` (the curvature of
+the cost along the search direction) is tiny or exactly ``mjMINVAL`` (search direction ~ 0), whose
+derivative ``deriv_0 / deriv_1**2`` overflows float32 (see ``experiments/nan_diagnosis.py`` and
+``docs/gradients.md``).
+
+Here the solve is differentiated implicitly instead. The constraint problem is
+
+    qacc* = argmin_a  1/2 (a - a_s)^T M (a - a_s) + s(J a - a_ref)        (MuJoCo's primal)
+
+with ``s`` piecewise quadratic (pyramidal or frictionless cones; smooth pieces for the elliptic
+cone). Its solution is computed by MJX's own ``solve`` on ``stop_gradient`` inputs (any number of
+iterations, forward only), then one Newton step of the same cost is taken from it *with*
+derivatives:
+
+    qacc = qacc* - H(qacc*)^{-1} g(qacc*, theta),   H = M + J^T D_active J (+ cone Hessian).
+
+At the solution g = 0, so the value is qacc* (up to the solver's tolerance, and exactly on a
+quadratic piece), and the derivative is the implicit-function-theorem derivative
+d qacc / d theta = -H^{-1} dg/dtheta of the *converged* solution, with the active set of the
+solution held fixed. The cost of the backward pass is one small Cholesky solve per step instead of
+unrolling the solver. The Newton step is MJX's own ``Context.create`` (``_update_constraint`` and
+``_update_gradient``), so the cone, the friction loss and the constraint scaling are MJX's.
+
+Derivatives are those of the smooth piece that the solution lies on: where a constraint switches
+(contact onset, a joint limit engaging) the dynamics are non-smooth and the one-sided derivative is
+returned; contact onset is discontinuous in the force (the damping part of the reference
+acceleration starts with a jump), so finite differences across it measure a jump, not a slope.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from mujoco import mjx
+from mujoco.mjx._src import solver as mjx_solver
+from mujoco.mjx._src.types import SolverType
+
+from hec_jax.mjx_scene.model import SceneIds
+from hec_jax.mjx_scene.sim import (
+    Policy,
+    SimStep,
+    Trajectory,
+    _allow_promotion,
+    _hold_pendulum,
+    _mjx_ctx,
+    hand_contact_force,
+    observe_stages,
+)
+
+
+def _stop(tree):
+    return jax.tree_util.tree_map(jax.lax.stop_gradient, tree)
+
+
+def newton_model(m: mjx.Model) -> mjx.Model:
+    """``m`` with the Newton solver selected (its Hessian is the one the implicit step needs)."""
+    if m.opt.solver == SolverType.NEWTON:
+        return m
+    return m.replace(opt=m.opt.replace(solver=SolverType.NEWTON))
+
+
+@_allow_promotion
+def solve(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """Constraint solve with implicit derivatives (drop-in for ``mjx.solve`` after
+    ``fwd_acceleration``).
+
+    The forward value is MJX's ``solve`` with the model's own solver settings (``while_loop``,
+    ``opt.iterations``), run on ``stop_gradient`` copies of ``m`` and ``d``; derivatives (forward
+    and reverse mode, any order of ``jit``/``vmap``) come from one Newton step of the constraint
+    cost at that solution (module docstring). Sets ``qacc``, ``qfrc_constraint`` and ``efc_force``
+    as ``mjx.solve`` does.
+    """
+    if d._impl.efc_J.size == 0:
+        return d.replace(qacc=d.qacc_smooth)
+    qacc_star = jax.lax.stop_gradient(mjx.solve(_stop(m), _stop(d)).qacc)
+    mn = newton_model(m)
+    ctx = mjx_solver.Context.create(mn, d.replace(qacc=qacc_star), grad=True)
+    qacc = qacc_star - ctx.Mgrad  # Mgrad = H^-1 g (Newton); g ~ 0 at qacc_star
+    ctx = mjx_solver.Context.create(mn, d.replace(qacc=qacc), grad=False)
+    return d.tree_replace(
+        {"qfrc_constraint": ctx.qfrc_constraint, "qacc": qacc, "_impl.efc_force": ctx.efc_force}
+    )
+
+
+@_allow_promotion
+def dynamics_stages(
+    m: mjx.Model, ids: SceneIds, d: mjx.Data, ctrl: jax.Array
+) -> tuple[mjx.Data, jax.Array]:
+    """``hec_jax.mjx_scene.dynamics_stages`` with the implicitly differentiated :func:`solve`.
+
+    Same value (to the solver tolerance); derivatives in ``ctrl`` and the state are exact
+    (implicit), finite in float32 and float64, and reverse mode works for any
+    ``opt.iterations``.
+    """
+    d = mjx.fwd_actuation(m, d.replace(ctrl=ctrl))
+    d = mjx.fwd_acceleration(m, d)
+    d = solve(m, d)
+    d = mjx.sensor_acc(m, d)
+    return d, hand_contact_force(m, d, ids)
+
+
+def rollout(
+    m: mjx.Model,
+    ids: SceneIds,
+    d0: mjx.Data,
+    policy: Policy,
+    policy_state0: Any,
+    f_ext: jax.Array,
+    conditions=None,
+    *,
+    checkpoint: bool = True,
+) -> tuple[tuple[mjx.Data, Any], Trajectory]:
+    """``hec_jax.mjx_scene.rollout`` (same step sequence, same arguments and returns) with the
+    differentiable :func:`dynamics_stages`, for reverse mode through closed-loop rollouts (BPTT).
+
+    ``checkpoint``: rematerialise each step in the backward pass (``jax.checkpoint`` of the scan
+    body), so the memory of the backward pass does not hold every step's MJX intermediates.
+    """
+    if f_ext.ndim != 2 or f_ext.shape[1] != 3:
+        raise ValueError(f"f_ext must have shape (T, 3), got {f_ext.shape}")
+
+    def body(carry, f_ext_k):
+        d, ps, f_contact_prev = carry
+        if conditions is not None:
+            d = _hold_pendulum(d, ids, conditions)
+        xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.hand_body, :3].set(f_ext_k)
+        d = observe_stages(m, d.replace(xfrc_applied=xfrc))
+        f_int = f_contact_prev + f_ext_k
+        ctrl, ps, aux = policy(ps, m, SimStep(d=d, f_int=f_int, t=d.time))
+        d_acc, f_contact = dynamics_stages(m, ids, d, ctrl)
+        row = Trajectory(
+            t=d_acc.time,
+            qpos=d_acc.qpos,
+            qvel=d_acc.qvel,
+            ctrl=ctrl,
+            f_int=f_int,
+            f_contact=f_contact,
+            f_ext=f_ext_k,
+            x_hand=d_acc.site_xpos[ids.hand_site],
+            x_cube=d_acc.site_xpos[ids.cube_site],
+            sensor_force=d_acc.sensordata[ids.force_sensor_adr : ids.force_sensor_adr + 3],
+            aux=aux,
+        )
+        with _mjx_ctx():
+            d = mjx.euler(m, d_acc)
+        return (d, ps, f_contact), row
+
+    if checkpoint:
+        body = jax.checkpoint(body)
+    (d, ps, _), traj = jax.lax.scan(body, (d0, policy_state0, jnp.zeros(3)), f_ext)
+    return (d, ps), traj
+
+
+__all__ = ["dynamics_stages", "newton_model", "rollout", "solve"]
