@@ -45,17 +45,25 @@ def test_tracks_every_frame(seq, track):
     assert np.median(err) < 0.02  # a coarse sanity bound (2 cm), not the issue's target
 
 
+def _rms(a, b, valid):
+    return np.sqrt(np.mean(np.sum((a - b) ** 2, -1)[valid]))
+
+
+def test_issue_targets_position_velocity_acceleration(seq, track):
+    """Issue 5's rendered-sequence targets (on this short swing; the benchmark runs 5 s)."""
+    v = track.valid
+    assert _rms(track.position, seq.position, v) <= 0.005
+    assert _rms(track.velocity, seq.velocity, v) <= 0.05
+    assert _rms(track.acceleration, seq.acceleration, v) <= 0.5
+
+
 @pytest.mark.xfail(
-    reason="issue 5 rendered-sequence targets not all met (rotation, acceleration; see benchmark)",
+    reason="issue 5 rotation target not met (tilt of a nearly frontal cube; see benchmark)",
     strict=True,
 )
-def test_issue_targets(seq, track):
+def test_issue_target_rotation(seq, track):
     v = track.valid
-    rms = lambda a, b: np.sqrt(np.mean(np.sum((a - b) ** 2, -1)[v]))  # noqa: E731
     phi = seq.rotation @ seq.rotation[0].T
-    assert rms(track.position, seq.position) <= 0.005
-    assert rms(track.velocity, seq.velocity) <= 0.05
-    assert rms(track.acceleration, seq.acceleration) <= 0.5
     assert np.median(rotation_error_deg(track.rotation, phi)[v]) <= 1.0
 
 

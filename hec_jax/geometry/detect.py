@@ -161,6 +161,8 @@ def edge_points(
     step: float = 0.25,
     end_margin: float = 3.0,
     min_step: float = 6.0,
+    blur: float = 0.8,
+    interpolation: int = cv2.INTER_LINEAR,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel edge points along predicted model edges ("moving edges").
 
@@ -168,9 +170,9 @@ def edge_points(
     points every ``spacing`` px (``end_margin`` px from the corners) search along the edge normal
     within +-``search`` px for the strongest intensity step of the smoothed image, located to
     sub-pixel precision by a parabola through the derivative peak. Steps weaker than ``min_step``
-    [grey levels / px] are dropped. Returns (points (N, 2) [px], edge index (N,)).
+    [grey levels / px] are dropped; ``blur`` is the Gaussian's sigma [px]. Returns (points (N, 2) [px], edge index (N,)).
     """
-    img = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), 0.8)
+    img = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur)
     offs = np.arange(-search, search + 1e-9, step)
     pts, ids, normals = [], [], []
     for e in np.flatnonzero(usable):
@@ -192,7 +194,7 @@ def edge_points(
         img,
         samp[..., 0].astype(np.float32),
         samp[..., 1].astype(np.float32),
-        cv2.INTER_LINEAR,
+        interpolation,
         borderMode=cv2.BORDER_REPLICATE,
     )
     deriv = np.abs(vals[:, 2:] - vals[:, :-2]) / (2 * step)  # at offs[1:-1]

@@ -42,13 +42,16 @@ class SmootherConfig:
             their error (blur, a bias along the whole edge), so J^T W J / s^2 over-counts them:
             on a held-out rendered swing (release 0.35 rad, not the benchmark's) the per-frame
             errors were 2-7x the predicted standard deviations (NEES median 670 against 6);
-            0.03 was chosen there from {1, 0.3, 0.1, 0.03, 0.01}.
+            0.03 was chosen there from {1, 0.3, 0.1, 0.03, 0.01}. Later (denser edge points) 0.01
+            with ``jerk_psd`` 10 (was 50) on two held-out swings (release 0.35 and 0.58 rad):
+            acceleration RMS 0.27, 0.40 -> 0.13, 0.23 m/s^2, from jerk_psd {5 .. 100} x
+            info_scale {0.003 .. 0.1}; lower values smooth more and would blur faster motion.
         iters: Gauss-Newton iterations of the rotation pass.
     """
 
     angular_accel_psd: float = 20.0
-    jerk_psd: float = 50.0
-    info_scale: float = 0.03
+    jerk_psd: float = 10.0
+    info_scale: float = 0.01
     iters: int = 3
 
 
