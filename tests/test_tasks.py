@@ -55,3 +55,59 @@ def test_switches_reject_unknown_condition():
     with pytest.raises(ValueError, match="condition"):
         tl.switches("bogus")
     assert jax.tree_util.tree_leaves(tl.switches("plain"))[0].shape == ()
+
+
+def test_hit_series_periodic_run_and_bounded_pulses():
+    dt = 1e-3
+    f = np.zeros(14000)
+    starts = [500, 1900, 3300, 4700, 6100, 7500, 10500]  # 6 hits 1.4 s apart, then a late one
+    for k, s in enumerate(starts):
+        f[s : s + 10] = 50.0 - 5.0 * k  # 10 ms pulses, shrinking
+    h = tl.hit_series(f, dt, threshold=1e-3)
+    assert h["hits"] == 7
+    assert h["periodic_hits"] == 6 and h["series_first_hit"] == 0
+    np.testing.assert_allclose(h["median_interval_s"], 1.4)
+    assert h["pulses_bounded"] and h["pulse_growth"] == 1.0
+    np.testing.assert_allclose(h["max_pulse_duration_s"], 0.010)
+    f[6100:6110] = 80.0  # a pulse above the first: the strikes build up, not bounded
+    assert not tl.hit_series(f, dt, threshold=1e-3)["pulses_bounded"]
+    assert tl.hit_series(np.zeros(100), dt, 1e-3)["periodic_hits"] == 0
+
+
+def test_settle_metrics():
+    f = np.zeros(3000)
+    f[400:] = 2.1
+    f[400:450] = 100.0  # the impact
+    m = tl.settle_metrics(f, 2.0, threshold=1e-3, tail=500)
+    assert m["held"] and m["contacts"] == 1
+    np.testing.assert_allclose(m["settle_force"], 2.1)
+    np.testing.assert_allclose(m["settle_rel_error"], 0.05)
+    f[1000:1300] = 0.0  # the object leaves the hand and strikes again
+    assert not tl.settle_metrics(f, 2.0, threshold=1e-3, tail=500)["held"]
+
+
+def test_hold_point_is_the_static_catch():
+    """F_cd -> 0: the hand touches the hanging cube (hinge x + half cube + hand radius); the hold
+    point moves toward the arriving cube as F_cd grows, by L_c sin(theta) with
+    F_cd L_c = (m_c L_c + m_rod L / 2) g sin(theta)."""
+    x0 = tl.hold_point(0.0, 0.55)
+    np.testing.assert_allclose(x0, [0.55 + 0.05 + 0.04, 1.25 - 0.65], atol=1e-12)
+    m_rod = 7850.0 * np.pi * 0.003**2 * 0.6
+    s = 2.0 * 0.65 / ((0.7 * 0.65 + m_rod * 0.3) * 9.81)
+    x2 = tl.hold_point(2.0, 0.55, k_e=1e12)  # rigid hand: no spring deflection
+    cube = np.array([0.55 - 0.65 * s, 1.25 - 0.65 * np.sqrt(1 - s**2)])
+    np.testing.assert_allclose(np.linalg.norm(x2 - cube), 0.09, atol=1e-9)
+    assert x2[0] < x0[0] - 0.15
+
+
+def test_task_contact_parameters_reach_the_model_only():
+    from hec_jax.mjx_scene import load_mjx_model
+
+    lc = LearnerConfig(task="hitting")
+    loop = tl.build_loop(
+        tl.TaskConfig(learner=lc, contact_solref=(0.025, 0.2)), default_conditions()
+    )
+    np.testing.assert_allclose(np.asarray(loop.mx.pair_solref), [[0.025, 0.2]])
+    np.testing.assert_allclose(np.asarray(load_mjx_model().pair_solref), [[0.005, 1.0]])
+    default = tl.build_loop(tl.TaskConfig(learner=lc), default_conditions())
+    np.testing.assert_allclose(np.asarray(default.mx.pair_solref), [[0.005, 1.0]])
