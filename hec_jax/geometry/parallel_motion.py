@@ -42,10 +42,22 @@ Readings implemented (each checked against synthetic ground truth in ``tests/tes
   that the fit is full-rank (the four N_i are coplanar).
 * Metric scale (not in the paper): with |AB| = L known, Z_B = L / |N1| (Eq. 11). Without it the
   result is in units where |AB| = 1. Translation: Gamma = mean(P') - Phi mean(P) over A..D (Eq. 1).
+
+Reprojection polish (not in the paper; off by default, ``polish_steps``): the eight image points
+carry 16 numbers and the model (A, B, C, D with CD parallel to AB, |AB| = L, a rigid motion) has 15
+degrees of freedom. The closed form satisfies the 15 constraints it uses exactly and ignores the one
+left over, so image error along that one direction is amplified strongly on ill-conditioned scenes.
+:func:`polish_motion` starts from the closed form and takes a fixed number of Gauss-Newton steps on
+the reprojection error of all 16 numbers (the maximum-likelihood estimate under i.i.d. Gaussian image
+noise), which projects that error away. Measured on 4000 noise-free ``make_cube_scenes`` scenes with
+inputs rounded to float32 (seed 0): rotation error p99 0.030 deg for the closed form even computed in
+float64, 0.0024 deg for the polish in float64 and 0.0046 deg in float32 (the float32 closed form
+itself: 0.034 deg). The float32 accuracy target of the tests is met with the polish, not without.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -239,11 +251,39 @@ def procrustes_rotation(before: Array, after: Array) -> Array:
     before, after: (..., n, 3). Used for Eq. 14, K_i N_i' = Phi N_i.
     """
     h = jnp.einsum("...ni,...nj->...ij", after, before)  # sum_i after_i before_i^T
+    return _special_polar(h)
+
+
+@jax.custom_jvp
+def _special_polar(h: Array) -> Array:
+    """The rotation R maximising trace(R^T h): U diag(1, 1, det(U V^T)) V^T from h = U S V^T."""
     u, _, vt = jnp.linalg.svd(h)
-    d = jnp.sign(jnp.linalg.det(u) * jnp.linalg.det(vt))
-    d = jnp.where(d == 0, 1.0, d)
+    d = _det_sign(u, vt)
     diag = jnp.concatenate([jnp.ones_like(h[..., :2, 0]), d[..., None]], axis=-1)
     return jnp.einsum("...ij,...j,...jk->...ik", u, diag, vt)
+
+
+def _det_sign(u: Array, vt: Array) -> Array:
+    d = jnp.sign(jnp.linalg.det(u) * jnp.linalg.det(vt))
+    return jnp.where(d == 0, 1.0, d)
+
+
+@_special_polar.defjvp
+def _special_polar_jvp(primals, tangents):
+    """dR = U' W V^T with W_ij = (X_ij - X_ji) / (s_i + s_j), X = U'^T dh V, where h = U' diag(s) V^T
+    with the sign of the last singular value folded into U' (so R = U' V^T). Unlike the SVD's own
+    derivative (terms 1 / (s_i^2 - s_j^2)) this stays finite and exact when singular values are
+    equal, which happens on exact data (h = R S with S symmetric)."""
+    (h,), (dh,) = primals, tangents
+    u, s, vt = jnp.linalg.svd(h)
+    d = _det_sign(u, vt)
+    sign = jnp.concatenate([jnp.ones_like(s[..., :2]), d[..., None]], axis=-1)
+    u = u * sign[..., None, :]
+    s = s * sign
+    rot = jnp.einsum("...ij,...jk->...ik", u, vt)
+    x = jnp.einsum("...ji,...jk,...lk->...il", u, dh, vt)  # U'^T dh V
+    w = _safe_div(x - jnp.swapaxes(x, -1, -2), s[..., :, None] + s[..., None, :])
+    return rot, jnp.einsum("...ij,...jk,...kl->...il", u, w, vt)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -287,6 +327,193 @@ def _candidate(before, after, t1, t2, t1a, t2a, t3, t3a, k1, length):
     return rotation, translation, pts, pts_a, residual, depths_ok
 
 
+# ---------------------------------------------------------------------------------------------
+# Reprojection polish (not in the paper): Gauss-Newton on the two-view reprojection error.
+
+
+class ModelState(NamedTuple):
+    """The 15-parameter model of the two views (one problem, no batch axes).
+
+    A = ``a``, B = A + L ``u`` (|u| = 1), C = ``c``, D = C + ``s`` L ``u`` (CD parallel to AB),
+    after the motion P' = ``centre_after`` + ``rotation`` (P - mean(A, B, C, D)).
+    """
+
+    a: Array  # (3,)
+    u: Array  # (3,) unit direction of AB
+    c: Array  # (3,)
+    s: Array  # () |CD| / |AB|, signed (negative: CD opposite to AB)
+    rotation: Array  # (3, 3)
+    centre_after: Array  # (3,)
+
+
+def _cayley(w: Array) -> Array:
+    """Rotation from a 3-vector by the Cayley transform (smooth, rational; ~ exp([w]x) near 0)."""
+    h = 0.5 * w
+    zero = jnp.zeros_like(h[0])
+    k = jnp.stack(
+        [
+            jnp.stack([zero, -h[2], h[1]]),
+            jnp.stack([h[2], zero, -h[0]]),
+            jnp.stack([-h[1], h[0], zero]),
+        ]
+    )
+    return jnp.eye(3, dtype=w.dtype) + (2.0 / (1.0 + h @ h)) * (k + k @ k)
+
+
+def _perpendicular_basis(u: Array) -> tuple[Array, Array]:
+    """Two unit vectors perpendicular to the unit vector u and to each other."""
+    axis = jax.nn.one_hot(jnp.argmin(jnp.abs(u)), 3, dtype=u.dtype)  # |u x axis| >= sqrt(2/3)
+    e1 = jnp.cross(u, axis)
+    e1 = e1 / jnp.maximum(_safe_norm(e1), jnp.finfo(u.dtype).tiny)
+    return e1, jnp.cross(u, e1)
+
+
+def model_points(state: ModelState, length: Array) -> tuple[Array, Array]:
+    """(A, B, C, D) before and after the motion, (4, 3) each, from the model parameters."""
+    step = length * state.u
+    pts = jnp.stack([state.a, state.a + step, state.c, state.c + state.s * step])
+    # Rotating about the centroid keeps the rounding of the rotation from scaling with the distance.
+    rel = pts - jnp.mean(pts, axis=0)[None, :]
+    return pts, state.centre_after[None, :] + rel @ state.rotation.T
+
+
+def _retract(state: ModelState, delta: Array) -> ModelState:
+    """Model parameters moved by a 15-vector (dA, du in the plane perpendicular to u, dC, ds, dw,
+    dcentre'): the rotation is updated as Cayley(dw) Phi and u is renormalised."""
+    e1, e2 = _perpendicular_basis(state.u)
+    u = state.u + delta[3] * e1 + delta[4] * e2
+    return ModelState(
+        a=state.a + delta[0:3],
+        u=u / _safe_norm(u),  # |u| >= 1: u was unit and the change is perpendicular
+        c=state.c + delta[5:8],
+        s=state.s + delta[8],
+        rotation=_cayley(delta[9:12]) @ state.rotation,
+        centre_after=state.centre_after + delta[12:15],
+    )
+
+
+def reprojection_residuals(state: ModelState, before: Array, after: Array, length: Array) -> Array:
+    """Projections of the model's A..D before and after minus the observed (4, 2) points: (16,).
+
+    Only called on states with all depths positive (see :func:`polish_motion`).
+    """
+    pts, pts_a = model_points(state, length)
+    proj = lambda p: p[:, :2] / p[:, 2:]  # noqa: E731 (Eq. 3)
+    return jnp.concatenate([(proj(pts) - before).ravel(), (proj(pts_a) - after).ravel()])
+
+
+def _gauss_newton_step(state, before, after, length):
+    """One Gauss-Newton step, solved by QR of the column-scaled Jacobian (the normal equations
+    would square its condition number, too much for float32 on ill-conditioned scenes); a damping
+    of 1e-3 sqrt(eps) relative to the column norms keeps it finite on rank-deficient problems."""
+    dtype = before.dtype
+    residual_at = lambda d: reprojection_residuals(_retract(state, d), before, after, length)  # noqa: E731
+    zero = jnp.zeros(15, dtype)
+    r = residual_at(zero)
+    jac = jax.jacfwd(residual_at)(zero)  # (16, 15)
+    col = jnp.sqrt(jnp.sum(jac * jac, axis=0) + jnp.finfo(dtype).tiny)
+    damping = 1e-3 * jnp.sqrt(_eps(dtype)) * jnp.eye(15, dtype=dtype)
+    q, upper = jnp.linalg.qr(jnp.concatenate([jac / col[None, :], damping], axis=0))
+    step = jax.scipy.linalg.solve_triangular(upper, -(q[:16].T @ r)) / col
+    return _retract(state, step)
+
+
+def _depths_ok(state: ModelState, length: Array) -> Array:
+    pts, pts_a = model_points(state, length)
+    z = jnp.concatenate([pts[:, 2], pts_a[:, 2]])
+    return jnp.all(jnp.isfinite(z)) & jnp.all(z > 0)
+
+
+def _polish_one(before, after, points_before, rotation, points_after, length, ok, steps):
+    """:func:`polish_motion` for one problem; ``ok`` = the closed form is valid."""
+    dtype = before.dtype
+    # Problems the closed form rejects are replaced by a fixed well-posed one (a 0.1 m square at
+    # 1 m turning by ~17 deg), so that no inf or NaN arises in values or gradients; their result
+    # is discarded below.
+    dummy = jnp.asarray(
+        [[-0.05, -0.05, 1.0], [0.05, -0.05, 1.0], [-0.05, 0.05, 1.05], [0.05, 0.05, 1.05]], dtype
+    )
+    dummy_rot = _cayley(jnp.asarray([0.1, 0.2, 0.1], dtype))
+    dummy_after = dummy @ dummy_rot.T + jnp.asarray([[0.01, 0.0, 0.02]], dtype)
+    pick = lambda x, y: jnp.where(ok, x, y)  # noqa: E731
+    pts, pts_a = pick(points_before, dummy), pick(points_after, dummy_after)
+    obs, obs_a = (
+        pick(before, dummy[:, :2] / dummy[:, 2:]),
+        pick(after, dummy_after[:, :2] / dummy_after[:, 2:]),
+    )
+    length = pick(length, jnp.asarray(0.1, dtype))
+    ab = pts[1] - pts[0]
+    u = ab / _safe_norm(ab)
+    state0 = ModelState(
+        a=pts[0],
+        u=u,
+        c=pts[2],
+        s=jnp.dot(pts[3] - pts[2], u) / length,
+        rotation=pick(rotation, dummy_rot),
+        centre_after=jnp.mean(pts_a, axis=0),
+    )
+
+    def body(_, state):
+        new = _gauss_newton_step(state, obs, obs_a, length)
+        # A step that puts a point behind the camera (or overflows) is not taken.
+        keep = _depths_ok(new, length)
+        return jax.tree_util.tree_map(lambda x, y: jnp.where(keep, x, y), new, state)
+
+    state = jax.lax.fori_loop(0, steps, body, state0)
+    cost = lambda st: jnp.sum(reprojection_residuals(st, obs, obs_a, length) ** 2)  # noqa: E731
+    # Kept unless it raised the error beyond rounding (on exact data both costs are rounding noise,
+    # and a strict comparison would switch between the two estimates, and their derivatives, at
+    # random).
+    rounding = 16.0 * (4.0 * _eps(dtype) * (1.0 + jnp.max(jnp.abs(jnp.stack([obs, obs_a]))))) ** 2
+    kept = ok & (cost(state) <= cost(state0) + rounding)
+    polished_pts, polished_pts_a = model_points(state, length)
+    out_pts = jnp.where(kept, polished_pts, points_before)
+    out_pts_a = jnp.where(kept, polished_pts_a, points_after)
+    out_rot = jnp.where(kept, state.rotation, rotation)
+    return out_rot, out_pts, out_pts_a, kept
+
+
+def polish_motion(
+    before: Array,
+    after: Array,
+    estimate: MotionEstimate,
+    length: Array,
+    steps: int,
+) -> tuple[MotionEstimate, Array]:
+    """Gauss-Newton polish of a closed-form estimate on the two-view reprojection error.
+
+    Minimises sum |proj(P_i) - p_i|^2 + |proj(P_i') - p_i'|^2 over the 15 parameters of
+    :class:`ModelState` (A, B, C, D with CD parallel to AB and |AB| = ``length``; P' = Phi P + Gamma),
+    starting from ``estimate``, with ``steps`` Gauss-Newton steps (fixed count: jittable, vmappable,
+    differentiable). Steps that would put a point behind the camera are skipped, and the polished
+    result is returned only where the closed form is valid and the polish did not raise the
+    reprojection error (beyond rounding); elsewhere the closed form is returned unchanged. ``valid``, ``ambiguous`` and
+    ``residual`` (the closed form's rigidity residual, a measure of the data) are kept.
+
+    Returns (polished estimate, polished (...,) bool: where the polish was kept).
+    """
+    one = functools.partial(_polish_one, steps=steps)
+    batched = jnp.vectorize(
+        one, signature="(4,2),(4,2),(4,3),(3,3),(4,3),(),()->(3,3),(4,3),(4,3),()"
+    )
+    rot, pts, pts_a, kept = batched(
+        before,
+        after,
+        estimate.points_before,
+        estimate.rotation,
+        estimate.points_after,
+        length,
+        estimate.valid,
+    )
+    translation = jnp.mean(pts_a, axis=-2) - jnp.einsum(
+        "...ij,...j->...i", rot, jnp.mean(pts, axis=-2)
+    )  # Eq. 1
+    polished = estimate._replace(
+        rotation=rot, translation=translation, points_before=pts, points_after=pts_a
+    )
+    return polished, kept
+
+
 def rotation_angle(rotation: Array) -> Array:
     """Angle [rad] of a rotation matrix (..., 3, 3), NaN-safe."""
     cos = 0.5 * (jnp.trace(rotation, axis1=-2, axis2=-1) - 1.0)
@@ -294,11 +521,17 @@ def rotation_angle(rotation: Array) -> Array:
 
 
 def estimate_motion_core(
-    before: Array, after: Array, length: Array, prior_rotation: Array | None = None
+    before: Array,
+    after: Array,
+    length: Array,
+    prior_rotation: Array | None = None,
+    polish_steps: int = 0,
 ) -> MotionEstimate:
     """Jittable core of :func:`estimate_motion`; no input validation. Shapes as there.
 
-    ``length`` must already have the batch shape of ``before[..., 0, 0]``.
+    ``length`` must already have the batch shape of ``before[..., 0, 0]``. ``polish_steps`` (a
+    Python int, static under ``jit``): 0 gives the paper's closed form (Eqs. 7-38); n > 0 follows it
+    with n Gauss-Newton steps on the reprojection error (:func:`polish_motion`).
     """
     dtype = before.dtype
     eps = _eps(dtype)
@@ -364,7 +597,7 @@ def estimate_motion_core(
     valid = valid & (length > 0)
     # No NaN ever leaves: replace non-finite leaves (only possible on degenerate input).
     clean = lambda x: jnp.where(jnp.isfinite(x), x, 0.0)  # noqa: E731
-    return MotionEstimate(
+    estimate = MotionEstimate(
         rotation=clean(rotation),
         translation=clean(translation),
         points_before=clean(pts),
@@ -373,6 +606,9 @@ def estimate_motion_core(
         ambiguous=ambiguous & valid,
         residual=clean(residual),
     )
+    if polish_steps > 0:
+        estimate, _ = polish_motion(before, after, estimate, length, polish_steps)
+    return estimate
 
 
 def consistency_check(estimate: MotionEstimate, tol: float) -> Array:
@@ -388,6 +624,7 @@ def estimate_motion(
     *,
     prior_rotation=None,
     residual_tol: float | None = 0.05,
+    polish_steps: int = 0,
 ) -> MotionEstimate:
     """Motion (Phi, Gamma of Eq. 1) from two images of two 3D-parallel segments (Eqs. 7-38).
 
@@ -400,7 +637,16 @@ def estimate_motion(
             Without it everything is in units where |AB| = 1.
         prior_rotation: optional (..., 3, 3) rotation that breaks the tie when both roots fit
             (rotation axis parallel to the segments), e.g. the previous frame's estimate.
-        residual_tol: estimates whose rigidity residual (relative) exceeds this are marked invalid (non-parallel segments, gross noise); None disables the check.
+        residual_tol: estimates whose rigidity residual (relative) exceeds this are marked invalid
+            (non-parallel segments, gross noise); None disables the check. The residual is the
+            closed form's, also with ``polish_steps``.
+        polish_steps: 0 (default): the paper's closed form (Eqs. 7-38) alone. n > 0: the closed
+            form followed by n Gauss-Newton steps on the reprojection error of all eight image
+            points (:func:`polish_motion`, not in the paper), the maximum-likelihood estimate
+            under Gaussian image noise. 4 steps converge on noise-free data (measured). The
+            float32 accuracy requirement of the tests (noise-free rotation error p99 < 0.01 deg)
+            is met with the polish (0.005 deg), not by the closed form (0.03 deg, a limit set by
+            the rounding of the inputs to float32, not by the arithmetic).
 
     Returns:
         :class:`MotionEstimate`. Degenerate configurations (segment plane through the camera
@@ -451,10 +697,10 @@ def estimate_motion(
             raise ValueError("before/after contain non-finite values")
         if not np.all(np.isfinite(np.asarray(length))) or np.any(np.asarray(length) <= 0):
             raise ValueError("length must be finite and positive")
-    est = _estimate_jit(before, after, length, prior_rotation)
+    est = _estimate_jit(before, after, length, prior_rotation, polish_steps=polish_steps)
     if residual_tol is not None:
         est = est._replace(valid=consistency_check(est, residual_tol))
     return est
 
 
-_estimate_jit = jax.jit(estimate_motion_core)
+_estimate_jit = jax.jit(estimate_motion_core, static_argnames="polish_steps")
