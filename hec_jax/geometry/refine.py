@@ -99,6 +99,27 @@ class Fit(NamedTuple):
     information: Array
 
 
+def solve_spd(a: Array, b: Array) -> Array:
+    """x = a^-1 b for a small symmetric positive definite a (n, n), b (n,): Cholesky unrolled into
+    elementwise operations, so that a vmapped batch runs as vector code instead of a loop of
+    LAPACK calls (the LM step's 6x6 system)."""
+    n = a.shape[-1]
+    low = [[None] * n for _ in range(n)]
+    for j in range(n):
+        d = a[j, j] - sum(low[j][k] * low[j][k] for k in range(j))
+        ljj = jnp.sqrt(jnp.maximum(d, 1e-300))
+        low[j][j] = ljj
+        for i in range(j + 1, n):
+            low[i][j] = (a[i, j] - sum(low[i][k] * low[j][k] for k in range(j))) / ljj
+    y = []
+    for i in range(n):  # L y = b
+        y.append((b[i] - sum(low[i][k] * y[k] for k in range(i))) / low[i][i])
+    x = [None] * n
+    for i in reversed(range(n)):  # L^T x = y
+        x[i] = (y[i] - sum(low[k][i] * x[k] for k in range(i + 1, n))) / low[i][i]
+    return jnp.stack(x)
+
+
 def _huber_rho(r: Array, delta: float) -> Array:
     a = jnp.abs(r)
     return jnp.where(a <= delta, r * r, 2.0 * delta * a - delta * delta)
@@ -139,7 +160,7 @@ def levenberg_marquardt(
         a = jac.T @ (w[:, None] * jac)
         g = jac.T @ (w * r)
         damp = lam * (jnp.diag(a) + 1e-12)
-        delta = -jnp.linalg.solve(a + jnp.diag(damp), g)
+        delta = -solve_spd(a + jnp.diag(damp), g)
         new = retract(p, delta)
         c_new = cost(new)
         ok = jnp.isfinite(c_new) & (c_new < c)
@@ -219,8 +240,9 @@ def refine_edges(
 def face_pose_from_homography(pixels4: Array, face: Array, size, intrinsics: Array) -> Pose:
     """Box pose from the 4 image corners (4, 2) [px] of one face (corner ids ``face`` (4,)).
 
-    DLT homography from the face plane to normalised image coordinates, H ~ [r_u r_v p0], then the
-    nearest rotation (SVD). Sign chosen so that the face lies in front of the camera.
+    DLT homography from the face plane to normalised image coordinates, H ~ [r_u r_v p0] (with
+    h33 = 1, normal equations), then the nearest orthonormal pair to (r_u, r_v) (the symmetric
+    split of their angle error). Sign chosen so that the face lies in front of the camera.
     """
     obj = box_corners(size)[face]  # (4, 3)
     u = obj[1] - obj[0]
@@ -229,23 +251,27 @@ def face_pose_from_homography(pixels4: Array, face: Array, size, intrinsics: Arr
     u_hat, v_hat = u / su, v / sv
     w_hat = jnp.cross(u_hat, v_hat)
     rel = obj - obj[:1]
-    plane = jnp.stack([rel @ u_hat, rel @ v_hat], -1)  # (4, 2) [m]
+    plane = jnp.stack([rel @ u_hat / su, rel @ v_hat / sv], -1)  # (4, 2) in [0, 1]
     x = pixel_to_normalized(pixels4, intrinsics)  # (4, 2)
     one, zero = jnp.ones(4, x.dtype), jnp.zeros(4, x.dtype)
     pa, pb = plane[:, 0], plane[:, 1]
     rows1 = jnp.stack([pa, pb, one, zero, zero, zero, -x[:, 0] * pa, -x[:, 0] * pb, -x[:, 0]], -1)
     rows2 = jnp.stack([zero, zero, zero, pa, pb, one, -x[:, 1] * pa, -x[:, 1] * pb, -x[:, 1]], -1)
     a = jnp.concatenate([rows1, rows2], 0)  # (8, 9)
-    _, _, vt = jnp.linalg.svd(a.T @ a)
-    h = vt[-1].reshape(3, 3)
+    # h33 = 1 (the third column is the face corner p0, in front of the camera): 8 unknowns from
+    # the normal equations, solved as vector code (a batched SVD is a loop of LAPACK calls)
+    a8 = a[:, :8]
+    h = jnp.concatenate([solve_spd(a8.T @ a8, -a8.T @ a[:, 8]), jnp.ones(1, a.dtype)])
+    h = h.reshape(3, 3) / jnp.stack([su, sv, jnp.ones_like(su)])[None, :]  # plane in [m] again
     scale = 2.0 / (jnp.linalg.norm(h[:, 0]) + jnp.linalg.norm(h[:, 1]))
     h = h * scale * jnp.where(h[2, 2] < 0, -1.0, 1.0)  # p0 (third column) in front: z > 0
-    r_u, r_v = h[:, 0], h[:, 1]
-    r_w = jnp.cross(r_u, r_v)
-    m = jnp.stack([r_u, r_v, r_w], -1) @ jnp.stack([u_hat, v_hat, w_hat], 0)
-    uu, _, vvt = jnp.linalg.svd(m)
-    d = jnp.sign(jnp.linalg.det(uu @ vvt))
-    rot = uu @ jnp.diag(jnp.stack([jnp.ones_like(d), jnp.ones_like(d), d])) @ vvt
+    # orthonormal pair closest to the (noisy) columns r_u, r_v, errors split evenly between them
+    r_u = h[:, 0] / jnp.linalg.norm(h[:, 0])
+    r_v = h[:, 1] / jnp.linalg.norm(h[:, 1])
+    c = (r_u + r_v) / jnp.linalg.norm(r_u + r_v)
+    d = (r_u - r_v) / jnp.linalg.norm(r_u - r_v)
+    e_u, e_v = (c + d) / jnp.sqrt(2.0), (c - d) / jnp.sqrt(2.0)
+    rot = jnp.stack([e_u, e_v, jnp.cross(e_u, e_v)], -1) @ jnp.stack([u_hat, v_hat, w_hat], 0)
     t = h[:, 2] - rot @ obj[0]
     return Pose(rot, t)
 
