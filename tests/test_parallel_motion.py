@@ -377,11 +377,13 @@ def test_point_behind_camera_is_invalid(scenes):
     _assert_finite(est)
 
 
-def test_no_real_root_is_invalid():
-    """Under heavy noise the quadratic often has no real root: those must be invalid and finite."""
-    noisy = make_cube_scenes(np.random.default_rng(11), N_SCENES, motion="small", noise_px=2.0)
-    before, after = jnp.asarray(noisy.points_before), jnp.asarray(noisy.points_after)
-    est = estimate_motion(before, after, EDGE, residual_tol=None)
+def _project(p):
+    return p[..., :2] / p[..., 2:]
+
+
+def _no_real_root(before, after):
+    """(n,) bool: the quadratic of Eqs. 37-38 has no real root (negative discriminant)."""
+    before, after = jnp.asarray(before), jnp.asarray(after)
     t1, _, _ = pm.parallel_t(before)
     t1_a, _, _ = pm.parallel_t(after)
     a, ab, _, _ = pm.segment_parameters(before)
@@ -393,7 +395,15 @@ def test_no_real_root_is_invalid():
         n1, n1_a, pm.length_ratio(n1, n1_a), (1 - t1_a) / (1 - t1), b3, d3, b3_a, d3_a
     )
     c2, c1, c0 = (np.asarray(roots.coefficients[:, i]) for i in range(3))
-    no_root = c1**2 - 4 * c2 * c0 < -1e-6 * (c1**2 + 4 * np.abs(c2 * c0))
+    return c1**2 - 4 * c2 * c0 < -1e-6 * (c1**2 + 4 * np.abs(c2 * c0))
+
+
+def test_no_real_root_is_invalid():
+    """Under heavy noise the quadratic often has no real root: those must be invalid and finite."""
+    noisy = make_cube_scenes(np.random.default_rng(11), N_SCENES, motion="small", noise_px=2.0)
+    before, after = jnp.asarray(noisy.points_before), jnp.asarray(noisy.points_after)
+    est = estimate_motion(before, after, EDGE, residual_tol=None)
+    no_root = _no_real_root(before, after)
     assert no_root.sum() > 10  # the case occurs
     assert not np.any(np.asarray(est.valid)[no_root])
     _assert_finite(est)
@@ -489,34 +499,136 @@ def test_jit_vmap_agree_with_batched_call(scenes, polish_steps):
     np.testing.assert_allclose(nested.rotation.reshape(64, 3, 3), batched.rotation, atol=1e-12)
 
 
-def _angle_of_estimate(after, before, polish_steps=0):
-    est = pm.estimate_motion_core(
-        before, after, jnp.asarray(EDGE, after.dtype), polish_steps=polish_steps
+PER_KIND = 20  # degenerate scenes of each kind in the gradient test
+
+
+@pytest.fixture(scope="module")
+def degenerate_scenes():
+    """PER_KIND scenes of each degenerate kind, from cube scenes of a fixed seed: a dict
+    kind -> (before, after), (PER_KIND, 4, 2) float64 each."""
+    rng = np.random.default_rng(21)
+    s = make_cube_scenes(rng, PER_KIND, motion="mixed")
+    pb, pa = _truth(s)
+
+    def rigid(q):
+        return np.einsum("nij,nkj->nki", s.rotation, q) + s.translation[:, None]
+
+    kinds = {"zero motion": (s.points_before, s.points_before.copy())}
+    b, a = s.points_before.copy(), s.points_after.copy()
+    b[:, 1], a[:, 1] = b[:, 0], a[:, 0]
+    kinds["zero-length AB"] = (b, a)
+
+    # Each view's C, D moved onto the plane through the camera centre, A and B (CD stays
+    # parallel to AB): the image lines are collinear.
+    def collapse(p):
+        normal = np.cross(p[:, 0], p[:, 1])
+        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+        return p - np.einsum("nki,ni->nk", p, normal)[..., None] * normal[:, None]
+
+    kinds["plane through camera centre"] = (_project(collapse(pb)), _project(collapse(pa)))
+    q = pb.copy()
+    down = q[:, 1] - q[:, 0] + np.array([0.0, 0.0, -3.0])  # B and D behind the camera
+    q[:, 1], q[:, 3] = q[:, 0] + down, q[:, 2] + down
+    kinds["points behind camera"] = (_project(q), _project(rigid(q)))
+    q = pb.copy()
+    for i in range(PER_KIND):
+        tilt = rotation_from_axis_angle(rng.normal(size=3), np.radians(20.0))
+        q[i, 3] = q[i, 2] + tilt @ (q[i, 3] - q[i, 2])  # D off the parallel direction
+    kinds["non-parallel segments"] = (_project(q), _project(rigid(q)))
+    noisy = make_cube_scenes(rng, 4 * PER_KIND, motion="small", noise_px=2.0)
+    no_root = np.nonzero(_no_real_root(noisy.points_before, noisy.points_after))[0][:PER_KIND]
+    assert len(no_root) == PER_KIND
+    kinds["no real root"] = (noisy.points_before[no_root], noisy.points_after[no_root])
+    return kinds
+
+
+def _objective(before, after, length, polish_steps):
+    """Rotation angle plus the sum of every metric output of the core; the estimate as aux."""
+    est = pm.estimate_motion_core(before, after, length, polish_steps=polish_steps)
+    leaves = (est.rotation, est.translation, est.points_before, est.points_after)
+    return pm.rotation_angle(est.rotation) + sum(jnp.sum(x) for x in leaves), est
+
+
+@functools.cache
+def _batched_grad(polish_steps):
+    """Jitted vmapped gradient w.r.t. (before, after, length) and the estimate, per polish_steps
+    (shared by the gradient tests: one compile per dtype and polish_steps)."""
+    grad = jax.grad(
+        functools.partial(_objective, polish_steps=polish_steps), argnums=(0, 1, 2), has_aux=True
     )
-    return pm.rotation_angle(est.rotation) + jnp.sum(est.translation)
+    return jax.jit(jax.vmap(grad))
+
+
+@pytest.fixture(scope="module")
+def gradient_batch(scenes, degenerate_scenes):
+    """Scene 1 of ``scenes`` (valid) followed by the degenerate scenes, and a function
+    (dtype, polish_steps) -> (gradients, estimate) of :func:`_objective` over that batch (cached)."""
+    names = list(degenerate_scenes)
+    before = np.concatenate([scenes.points_before[1:2]] + [degenerate_scenes[k][0] for k in names])
+    after = np.concatenate([scenes.points_after[1:2]] + [degenerate_scenes[k][1] for k in names])
+    cache = {}
+
+    def grads(dtype, polish_steps):
+        key = (np.dtype(dtype).name, polish_steps)
+        if key not in cache:
+            length = np.full(len(before), EDGE, dtype)
+            cache[key] = _batched_grad(polish_steps)(
+                before.astype(dtype), after.astype(dtype), length
+            )
+        return cache[key]
+
+    return before, after, names, grads
 
 
 @pytest.mark.parametrize("polish_steps", [0, POLISH_STEPS])
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
-def test_grad_finite_and_matches_central_differences(scenes, dtype, polish_steps):
-    before = jnp.asarray(scenes.points_before[1], dtype)
-    after = jnp.asarray(scenes.points_after[1], dtype)
-    angle = functools.partial(_angle_of_estimate, polish_steps=polish_steps)
-    g = jax.jit(jax.grad(angle))(after, before)
+def test_grad_finite_and_matches_central_differences(gradient_batch, dtype, polish_steps):
+    before_all, after_all, _, grads = gradient_batch
+    (_, g_after, _), _ = grads(dtype, polish_steps)
+    g = g_after[0]  # scene 1 of `scenes`
     assert g.dtype == dtype
     assert np.all(np.isfinite(np.asarray(g)))
     if dtype == jnp.float64:
+        before, after = jnp.asarray(before_all[0]), jnp.asarray(after_all[0])
         h = 1e-7
-        angle_jit = jax.jit(angle)
+        value = jax.jit(lambda a: _objective(before, a, jnp.asarray(EDGE), polish_steps)[0])
         fd = np.zeros((4, 2))
         for i in range(4):
             for j in range(2):
                 e = jnp.zeros((4, 2)).at[i, j].set(h)
-                fd[i, j] = (angle_jit(after + e, before) - angle_jit(after - e, before)) / (2 * h)
+                fd[i, j] = (value(after + e) - value(after - e)) / (2 * h)
         np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.max(np.abs(fd)))
 
 
-def test_grad_finite_on_degenerate_input(scenes):
-    before = jnp.asarray(scenes.points_before[0])
-    g = jax.grad(_angle_of_estimate)(before, before)  # zero motion
-    assert np.all(np.isfinite(np.asarray(g)))
+@pytest.mark.parametrize("polish_steps", [0, POLISH_STEPS])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_grad_finite_on_degenerate_input(gradient_batch, dtype, polish_steps):
+    """Degenerate input gives finite values AND finite derivatives (w.r.t. before, after and
+    length), for every kind of degeneracy, both dtypes, with and without the polish."""
+    _, _, names, grads = gradient_batch
+    (g_before, g_after, g_length), est = grads(dtype, polish_steps)
+    est = jax.tree_util.tree_map(lambda x: np.asarray(x)[1:], est)  # drop the valid scene
+    finite = (
+        np.all(np.isfinite(np.asarray(g_before)), axis=(1, 2))
+        & np.all(np.isfinite(np.asarray(g_after)), axis=(1, 2))
+        & np.isfinite(np.asarray(g_length))
+    )[1:].reshape(len(names), PER_KIND)
+    bad = {k: int(np.sum(~f)) for k, f in zip(names, finite, strict=True) if not np.all(f)}
+    assert not bad, f"non-finite gradients (scenes per kind): {bad}"
+    _assert_finite(est)
+    valid = est.valid.reshape(len(names), PER_KIND)
+    exact = [i for i, k in enumerate(names) if k not in ("non-parallel segments", "no real root")]
+    assert not np.any(valid[exact])
+    if dtype == np.float64:  # non-parallel pairs show up in the rigidity residual only
+        assert not np.any(pm.consistency_check(est, 1e-6))
+
+
+def test_rotation_angle_derivative_finite_at_0_and_pi():
+    for angle in (0.0, np.pi):
+        rot = jnp.asarray(rotation_from_axis_angle([1.0, 2.0, 3.0], angle))
+        for dtype in (jnp.float64, jnp.float32):
+            r = rot.astype(dtype)
+            for scale in (1.0, 1.0 + 1e-6, 1.0 - 1e-6):  # cos exactly, beyond and within +-1
+                g = jax.grad(pm.rotation_angle)(r * scale)
+                assert np.all(np.isfinite(np.asarray(g)))
+            np.testing.assert_allclose(pm.rotation_angle(r), angle, atol=1e-3)

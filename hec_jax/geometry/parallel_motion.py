@@ -109,6 +109,16 @@ def _safe_norm(v: Array) -> Array:
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
 
 
+def _safe_unit(v: Array) -> Array:
+    """v / |v| over the last axis, 0 where |v|^2 is 0 or below the smallest normal float.
+
+    Double where: the division only ever sees a norm whose square is a normal float, so neither
+    the value nor the derivative (which divides by |v|^2) can overflow to inf or make 0 / 0."""
+    sq = jnp.sum(v * v, axis=-1, keepdims=True)
+    ok = sq > jnp.finfo(v.dtype).tiny
+    return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+
+
 def _homogeneous(p: Array) -> Array:
     """(..., 2) -> (..., 3) with a trailing 1."""
     return jnp.concatenate([p, jnp.ones_like(p[..., :1])], axis=-1)
@@ -310,10 +320,9 @@ def _candidate(before, after, t1, t2, t1a, t2a, t3, t3a, k1, length):
     m, m_a = vectors(pts), vectors(pts_a)  # M_i and M_i' (Eq. 6: M_i' = Phi M_i)
     normal = jnp.cross(m[..., 0, :], m[..., 2, :])
     normal_a = jnp.cross(m_a[..., 0, :], m_a[..., 2, :])
-    unit = lambda v: v / jnp.maximum(_safe_norm(v), jnp.finfo(v.dtype).tiny)[..., None]  # noqa: E731
     size = _safe_norm(m[..., 0, :])[..., None, None]
-    pairs_before = jnp.concatenate([m, unit(normal)[..., None, :] * size], axis=-2)
-    pairs_after = jnp.concatenate([m_a, unit(normal_a)[..., None, :] * size], axis=-2)
+    pairs_before = jnp.concatenate([m, _safe_unit(normal)[..., None, :] * size], axis=-2)
+    pairs_after = jnp.concatenate([m_a, _safe_unit(normal_a)[..., None, :] * size], axis=-2)
     rotation = procrustes_rotation(pairs_before, pairs_after)  # Eq. 14 (N_i scaled to M_i)
     centre, centre_a = jnp.mean(pts, axis=-2), jnp.mean(pts_a, axis=-2)
     translation = centre_a - jnp.einsum("...ij,...j->...i", rotation, centre)  # Eq. 1
@@ -364,8 +373,7 @@ def _cayley(w: Array) -> Array:
 def _perpendicular_basis(u: Array) -> tuple[Array, Array]:
     """Two unit vectors perpendicular to the unit vector u and to each other."""
     axis = jax.nn.one_hot(jnp.argmin(jnp.abs(u)), 3, dtype=u.dtype)  # |u x axis| >= sqrt(2/3)
-    e1 = jnp.cross(u, axis)
-    e1 = e1 / jnp.maximum(_safe_norm(e1), jnp.finfo(u.dtype).tiny)
+    e1 = _safe_unit(jnp.cross(u, axis))
     return e1, jnp.cross(u, e1)
 
 
@@ -516,9 +524,16 @@ def polish_motion(
 
 
 def rotation_angle(rotation: Array) -> Array:
-    """Angle [rad] of a rotation matrix (..., 3, 3), NaN-safe."""
+    """Angle [rad] of a rotation matrix (..., 3, 3), NaN-safe in value and derivative.
+
+    arccos(cos) with cos = (trace - 1) / 2. At |cos| >= 1 (angle 0 or pi, where the angle is not
+    differentiable, and where rounding pushes cos past 1) arccos' is infinite: there the value is
+    arccos(+-1) taken as a constant (derivative 0, like the norm at 0) and arccos only sees a safe
+    operand (double where; clipping alone gives 0 * inf = NaN)."""
     cos = 0.5 * (jnp.trace(rotation, axis1=-2, axis2=-1) - 1.0)
-    return jnp.arccos(jnp.clip(cos, -1.0, 1.0))
+    inside = jnp.abs(cos) < 1.0
+    edge = jax.lax.stop_gradient(jnp.arccos(jnp.clip(cos, -1.0, 1.0)))
+    return jnp.where(inside, jnp.arccos(jnp.where(inside, cos, 0.0)), edge)
 
 
 def estimate_motion_core(
