@@ -1,17 +1,20 @@
 """Reverse mode through a closed-loop MJX rollout with contact: dL/dw of the network weights (BPTT).
 
-    python experiments/bptt_probe.py --out runs/bptt_probe --seed 0 [--float32] [--iterations 1]
+    python experiments/bptt_probe.py --out runs/bptt_probe --seed 0 [--float32]
+    python experiments/bptt_probe.py --solver unrolled --iterations 1   # MJX's own solve
 
 Runs the catching loop with the frozen initial networks up to just before contact, then
 differentiates L = sum_t (1e-5 |F_contact|^2 + x_hand) over the next ``--steps`` samples (which
 include the impact) with respect to all network weights by reverse mode through the rollout
 (observation, learner forward pass, impedance law, MJX constraint solve, integration). Reports
 whether the gradient is finite and compares its projection on a random direction with central
-differences (float64), and the cost of value-and-gradient against the forward rollout. MJX's solver
-uses a ``while_loop`` (no reverse mode) unless ``opt.iterations == 1``, so the model is set to
-``--iterations`` (default 1).
+differences, and the cost of value-and-gradient against the ordinary forward rollout.
 
-A probe for issue 6, not its solution: no truncation, no learning with these gradients yet.
+``--solver implicit`` (default): ``hec_jax.mjx_scene.differentiable.rollout`` (MJX's converged solve
+forward, implicit derivative of the constraint solution; the scene's solver iterations).
+``--solver unrolled``: reverse mode through MJX's own solve, which MJX allows only with
+``opt.iterations == 1`` (its ``while_loop`` otherwise); the derivative of one truncated Newton step,
+non-finite in float32 at near-converged starts (see ``docs/gradients.md``).
 """
 
 from __future__ import annotations

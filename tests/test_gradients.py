@@ -58,28 +58,37 @@ def test_gradient_matches_central_differences_float64(f64):
     np.testing.assert_allclose(grad, fd, rtol=1e-3, atol=1e-6 * np.max(np.abs(fd)))
 
 
-def test_gradient_finite_float32_batch():
-    """float32 (x64 off while tracing): finite for every member of a batch of conditions, all in
-    contact."""
+def _float32_grads(conds, batched):
+    """Gradients (and contact forces) of the probe loss in float32 (x64 off while tracing)."""
     with jax.enable_x64(False):
         probe = make_probe()
-        conds = PendulumConditions(  # four swings that all reach the hand within 0.66 s
-            rod_length=jnp.array([0.58, 0.6, 0.62, 0.6], jnp.float32),
-            cube_mass=jnp.array([0.5, 0.7, 0.9, 0.6], jnp.float32),
-            release_angle=jnp.array([-0.5, -0.55, -0.52, -0.58], jnp.float32),
-            release_speed=jnp.zeros(4, jnp.float32),
-            hinge_damping=jnp.full(4, 0.002, jnp.float32),
-            arrival_phase=jnp.zeros(4, jnp.float32),
-        )
-        vg = jax.jit(
-            jax.vmap(
-                jax.value_and_grad(lambda g, c: probe.loss(g, c, 660, NO_REMAT), has_aux=True),
-                in_axes=(None, 0),
-            )
-        )
+        conds = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), conds)
+        vg = jax.value_and_grad(lambda g, c: probe.loss(g, c, 660, NO_REMAT), has_aux=True)
+        vg = jax.jit(jax.vmap(vg, in_axes=(None, 0)) if batched else vg)
         (_, f_contact), grad = vg(jnp.zeros(3, jnp.float32), conds)
         grad = np.asarray(grad)
         assert grad.dtype == np.float32
+    return grad, np.asarray(f_contact)
+
+
+def test_gradient_finite_float32():
+    grad, f_contact = _float32_grads(default_conditions(), batched=False)
     assert np.all(np.isfinite(grad))
-    contact_steps = np.sum(np.linalg.norm(np.asarray(f_contact), axis=2) > 1e-6, axis=1)
+    assert np.sum(np.linalg.norm(f_contact, axis=-1) > 1e-6) > 10  # through contact
+
+
+@pytest.mark.slow
+def test_gradient_finite_float32_batch():
+    """float32: finite for every member of a vmapped batch of conditions, all in contact."""
+    conds = PendulumConditions(  # four swings that all reach the hand within 0.66 s
+        rod_length=np.array([0.58, 0.6, 0.62, 0.6]),
+        cube_mass=np.array([0.5, 0.7, 0.9, 0.6]),
+        release_angle=np.array([-0.5, -0.55, -0.52, -0.58]),
+        release_speed=np.zeros(4),
+        hinge_damping=np.full(4, 0.002),
+        arrival_phase=np.zeros(4),
+    )
+    grad, f_contact = _float32_grads(conds, batched=True)
+    assert np.all(np.isfinite(grad))
+    contact_steps = np.sum(np.linalg.norm(f_contact, axis=2) > 1e-6, axis=1)
     assert np.all(contact_steps > 10), contact_steps

@@ -108,6 +108,41 @@ def dynamics_stages(
     return d, hand_contact_force(m, d, ids)
 
 
+def _floating(x) -> bool:
+    return jnp.issubdtype(jnp.asarray(x).dtype, jnp.inexact)
+
+
+@_allow_promotion
+def observe_stages_fwdjac(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """``observe_stages`` whose derivative in (qpos, qvel) is taken by forward mode.
+
+    Reverse mode through MJX's position stage (kinematics, com, crb, collision, constraint rows)
+    costs ~65x its forward on CPU (gathers and ``.at[].set`` transpose to scatter-adds), while the
+    state has only nq + nv inputs. Here the Jacobian of every output leaf with respect to
+    (qpos, qvel) is computed by ``jax.jacfwd`` (nq + nv tangents, forward mode) at the current state
+    and enters as ``J (x - stop_gradient(x))``: value unchanged (that term is 0), derivative exactly
+    J dx in forward and reverse mode. The other inputs (model, applied forces, warm start, ...) keep
+    MJX's own derivative.
+    """
+    nq = d.qpos.shape[0]
+    x = jnp.concatenate([d.qpos, d.qvel])
+    x0 = jax.lax.stop_gradient(x)
+    base = observe_stages(m, d.replace(qpos=x0[:nq], qvel=x0[nq:]))
+
+    def of_state(xs):
+        return observe_stages(_stop(m), _stop(d).replace(qpos=xs[:nq], qvel=xs[nq:]))
+
+    jac = jax.lax.stop_gradient(jax.jacfwd(of_state)(x0))
+    dx = x - x0
+
+    def add(b, j):
+        if not _floating(b) or j.shape[: b.ndim] != b.shape:
+            return b
+        return b + jnp.tensordot(j, dx, axes=1).astype(b.dtype)
+
+    return jax.tree_util.tree_map(add, base, jac)
+
+
 def rollout(
     m: mjx.Model,
     ids: SceneIds,
@@ -118,13 +153,18 @@ def rollout(
     conditions=None,
     *,
     checkpoint: bool = True,
+    observe_jacfwd: bool = True,
 ) -> tuple[tuple[mjx.Data, Any], Trajectory]:
     """``hec_jax.mjx_scene.rollout`` (same step sequence, same arguments and returns) with the
     differentiable :func:`dynamics_stages`, for reverse mode through closed-loop rollouts (BPTT).
 
     ``checkpoint``: rematerialise each step in the backward pass (``jax.checkpoint`` of the scan
     body), so the memory of the backward pass does not hold every step's MJX intermediates.
+    ``observe_jacfwd``: differentiate the position/velocity stages in the state by forward mode
+    (:func:`observe_stages_fwdjac`; same derivative, ~3x cheaper gradients on CPU); False: MJX's
+    own reverse mode through them.
     """
+    observe = observe_stages_fwdjac if observe_jacfwd else observe_stages
     if f_ext.ndim != 2 or f_ext.shape[1] != 3:
         raise ValueError(f"f_ext must have shape (T, 3), got {f_ext.shape}")
 
@@ -133,7 +173,7 @@ def rollout(
         if conditions is not None:
             d = _hold_pendulum(d, ids, conditions)
         xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.hand_body, :3].set(f_ext_k)
-        d = observe_stages(m, d.replace(xfrc_applied=xfrc))
+        d = observe(m, d.replace(xfrc_applied=xfrc))
         f_int = f_contact_prev + f_ext_k
         ctrl, ps, aux = policy(ps, m, SimStep(d=d, f_int=f_int, t=d.time))
         d_acc, f_contact = dynamics_stages(m, ids, d, ctrl)
