@@ -3,12 +3,13 @@
     python benchmarks/gradients.py [--float32] [--steps 1000] [--batch 1] [--cases probe catching]
 
 One process, one device; every ratio is of times measured in this run (min of ``--repeat`` calls,
-compile excluded and reported apart). The forward baseline is ``hec_jax.mjx_scene.rollout`` with the
+compile excluded and reported apart; the repetitions of all rows are interleaved). The forward baseline is ``hec_jax.mjx_scene.rollout`` with the
 scene's own solver settings (what the experiments run). Gradients:
 
 * ``implicit``: ``hec_jax.mjx_scene.differentiable.rollout`` (MJX's solve forward, implicit
-  derivative of the constraint solve), reverse mode (``value_and_grad``), with and without
-  per-step rematerialisation (``jax.checkpoint``);
+  derivative of the constraint solve), reverse mode (``value_and_grad``), with and without per-step
+  rematerialisation (``jax.checkpoint``), and with the position/velocity stages differentiated by
+  their forward-mode Jacobian in the state (``observe_jacfwd``);
 * ``unrolled``: reverse mode through MJX's own solve, which needs ``opt.iterations = 1`` (its
   forward is a different, unconverged physics; shown for reference).
 
@@ -63,9 +64,9 @@ def probe_case(steps, batch, dtype):
     base = make_probe()
     one = make_probe(iterations=1)
 
-    def rf(ck):
+    def rf(ck, jacfwd=False):
         return lambda m, ids, d, pol, ps, f, c: differentiable.rollout(
-            m, ids, d, pol, ps, f, c, checkpoint=ck
+            m, ids, d, pol, ps, f, c, checkpoint=ck, observe_jacfwd=jacfwd
         )
 
     def batched(fn):
@@ -76,6 +77,9 @@ def probe_case(steps, batch, dtype):
         "implicit": batched(jax.value_and_grad(lambda g, c: base.loss(g, c, steps, rf(False))[0])),
         "implicit+remat": batched(
             jax.value_and_grad(lambda g, c: base.loss(g, c, steps, rf(True))[0])
+        ),
+        "implicit, jacfwd through the stages": batched(
+            jax.value_and_grad(lambda g, c: base.loss(g, c, steps, rf(False, True))[0])
         ),
         "implicit, forward mode (jacfwd, 3 tangents)": batched(
             lambda g, c: jax.jacfwd(
@@ -141,17 +145,22 @@ def main(argv=None):
     rows = []
     for case in args.cases:
         forward, grads, fargs = CASES[case](args.steps, args.batch, dtype)
-        _, c_fwd = _compiled(forward, *fargs)
-        t_fwd = _timed(forward, *fargs, repeat=args.repeat)
-        rows.append((case, "forward (rollout)", t_fwd, 1.0, c_fwd, True))
-        for name, vg in grads.items():
-            if name in args.skip:
-                continue
-            (_, g), c_g = _compiled(vg, *fargs)
-            finite = all(bool(np.all(np.isfinite(x))) for x in jax.tree_util.tree_leaves(g))
-            t_g = _timed(vg, *fargs, repeat=args.repeat)
-            rows.append((case, f"value_and_grad {name}", t_g, t_g / t_fwd, c_g, finite))
-            print(f"  {case:9s} {name:24s} {t_g * 1e3:9.1f} ms  x{t_g / t_fwd:5.2f}", flush=True)
+        fns = {"forward (rollout)": forward}
+        fns.update({f"value_and_grad {k}": v for k, v in grads.items() if k not in args.skip})
+        compile_s, finite = {}, {}
+        for name, fn in fns.items():
+            out, compile_s[name] = _compiled(fn, *fargs)
+            leaves = jax.tree_util.tree_leaves(out)
+            finite[name] = all(bool(np.all(np.isfinite(x))) for x in leaves)
+        times = {name: [] for name in fns}
+        for _ in range(args.repeat):  # interleaved, so that load changes hit every row alike
+            for name, fn in fns.items():
+                times[name].append(_timed(fn, *fargs, repeat=1))
+        t_fwd = min(times["forward (rollout)"])
+        for name in fns:
+            t = min(times[name])
+            rows.append((case, name, t, t / t_fwd, compile_s[name], finite[name]))
+            print(f"  {case:9s} {name:44s} {t * 1e3:9.1f} ms  x{t / t_fwd:5.2f}", flush=True)
     print()
     print("| case | computation | time [ms] | / forward | compile [s] | finite |")
     print("|---|---|---:|---:|---:|---|")

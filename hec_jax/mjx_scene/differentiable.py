@@ -116,9 +116,8 @@ def _floating(x) -> bool:
 def observe_stages_fwdjac(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     """``observe_stages`` whose derivative in (qpos, qvel) is taken by forward mode.
 
-    Reverse mode through MJX's position stage (kinematics, com, crb, collision, constraint rows)
-    costs ~65x its forward on CPU (gathers and ``.at[].set`` transpose to scatter-adds), while the
-    state has only nq + nv inputs. Here the Jacobian of every output leaf with respect to
+    The state has only nq + nv inputs, so forward mode is an alternative to reverse mode through
+    MJX's position stage (kinematics, com, crb, collision, constraint rows). Here the Jacobian of every output leaf with respect to
     (qpos, qvel) is computed by ``jax.jacfwd`` (nq + nv tangents, forward mode) at the current state
     and enters as ``J (x - stop_gradient(x))``: value unchanged (that term is 0), derivative exactly
     J dx in forward and reverse mode. The other inputs (model, applied forces, warm start, ...) keep
@@ -153,7 +152,7 @@ def rollout(
     conditions=None,
     *,
     checkpoint: bool = True,
-    observe_jacfwd: bool = True,
+    observe_jacfwd: bool = False,
 ) -> tuple[tuple[mjx.Data, Any], Trajectory]:
     """``hec_jax.mjx_scene.rollout`` (same step sequence, same arguments and returns) with the
     differentiable :func:`dynamics_stages`, for reverse mode through closed-loop rollouts (BPTT).
@@ -161,8 +160,8 @@ def rollout(
     ``checkpoint``: rematerialise each step in the backward pass (``jax.checkpoint`` of the scan
     body), so the memory of the backward pass does not hold every step's MJX intermediates.
     ``observe_jacfwd``: differentiate the position/velocity stages in the state by forward mode
-    (:func:`observe_stages_fwdjac`; same derivative, ~3x cheaper gradients on CPU); False: MJX's
-    own reverse mode through them.
+    (:func:`observe_stages_fwdjac`; same derivative; on CPU not cheaper: 12.4x against 9.7x the
+    forward for a 1 s rollout, measured interleaved); False (default): MJX's own reverse mode.
     """
     observe = observe_stages_fwdjac if observe_jacfwd else observe_stages
     if f_ext.ndim != 2 or f_ext.shape[1] != 3:
