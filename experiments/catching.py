@@ -38,11 +38,13 @@ Set-up of the catch (our choices; the paper gives no numbers):
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering for --eye camera
 
 import jax  # noqa: E402
 
@@ -50,6 +52,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+from experiments import hand_eye as he  # noqa: E402
 from experiments import task_loop as tl  # noqa: E402
 from hec_jax.mjx_scene import default_conditions  # noqa: E402
 from hec_jax.nets import gain_alpha  # noqa: E402
@@ -59,6 +62,7 @@ from hec_jax.runs import save_figure, start_run, write_json  # noqa: E402
 def parse(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     tl.add_common_args(p, "runs/catching")
+    he.add_camera_args(p)
     p.set_defaults(hinge_x=0.55, x_home=None)
     p.set_defaults(eta_m=0.0)  # VIN not trained (task_loop.VIN_NOTE)
     p.add_argument("--swings", type=int, default=10)
@@ -101,6 +105,30 @@ def swing_metrics(logs, s: int, w: int, config: tl.TaskConfig, args) -> dict:
     return out
 
 
+def condition_metrics(lg, condition: str, config: tl.TaskConfig, args) -> dict:
+    """Mean +- std over seeds of :func:`swing_metrics` (learned: last swing; others: swing 1)."""
+    last = args.swings - 1
+    w = last if condition == "learned" else 0
+    per_seed = [swing_metrics(lg, s, w, config, args) for s in range(args.seeds)]
+    m = {
+        key: tl.mean_std([p[key] for p in per_seed])
+        for key in per_seed[0]
+        if all(p.get(key) is not None for p in per_seed) and key in per_seed[-1]
+    }
+    m["held_every_seed"] = bool(all(p["held"] for p in per_seed))
+    m["max_settle_rel_error_over_seeds"] = max(p["settle_rel_error"] for p in per_seed)
+    m["swing_used"] = w
+    m["stability"] = tl.stability_summary(lg)
+    if condition == "learned":
+        m["peak_force_per_swing"] = [
+            tl.mean_std(
+                [swing_metrics(lg, s, k, config, args)["peak_force"] for s in range(args.seeds)]
+            )
+            for k in range(args.swings)
+        ]
+    return m
+
+
 def main(argv=None):
     args = parse(argv)
     learner = tl.learner_from_args(args, "catching", args.f_cd)
@@ -109,32 +137,15 @@ def main(argv=None):
     settings = tl.run_settings(args, "catching", pendulum, learner, config)
     folder = start_run(args.out, args.seed, settings)
     t0 = time.perf_counter()
-    logs, timing = tl.run_conditions(config, pendulum, args.seed, args.seeds)
+    logs, extra = he.run_task(args, config, pendulum)
+    timing = extra["timing"]
     wall = time.perf_counter() - t0
     tl.save_trajectories(folder, logs, config.controller.dt)
 
     metrics = {"timing_s": {"total": wall, **timing}}
     last = args.swings - 1
     for condition, lg in logs.items():
-        w = last if condition == "learned" else 0
-        per_seed = [swing_metrics(lg, s, w, config, args) for s in range(args.seeds)]
-        m = {
-            key: tl.mean_std([p[key] for p in per_seed])
-            for key in per_seed[0]
-            if all(p.get(key) is not None for p in per_seed) and key in per_seed[-1]
-        }
-        m["held_every_seed"] = bool(all(p["held"] for p in per_seed))
-        m["max_settle_rel_error_over_seeds"] = max(p["settle_rel_error"] for p in per_seed)
-        m["swing_used"] = w
-        m["stability"] = tl.stability_summary(lg)
-        if condition == "learned":
-            m["peak_force_per_swing"] = [
-                tl.mean_std(
-                    [swing_metrics(lg, s, k, config, args)["peak_force"] for s in range(args.seeds)]
-                )
-                for k in range(args.swings)
-            ]
-        metrics[condition] = m
+        metrics[condition] = condition_metrics(lg, condition, config, args)
     peak = {c: metrics[c]["peak_force"]["mean"] for c in tl.CONDITIONS}
     settle = metrics["learned"]["settle_force"]["mean"]
     worst = metrics["learned"]["max_settle_rel_error_over_seeds"]
@@ -165,6 +176,20 @@ def main(argv=None):
         ],
         "runtime_under_10_min": bool(wall < 600),
     }
+
+    def peak_of(lg, condition):  # per seed, the swing the metrics use
+        return tl.force_norm(lg)[:, last if condition == "learned" else 0].max(-1)
+
+    camera = he.camera_report(folder, config, logs, extra, peak_of)
+    if camera:
+        metrics["camera"] = camera
+        camera["truth"] = {
+            c: condition_metrics(extra["truth"][c], c, config, args) for c in tl.CONDITIONS
+        }
+        ratio = camera["camera_over_truth_peak"]["learned"]
+        metrics["targets"]["camera_learned_peak_within_20pct_of_truth"] = bool(
+            abs(ratio - 1) <= 0.2
+        )
     write_json(folder / "metrics.json", metrics)
     plot(folder, logs, config, args)
     print(f"run folder: {folder}")
@@ -175,6 +200,8 @@ def main(argv=None):
             f"{metrics[c]['settle_force']['mean']:5.2f} +- {metrics[c]['settle_force']['std']:4.2f}"
             f" N, held every seed {metrics[c]['held_every_seed']}"
         )
+    if camera:
+        he.print_camera_summary(camera)
     print("targets:", metrics["targets"])
     return metrics
 

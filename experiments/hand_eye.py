@@ -31,6 +31,7 @@ from pathlib import Path
 import cv2
 import jax
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from experiments import task_loop as tl
@@ -51,7 +52,22 @@ class CameraConfig:
     width: int = 640  # [px]
     height: int = 480  # [px]
     fast_render: bool = True  # no shadows/reflections (3x faster software rendering)
-    track: TrackConfig = field(default_factory=TrackConfig)
+    # frames without a valid fit after which the filter's extrapolation is no longer used: the
+    # object counts as unseen (F_o = 0, no learning) until the eye finds it again. Up to this
+    # many, the controller runs on the filter's prediction.
+    max_coast_frames: int = 2
+    # the robot masks itself out of each frame before the eye sees it: its links, projected from
+    # the joint angles (forward kinematics of its own model) and the calibrated camera, widened by
+    # this margin [m], are painted in the backdrop colour (black here). Without it the hand's
+    # outline next to a held cube is taken for a cube edge (measured: 10-16 mm jumps at rest) and
+    # a lost track is found again on the arm's straight edges. None: no mask.
+    self_mask_margin_m: float | None = 0.005
+    # the eye's tracker, set for impacts on the hand: a fit that fails from the filter's
+    # prediction is tried again from the last fitted position (the cube stopped), and a jump of
+    # the innovation (chi-square 3 dof, p = 0.001) restarts the filter's velocity
+    track: TrackConfig = field(
+        default_factory=lambda: TrackConfig(maneuver_nis=16.3, stop_hypothesis=True)
+    )
 
     def __post_init__(self):
         for name in ("fps", "width", "height"):
@@ -74,12 +90,14 @@ def frame_steps(cam: CameraConfig, dt: float, steps: int) -> np.ndarray:
 
 
 class _Estimate:
-    """One frame's estimate in world task coordinates, and when the controller gets it."""
+    """One frame's estimate in world task coordinates, and when the controller gets it
+    (``seen`` False: the eye has lost the object; the controller drops it)."""
 
-    __slots__ = ("t_avail", "t_stamp", "x", "xd", "xdd")
+    __slots__ = ("t_avail", "t_stamp", "x", "xd", "xdd", "seen")
 
-    def __init__(self, t_avail, t_stamp, x, xd, xdd):
+    def __init__(self, t_avail, t_stamp, x, xd, xdd, seen=True):
         self.t_avail, self.t_stamp, self.x, self.xd, self.xdd = t_avail, t_stamp, x, xd, xdd
+        self.seen = seen
 
 
 def _eye_input(queue: list[_Estimate], t0: float, t1: float) -> tl.EyeInput:
@@ -88,11 +106,13 @@ def _eye_input(queue: list[_Estimate], t0: float, t1: float) -> tl.EyeInput:
     eps = 1e-9
     old = [e for e in queue if e.t_avail <= t0 + eps]
     new = [e for e in queue if t0 + eps < e.t_avail < t1 - eps]
-    if not old:  # nothing seen yet (one arriving mid-segment counts from the next segment)
+    if not old or not old[-1].seen:
+        # nothing seen yet or the track is lost (an estimate arriving mid-segment counts from
+        # the next segment on)
         z = np.zeros((2, 2))
         return tl.EyeInput(1.0, 0.0, np.zeros(2), np.inf, z, z, z)
     a = old[-1]
-    b = new[0] if new else a
+    b = new[0] if new and new[0].seen else a  # a loss reported mid-segment: from the next one
     return tl.EyeInput(
         use=1.0,
         seen=1.0,
@@ -136,6 +156,52 @@ def make_start(loop: tl.Loop):
         return d0, cs0
 
     return jax.jit(jax.vmap(one, in_axes=(0, None)))
+
+
+def robot_geoms(m, hand_body: int) -> np.ndarray:
+    """Geom ids of the robot: every geom in the body subtree that holds the hand."""
+    root = hand_body
+    while m.body_parentid[root] != 0:
+        root = m.body_parentid[root]
+    return np.flatnonzero(m.body_rootid[m.geom_bodyid] == root)
+
+
+def mask_robot(frame: np.ndarray, camera: SceneCamera, geoms, margin: float) -> np.ndarray:
+    """``frame`` with the robot's own image painted black (the backdrop colour).
+
+    Each sphere, capsule or cylinder of ``geoms`` is drawn at its pose in ``camera.data`` (the
+    robot's forward kinematics at its joint angles) through the calibrated camera: a disc, or a
+    thick line between the axis end points with round ends, of the geom's radius + ``margin`` [m]
+    at that depth (+1 px; conservative for the perspective silhouette at this camera's angles).
+    """
+    out = frame.copy()
+    r_wc, t_wc = camera.world_from_camera
+    k = camera.intrinsics
+    m, d = camera.model, camera.data
+
+    def px(p_world):
+        p = r_wc.T @ (p_world - t_wc)
+        return (k @ (p / p[2]))[:2], p[2]
+
+    for g in geoms:
+        kind, size = int(m.geom_type[g]), m.geom_size[g]
+        centre = d.geom_xpos[g]
+        axis = d.geom_xmat[g].reshape(3, 3)[:, 2]
+        if kind == int(mujoco.mjtGeom.mjGEOM_SPHERE):
+            ends = (centre, centre)
+        elif kind in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
+            ends = (centre - size[1] * axis, centre + size[1] * axis)
+        else:
+            continue
+        (u0, z0), (u1, z1) = px(ends[0]), px(ends[1])
+        if min(z0, z1) <= size[0]:
+            continue
+        r_px = k[0, 0] * (size[0] + margin) / min(z0, z1) + 1.0
+        a, b = tuple(int(round(v)) for v in u0), tuple(int(round(v)) for v in u1)
+        cv2.line(out, a, b, (0, 0, 0), int(np.ceil(2 * r_px)))
+        cv2.circle(out, a, int(np.ceil(r_px)), (0, 0, 0), -1)
+        cv2.circle(out, b, int(np.ceil(r_px)), (0, 0, 0), -1)
+    return out
 
 
 def _draw_overlay(frame: np.ndarray, step, k: np.ndarray, r_cam_world, t_cam_world, x_true_world):
@@ -203,125 +269,148 @@ def run_camera(
         frame's time, ``xd_est`` [m/s], and per-frame ``eye_ms``, ``render_ms`` plus
         ``sim_ms`` per segment and the wall time; ``video``: BGR frames with overlays.
     """
-    if config.final_steps:
-        raise ValueError("camera runs do not support final_steps")
     loop = tl.build_loop(config, pendulum)
     dt = config.controller.dt
-    steps = config.swing_steps
     period = steps_per_frame(cam, dt)
     fps = 1.0 / (period * dt)  # the camera's rate on the control grid [1/s]
-    fs = frame_steps(cam, dt, steps)
-    bounds = np.append(fs, steps)
     e_off = int(round(0.5 * cam.exposure_s / dt))
     n_seeds = keys.shape[0]
     m_c = load_mj_model()
     m_render = render_model_like(m_c, loop.mx)
-    camera = SceneCamera(m_render, "eye", cam.width, cam.height, cam.fast_render)
-    r_wc, t_wc = camera.world_from_camera
     dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
-    ls = jax.vmap(lambda k: loop.learner_init(k, dtype))(keys)
     sw0 = tl.switches(condition)
     start = make_start(loop)
     segment = make_segment(config, loop, pendulum)
-    d_first, _ = start(ls, sw0)
-    q0 = np.asarray(d_first.qpos[0])
+    ls = jax.vmap(lambda k: loop.learner_init(k, dtype))(keys)
+    q0 = np.asarray(start(ls, sw0)[0].qpos[0])
     with SceneCamera(
         m_render, "eye", cam.width, cam.height, cam.fast_render, ("cube", "rod")
     ) as bg:
-        background = bg.render(q0)
+        background = bg.render(q0)  # the static scene without the pendulum (a calibration shot)
+    camera = SceneCamera(m_render, "eye", cam.width, cam.height, cam.fast_render)
+    r_wc, t_wc = camera.world_from_camera
+    robot = robot_geoms(m_render, loop.ids.hand_body)
     trackers = [
         BoxTracker(camera.intrinsics, CUBE_EDGE, fps, cam.track, background) for _ in range(n_seeds)
     ]
-    n_f = len(fs)
-    eye = {
-        "t_stamp": np.zeros((n_seeds, config.swings, n_f)),
-        "valid": np.zeros((n_seeds, config.swings, n_f), bool),
-        "initialised": np.zeros((n_seeds, config.swings, n_f), bool),
-        "x_est": np.full((n_seeds, config.swings, n_f, 2), np.nan),
-        "xd_est": np.full((n_seeds, config.swings, n_f, 2), np.nan),
-        "x_true": np.zeros((n_seeds, config.swings, n_f, 2)),
-        "eye_ms": np.zeros((n_seeds, config.swings, n_f)),
-        "render_ms": np.zeros((n_seeds, config.swings, n_f)),
-        "sim_ms": np.zeros((config.swings, n_f)),
-        "swing_wall_s": np.zeros(config.swings),
-    }
-    video: list[np.ndarray] = []
-    swing_logs = []
     t_wall = time.perf_counter()
+
+    def episode(ls, steps: int, index, keep_video: bool):
+        """One release: ``steps`` control steps, the tracker reset at the release."""
+        t_ep = time.perf_counter()
+        fs = frame_steps(cam, dt, steps)
+        bounds = np.append(fs, steps)
+        n_f = len(fs)
+        rec = {
+            "t_stamp": np.zeros((n_seeds, n_f)),
+            "valid": np.zeros((n_seeds, n_f), bool),
+            "initialised": np.zeros((n_seeds, n_f), bool),
+            "x_est": np.full((n_seeds, n_f, 2), np.nan),
+            "xd_est": np.full((n_seeds, n_f, 2), np.nan),
+            "x_true": np.zeros((n_seeds, n_f, 2)),
+            "eye_ms": np.zeros((n_seeds, n_f)),
+            "render_ms": np.zeros((n_seeds, n_f)),
+            "sim_ms": np.zeros(n_f),
+        }
+        frames_out = []
+        d, cs = start(ls, sw0)
+        f_prev = jnp.zeros((n_seeds, 3), dtype)
+        for tr in trackers:
+            tr.reset()
+        queues: list[list[_Estimate]] = [[] for _ in range(n_seeds)]
+        misses = np.zeros(n_seeds, int)  # frames since the last valid fit
+        qpos_hist = np.zeros((n_seeds, steps, m_c.nq))
+        rows_all = []
+        d_qpos = np.asarray(d.qpos)
+        for j, s in enumerate(fs):
+            s_img = max(s - e_off, 0)  # mid-exposure
+            for i in range(n_seeds):
+                qpos = d_qpos[i] if s_img == s else qpos_hist[i, s_img]
+                t0 = time.perf_counter()
+                frame = camera.render(qpos)
+                x_true = camera.data.xpos[loop.ids.cube_body].copy()  # render ran kinematics
+                shown = frame  # the video shows the rendered frame
+                if cam.self_mask_margin_m is not None:
+                    frame = mask_robot(frame, camera, robot, cam.self_mask_margin_m)
+                if corrupt is not None:
+                    frame = corrupt(i, index, j, frame)
+                t1 = time.perf_counter()
+                st = trackers[i].update(frame)
+                rec["render_ms"][i, j] = 1e3 * (t1 - t0)
+                rec["eye_ms"][i, j] = 1e3 * (time.perf_counter() - t1)
+                rec["t_stamp"][i, j] = s_img * dt
+                rec["valid"][i, j] = bool(st.valid)
+                rec["initialised"][i, j] = bool(st.initialised)
+                rec["x_true"][i, j] = x_true[_AX]
+                misses[i] = 0 if st.valid else misses[i] + 1
+                if st.initialised:
+                    p, v, a = camera.to_world(st.position, st.velocity, st.acceleration)
+                    rec["x_est"][i, j] = p[_AX]
+                    rec["xd_est"][i, j] = v[_AX]
+                    seen = misses[i] <= cam.max_coast_frames
+                    queues[i].append(
+                        _Estimate(s * dt + cam.latency_s, s_img * dt, p[_AX], v[_AX], a[_AX], seen)
+                    )
+                elif queues[i]:  # lost after having been seen
+                    z = np.zeros(2)
+                    queues[i].append(_Estimate(s * dt + cam.latency_s, s_img * dt, z, z, z, False))
+                if i == 0 and keep_video:
+                    frames_out.append(
+                        _draw_overlay(shown, st, camera.intrinsics, r_wc.T, t_wc, x_true)
+                    )
+            eyes = _stack_eye([_eye_input(q, s * dt, bounds[j + 1] * dt) for q in queues])
+            sw = tl.Switches(sw0.use_virtual, sw0.learn, eyes)
+            n = int(bounds[j + 1] - s)
+            t0 = time.perf_counter()
+            d, cs, ls, rows = segment(d, cs, ls, f_prev, sw, np.arange(period) < n)
+            rows = jax.tree_util.tree_map(lambda x, n=n: x[:, :n], jax.device_get(rows))
+            rec["sim_ms"][j] = 1e3 * (time.perf_counter() - t0)
+            f_prev = rows["f_contact"][:, -1]
+            qpos_hist[:, s : bounds[j + 1]] = rows["qpos"]
+            d_qpos = np.asarray(d.qpos)
+            rows_all.append(rows)
+        ls = ls._replace(was_inside=jnp.zeros_like(ls.was_inside))
+        logs = {k: np.concatenate([r[k] for r in rows_all], axis=1) for k in rows_all[0]}
+        rec["wall_s"] = time.perf_counter() - t_ep
+        if progress:
+            print(
+                f"  {condition:8s} {index!s:>5s}: {100 * rec['valid'].mean():5.1f}% frames valid,"
+                f" {time.perf_counter() - t_wall:6.1f} s",
+                flush=True,
+            )
+        return ls, logs, rec, frames_out
+
+    video: list[np.ndarray] = []
+    runs = []
     try:
         for swing in range(config.swings):
-            d, cs = start(ls, sw0)
-            f_prev = jnp.zeros((n_seeds, 3), dtype)
-            for tr in trackers:
-                tr.reset()
-            queues: list[list[_Estimate]] = [[] for _ in range(n_seeds)]
-            qpos_hist = np.zeros((n_seeds, steps, m_c.nq))
-            rows_all = []
-            d_qpos = np.asarray(d.qpos)
-            for j, s in enumerate(fs):
-                s_img = max(s - e_off, 0)
-                for i in range(n_seeds):
-                    qpos = d_qpos[i] if s_img == s else qpos_hist[i, s_img]
-                    t0 = time.perf_counter()
-                    frame = camera.render(qpos)
-                    if corrupt is not None:
-                        frame = corrupt(i, swing, j, frame)
-                    t1 = time.perf_counter()
-                    st = trackers[i].update(frame)
-                    eye["render_ms"][i, swing, j] = 1e3 * (t1 - t0)
-                    eye["eye_ms"][i, swing, j] = 1e3 * (time.perf_counter() - t1)
-                    x_true = camera.data.xpos[
-                        loop.ids.cube_body
-                    ].copy()  # after render's kinematics
-                    eye["t_stamp"][i, swing, j] = s_img * dt
-                    eye["valid"][i, swing, j] = bool(st.valid)
-                    eye["initialised"][i, swing, j] = bool(st.initialised)
-                    eye["x_true"][i, swing, j] = x_true[_AX]
-                    if st.initialised:
-                        p, v, a = camera.to_world(st.position, st.velocity, st.acceleration)
-                        eye["x_est"][i, swing, j] = p[_AX]
-                        eye["xd_est"][i, swing, j] = v[_AX]
-                        queues[i].append(
-                            _Estimate(s * dt + cam.latency_s, s_img * dt, p[_AX], v[_AX], a[_AX])
-                        )
-                    if i == 0 and swing == video_swing:
-                        video.append(
-                            _draw_overlay(frame, st, camera.intrinsics, r_wc.T, t_wc, x_true)
-                        )
-                t0s, t1s = s * dt, bounds[j + 1] * dt
-                eyes = _stack_eye([_eye_input(q, t0s, t1s) for q in queues])
-                sw = tl.Switches(sw0.use_virtual, sw0.learn, eyes)
-                t0 = time.perf_counter()
-                n = int(bounds[j + 1] - s)
-                d, cs, ls, rows = segment(d, cs, ls, f_prev, sw, np.arange(period) < n)
-                rows = jax.tree_util.tree_map(lambda x, n=n: x[:, :n], jax.device_get(rows))
-                eye["sim_ms"][swing, j] = 1e3 * (time.perf_counter() - t0)
-                f_prev = rows["f_contact"][:, -1]
-                qpos_hist[:, s : bounds[j + 1]] = rows["qpos"]
-                d_qpos = np.asarray(d.qpos)
-                rows_all.append(rows)
-            ls = ls._replace(was_inside=jnp.zeros_like(ls.was_inside))
-            eye["swing_wall_s"][swing] = time.perf_counter() - t_wall - eye["swing_wall_s"].sum()
-            swing_logs.append(
-                {k: np.concatenate([r[k] for r in rows_all], axis=1) for k in rows_all[0]}
-            )
-            if progress:
-                ok = eye["valid"][:, swing].mean()
-                print(
-                    f"  {condition:8s} swing {swing + 1:2d}/{config.swings}: "
-                    f"{100 * ok:5.1f}% frames valid, {time.perf_counter() - t_wall:6.1f} s",
-                    flush=True,
-                )
+            ls, lg, rec, frames = episode(ls, config.swing_steps, swing, swing == video_swing)
+            runs.append((lg, rec))
+            video += frames
+        logs = {k: np.stack([lg[k] for lg, _ in runs], axis=1) for k in runs[0][0]}
+        eye = {
+            k: np.stack([rec[k] for _, rec in runs], axis=1)
+            for k in runs[0][1]
+            if k not in ("sim_ms", "wall_s")
+        }
+        eye["sim_ms"] = np.stack([rec["sim_ms"] for _, rec in runs])
+        eye["wall_s"] = np.array([rec["wall_s"] for _, rec in runs])
+        if config.final_steps:
+            ls, lg, rec, frames = episode(ls, config.final_steps, "final", video_swing == "final")
+            logs["final"] = {k: v[:, None] for k, v in lg.items()}
+            eye["final"] = {
+                k: v[:, None] if k not in ("sim_ms", "wall_s") else v for k, v in rec.items()
+            }
+            video += frames
     finally:
         camera.close()
-    eye["wall_s"] = time.perf_counter() - t_wall
     eye["fps"] = fps
-    logs = {k: np.stack([sl[k] for sl in swing_logs], axis=1) for k in swing_logs[0]}
     return logs, eye, video
 
 
-def eye_metrics(eye: dict, logs: dict, swing_s: float, n_seeds: int) -> dict:
-    """Counts and accuracy of the eye in the loop, and the real-time factor."""
+def eye_metrics(eye: dict, logs: dict, dt: float) -> dict:
+    """Counts and accuracy of the eye in the loop, and the real-time factor, of one set of
+    episodes (``eye`` and ``logs`` as returned by :func:`run_camera`, or their ``final`` parts)."""
     init = eye["initialised"]
     lost = init[..., :-1] & ~init[..., 1:]  # a track held on one frame and gone on the next
     err = eye["x_est"] - eye["x_true"]
@@ -329,16 +418,20 @@ def eye_metrics(eye: dict, logs: dict, swing_s: float, n_seeds: int) -> dict:
     used = (logs["x_o"] - logs["x_o_true"])[on]
     used_v = (logs["xd_o"] - logs["xd_o_true"])[on]
     seen = np.isfinite(eye["x_est"][..., 0])
-    sim_s = swing_s * logs["x_o"].shape[1]
-    wall = float(eye["wall_s"])
+    n_seeds = logs["x_o"].shape[0]
+    sim_s = dt * np.prod(logs["x_o"].shape[1:-1])  # simulated time of one world [s]
+    walls = np.atleast_1d(eye["wall_s"])
+    wall = float(walls.sum())
     per_frame = eye["eye_ms"].ravel()
-    return {
+    out = {
         "frames": int(init.size),
         "frames_valid": int(eye["valid"].sum()),
         "frames_failed": int((~eye["valid"]).sum()),
         "frames_failed_while_tracking": int((~eye["valid"] & init).sum()),
         "tracks_lost": int(lost.sum()),
         "position_rms_at_frames_m": float(np.sqrt(np.mean(err[seen] ** 2))),
+        # accuracy where the eye reported a valid fit (false detections show here)
+        "position_rms_valid_frames_m": float(np.sqrt(np.mean(err[eye["valid"]] ** 2))),
         "controller_position_rms_m": float(np.sqrt(np.mean(used**2))),
         "controller_velocity_rms_m_s": float(np.sqrt(np.mean(used_v**2))),
         "eye_ms_median": float(np.median(per_frame)),
@@ -346,13 +439,14 @@ def eye_metrics(eye: dict, logs: dict, swing_s: float, n_seeds: int) -> dict:
         "render_ms_median": float(np.median(eye["render_ms"])),
         "sim_ms_per_segment_median": float(np.median(eye["sim_ms"])),
         "wall_s": wall,
-        "real_time_factor": sim_s / wall,  # simulated time of one world / wall time
-        "real_time_factor_all_worlds": n_seeds * sim_s / wall,
-        # without the first swing (compilation)
-        "real_time_factor_warm": float(
-            swing_s * (len(eye["swing_wall_s"]) - 1) / max(eye["swing_wall_s"][1:].sum(), 1e-9)
-        ),
+        "real_time_factor": float(sim_s / wall),  # simulated time of one world / wall time
+        "real_time_factor_all_worlds": float(n_seeds * sim_s / wall),
     }
+    if len(walls) > 1:  # without the first episode (compilation)
+        out["real_time_factor_warm"] = float(
+            sim_s * (len(walls) - 1) / len(walls) / walls[1:].sum()
+        )
+    return out
 
 
 def run_conditions_camera(
@@ -368,18 +462,22 @@ def run_conditions_camera(
     ``plain`` (F_o = 0) does not use the object's state at all, so its camera run is the ground-
     truth run; ``frozen`` and ``learned`` run :func:`run_camera`. Returns
     ``(camera_logs, truth_logs, timing, eye_by_condition, video)``: logs per condition as
-    ``task_loop.run_conditions``; ``video`` the last swing of seed 0 of ``video_condition``.
+    ``task_loop.run_conditions``; ``video``: seed 0 of ``video_condition``, its last swing (or the
+    continuous run when ``config.final_steps``).
     """
     truth, timing = tl.run_conditions(config, pendulum, seed, n_seeds)
     keys = jax.random.split(jax.random.PRNGKey(seed), n_seeds)
     camera_logs, eyes, video = {"plain": truth["plain"]}, {}, []
+    shown = "final" if config.final_steps else config.swings - 1
     for condition in ("frozen", "learned"):
         want = condition == video_condition
         logs, eye, frames = run_camera(
-            config, pendulum, keys, condition, cam, config.swings - 1 if want else None
+            config, pendulum, keys, condition, cam, shown if want else None
         )
         camera_logs[condition], eyes[condition] = logs, eye
-        timing[f"{condition}_camera"] = eye["wall_s"]
+        timing[f"{condition}_camera"] = float(
+            np.sum(eye["wall_s"]) + (np.sum(eye["final"]["wall_s"]) if "final" in eye else 0.0)
+        )
         video = frames if want else video
     return camera_logs, truth, timing, eyes, video
 
@@ -430,23 +528,41 @@ def camera_report(folder: Path, config: tl.TaskConfig, logs: dict, extra: dict, 
     """Metrics of a camera run against its ground-truth twin; writes ``hand_eye.mp4``.
 
     ``peak_of(logs, condition) -> (n_seeds,)`` is the task's peak-force measure. Returns
-    {"eye": per-condition :func:`eye_metrics`, "truth_peak_force": mean/std per condition,
-    "camera_over_truth_peak": ratio of the means per condition}.
+    {"eye": per-condition :func:`eye_metrics` (and of the continuous run, ``<condition>_final``),
+    "truth_peak_force": mean/std per condition, "camera_over_truth_peak": ratio of the means}.
     """
     if "eyes" not in extra:
         return {}
-    swing_s = config.swing_steps * config.controller.dt
+    dt = config.controller.dt
     truth = extra["truth"]
-    n_seeds = logs["learned"]["x_e"].shape[0]
     out = {"eye": {}, "truth_peak_force": {}, "camera_over_truth_peak": {}}
     for condition in tl.CONDITIONS:
         pt, pc = peak_of(truth[condition], condition), peak_of(logs[condition], condition)
         out["truth_peak_force"][condition] = tl.mean_std(pt)
         out["camera_over_truth_peak"][condition] = float(np.mean(pc) / np.mean(pt))
-        if condition in extra["eyes"]:
-            out["eye"][condition] = eye_metrics(
-                extra["eyes"][condition], logs[condition], swing_s, n_seeds
-            )
+        eye = extra["eyes"].get(condition)
+        if eye is not None:
+            out["eye"][condition] = eye_metrics(eye, logs[condition], dt)
+            if "final" in eye:
+                out["eye"][f"{condition}_final"] = eye_metrics(
+                    eye["final"], logs[condition]["final"], dt
+                )
     out["eye"]["fps"] = float(extra["eyes"]["learned"]["fps"])
     write_video(folder / "hand_eye.mp4", extra["video"], out["eye"]["fps"])
     return out
+
+
+def print_camera_summary(report: dict) -> None:
+    """One line per condition: eye counts, accuracy and speed; camera vs ground-truth peak."""
+    for condition, m in report["eye"].items():
+        if not isinstance(m, dict):
+            continue
+        print(
+            f"eye {condition:14s} frames {m['frames']:5d} valid {m['frames_valid']:5d} "
+            f"lost {m['tracks_lost']:3d}  position {1e3 * m['controller_position_rms_m']:5.1f} mm"
+            f" velocity {m['controller_velocity_rms_m_s']:5.3f} m/s (RMS at the controller)  "
+            f"eye {m['eye_ms_median']:5.1f} ms/frame  real-time factor "
+            f"{m.get('real_time_factor_warm', m['real_time_factor']):5.3f}"
+        )
+    ratios = ", ".join(f"{c} {r:.2f}" for c, r in report["camera_over_truth_peak"].items())
+    print(f"peak force camera / ground truth: {ratios}")

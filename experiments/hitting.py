@@ -27,11 +27,13 @@ pulses then reach 600 N, measured.)
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering for --eye camera
 
 import jax  # noqa: E402
 
@@ -39,6 +41,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+from experiments import hand_eye as he  # noqa: E402
 from experiments import task_loop as tl  # noqa: E402
 from hec_jax.mjx_scene import default_conditions  # noqa: E402
 from hec_jax.nets import gain_beta  # noqa: E402
@@ -48,6 +51,7 @@ from hec_jax.runs import save_figure, start_run, write_json  # noqa: E402
 def parse(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     tl.add_common_args(p, "runs/hitting")
+    he.add_camera_args(p)
     p.add_argument("--duration", type=float, default=12.0, help="continuous run [s]")
     p.add_argument("--train-swings", type=int, default=10, help="swings before the run")
     p.add_argument("--train-swing-s", type=float, default=2.0, help="one training swing [s]")
@@ -79,7 +83,8 @@ def main(argv=None):
     settings = tl.run_settings(args, "hitting", pendulum, learner, config)
     folder = start_run(args.out, args.seed, settings)
     t0 = time.perf_counter()
-    all_logs, timing = tl.run_conditions(config, pendulum, args.seed, args.seeds)
+    all_logs, extra = he.run_task(args, config, pendulum)
+    timing = extra["timing"]
     wall = time.perf_counter() - t0
     logs = {c: lg["final"] for c, lg in all_logs.items()}  # the continuous run
     tl.save_trajectories(folder, logs, config.controller.dt)
@@ -115,6 +120,17 @@ def main(argv=None):
         ],
         "runtime_under_10_min": bool(wall < 600),
     }
+
+    def peak_of(lg, condition):  # per seed, the largest pulse of the continuous run
+        return tl.force_norm(lg["final"])[:, 0].max(-1)
+
+    camera = he.camera_report(folder, config, all_logs, extra, peak_of)
+    if camera:
+        metrics["camera"] = camera
+        f_truth = tl.force_norm(extra["truth"]["learned"]["final"])[:, 0]
+        camera["truth_periodic_hits_learned"] = tl.mean_std(
+            [hit_metrics(f, dt, config.contact_threshold)["periodic_hits"] for f in f_truth]
+        )
     write_json(folder / "metrics.json", metrics)
     plot(folder, logs, config, args)
     print(f"run folder: {folder}")
@@ -126,6 +142,8 @@ def main(argv=None):
             f", series pulses {m['series_pulse_max']['mean']:6.1f} -> "
             f"{m['series_pulse_last']['mean']:5.1f} N, bounded {m['pulses_bounded_every_seed']}"
         )
+    if camera:
+        he.print_camera_summary(camera)
     print("targets:", metrics["targets"])
     return metrics
 

@@ -213,9 +213,15 @@ def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
         x_o_true, xd_o_true = obs.x_o, obs.xd_o
         xdd_e = (obs.xd_e - cs.xd_e_prev) / dt  # one sample old, as the controller's
         xdd_o = (obs.xd_o - cs.xd_o_prev) / dt
-        # the object as the eye sees it (camera runs) or as simulated (sw.eye.use == 0)
+        in_contact = jnp.sqrt(jnp.sum(obs.f_int**2)) > config.contact_threshold
+        # the object as the eye sees it (camera runs) or as simulated (sw.eye.use == 0). Touch
+        # over vision: while the force sensor feels the object it moves with the hand (no
+        # relative velocity or acceleration along the contact), which a 30 fps eye with a
+        # constant-acceleration filter only learns some frames after an impact.
         use_eye = sw.eye.use > 0
         x_eye, xd_eye, xdd_eye = eye_object_state(sw.eye, step.t)
+        xd_eye = jnp.where(in_contact, obs.xd_e, xd_eye)
+        xdd_eye = jnp.where(in_contact, xdd_e, xdd_eye)
         obs = obs._replace(
             x_o=jnp.where(use_eye, x_eye, obs.x_o),
             xd_o=jnp.where(use_eye, xd_eye, obs.xd_o),
@@ -223,7 +229,6 @@ def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
         )
         xdd_o = obs.xdd_o
         seen = sw.eye.seen > 0  # no estimate yet: no virtual force and no learning
-        in_contact = jnp.sqrt(jnp.sum(obs.f_int**2)) > config.contact_threshold
         inputs = LearnerInputs(
             obs.x_e, obs.xd_e, xdd_e, obs.x_o, obs.xd_o, xdd_o, obs.f_int, in_contact
         )

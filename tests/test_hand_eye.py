@@ -1,29 +1,31 @@
 """The closed hand-eye loop: camera frames -> eye -> learning impedance controller (short runs)."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from experiments import catching
 from experiments import hand_eye as he
 from experiments import task_loop as tl
 from hec_jax.mjx_scene import default_conditions, load_mj_model, load_mjx_model, scene_ids
 from hec_jax.mjx_scene.frames import SceneCamera, render_model_like
-from hec_jax.nets import LearnerConfig
 
-# 3 swings of 0.9 s (contact at ~0.58 s), 2 seeds: the set-up of test_tasks with the camera.
-CONFIG = tl.TaskConfig(
-    learner=LearnerConfig(task="catching", r_b=0.085, eta=(0.3,) * 3, contact_stiffness=1e5),
-    swing_steps=900,
-    swings=3,
+# The catching experiment's set-up (hold point, hinge at 0.55 m, F_cd = 2 N): 3 swings of 1 s
+# (the cube is released 0.23 m from the hand and strikes it at ~0.2 s), 2 seeds.
+ARGS = catching.parse(["--swings", "3", "--swing-s", "1.0", "--seeds", "2"])
+CONFIG = tl.config_from_args(
+    ARGS, tl.learner_from_args(ARGS, "catching", ARGS.f_cd), ARGS.swing_s, ARGS.swings
 )
+PENDULUM = default_conditions(release_angle=ARGS.release_angle)
 SEEDS = 2
 
 
 @pytest.fixture(scope="module")
 def camera_run():
-    pendulum = default_conditions()
-    camera, truth, _, eyes, video = he.run_conditions_camera(CONFIG, pendulum, 0, SEEDS)
+    camera, truth, _, eyes, video = he.run_conditions_camera(CONFIG, PENDULUM, 0, SEEDS)
     return camera, truth, eyes, video
 
 
@@ -100,9 +102,18 @@ def test_camera_loop_matches_ground_truth(camera_run):
     # plain does not use the object's state, so camera and truth share its run
     assert camera["plain"] is truth["plain"]
     for condition in ("frozen", "learned"):
-        m = he.eye_metrics(eyes[condition], camera[condition], 0.9, SEEDS)
-        assert m["frames_valid"] >= 0.9 * m["frames"]
-        assert m["position_rms_at_frames_m"] < 0.01
+        eye, logs = eyes[condition], camera[condition]
+        m = he.eye_metrics(eye, logs, 1e-3)
+        assert m["frames_valid"] + m["frames_failed"] == m["frames"]
+        # every frame before the first contact (the approach, where the virtual force acts on
+        # the eye's estimate) has a valid fit; after impacts failures are allowed and counted
+        f = tl.force_norm(logs)
+        for seed in range(SEEDS):
+            for swing in range(CONFIG.swings):
+                t_contact = np.argmax(f[seed, swing] > CONFIG.contact_threshold) * 1e-3
+                before = eye["t_stamp"][seed, swing] < t_contact
+                assert before.sum() >= 5 and eye["valid"][seed, swing][before].all()
+        assert m["position_rms_valid_frames_m"] < 0.01
         assert np.all(np.isfinite(camera[condition]["x_e"]))
     assert tl.stability_summary(camera["learned"])["all_strictly_stable"]
 
@@ -118,21 +129,20 @@ def test_camera_loop_overlay_video(camera_run, tmp_path):
 
 
 def test_camera_loop_survives_blind_frames():
-    """Frames where the cube cannot be seen (here: blacked out for 0.2 s around the approach, as
-    a hand in front of it would) degrade to the filter's prediction, are counted, and the run
-    neither crashes nor diverges."""
-    config = tl.TaskConfig(learner=CONFIG.learner, swing_steps=900, swings=1)
+    """Frames where the cube cannot be seen (here: blacked out for 0.2 s while it is held, as an
+    occluder would) degrade to the filter's prediction, are counted, and the run neither crashes
+    nor diverges."""
+    config = dataclasses.replace(CONFIG, swings=1)
     keys = jax.random.split(jax.random.PRNGKey(0), 1)
 
     def blind(seed, swing, frame, image):
         return np.zeros_like(image) if 8 <= frame < 14 else image
 
-    logs, eye, _ = he.run_camera(
-        config, default_conditions(), keys, "learned", progress=False, corrupt=blind
-    )
-    m = he.eye_metrics(eye, logs, 0.9, 1)
+    logs, eye, _ = he.run_camera(config, PENDULUM, keys, "learned", progress=False, corrupt=blind)
+    m = he.eye_metrics(eye, logs, 1e-3)
     assert m["frames_failed"] >= 6
     assert not np.any(eye["valid"][0, 0, 8:14])
     assert np.any(eye["valid"][0, 0, 14:])  # found again
     assert np.all(np.isfinite(logs["x_e"])) and np.all(np.isfinite(logs["f_o"]))
-    assert tl.force_norm(logs).max() < 300.0  # the plain impact is ~200 N: no blow-up
+    # no blow-up: nothing harder than the plain condition's impact (~260 N) after the blind spell
+    assert tl.force_norm(logs)[0, 0, 14 * 33 :].max() < 100.0

@@ -133,3 +133,42 @@ def rts_smooth(config: FilterConfig, filtered: FilterState, predicted: FilterSta
     xs = (filtered.mean[:-1], filtered.cov[:-1], predicted.mean[1:], predicted.cov[1:])
     _, smoothed = jax.lax.scan(step, last, xs, reverse=True)
     return jax.tree.map(lambda a, b: jnp.concatenate([a, b[None]]), smoothed, last)
+
+
+def maneuver_reset(
+    config: FilterConfig,
+    previous: FilterState,
+    predicted: FilterState,
+    position: Array,
+    cov: Array,
+    nis_threshold: float,
+) -> tuple[FilterState, Array]:
+    """Impact (manoeuvre) detection and restart of the filter's motion state.
+
+    A constant-acceleration model cannot follow an impact (a jump of velocity): the innovation
+    nu = p - p_pred is then far outside its covariance S = P_pp + R. Where the normalised innovation
+    squared nu^T S^-1 nu exceeds ``nis_threshold`` (chi-square, 3 dof: 16.3 for p = 0.001) the
+    state restarts from the measurement: p measured, v the finite difference from the previous
+    filtered position over one frame, a = 0, with the covariances of that difference
+    (var v = (P_pp,prev + R) / dt^2) and the wide initial acceleration uncertainty.
+
+    Returns (restarted state, detected) where ``detected`` is a bool scalar; the caller selects.
+    """
+    dt = config.dt
+    nu = position - predicted.mean[:3]
+    s = predicted.cov[:3, :3] + cov
+    nis = nu @ jnp.linalg.solve(s, nu)
+    p_prev = previous.mean[:3]
+    v = (position - p_prev) / dt  # only where the caller accepted the fit (gated)
+    var_v = (previous.cov[:3, :3] + cov) / dt**2
+    a_std = config.init_std[2]
+    z = jnp.zeros((3, 3), position.dtype)
+    restarted_cov = jnp.block(
+        [
+            [cov, cov / dt, z],
+            [cov / dt, var_v, z],
+            [z, z, a_std**2 * jnp.eye(3, dtype=position.dtype)],
+        ]
+    )
+    mean = jnp.concatenate([position, v, jnp.zeros(3, position.dtype)])
+    return FilterState(mean, restarted_cov), nis > nis_threshold

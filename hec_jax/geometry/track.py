@@ -80,6 +80,11 @@ class TrackConfig:
             uses their per-pixel median as the background once it holds 5 (static camera).
         jerk_psd: white-jerk spectral density of the causal constant-acceleration filter
             (:mod:`filter`) [m^2/s^5].
+        maneuver_nis: if set, a valid fit whose normalised innovation squared exceeds it (chi-square,
+            3 dof; e.g. 16.3 for p = 0.001) is taken as an impact and restarts the filter's
+            velocity from the last two positions (``filter.maneuver_reset``); None: off.
+        stop_hypothesis: when the tracked fit fails, try once more from the last fitted position
+            (the box stopped, e.g. caught by a hand) before searching from scratch.
         info_scale: factor on the per-frame information (the filter's measurement covariance is
             the fit's, divided by it), the calibration of ``SmootherConfig.info_scale``: edge
             points of one edge share their error, so the fit's covariance is too small. 20 and
@@ -116,6 +121,8 @@ class TrackConfig:
     sigma_floor_px: float = 0.1
     jerk_psd: float = 20.0
     info_scale: float = 0.03
+    maneuver_nis: float | None = None
+    stop_hypothesis: bool = False
     rotation_prior_deg: float = 0.5
     min_separation_px: float = 3.0
     search_px: float = 1.5
@@ -327,7 +334,11 @@ def _make_finish(cfg: TrackConfig, fcfg: kf.FilterConfig):
         )
         pred = kf.predict(fcfg, state)
         fresh = kf.init(fcfg, p.translation)
-        upd = kf.correct(pred, p.translation, cov / cfg.info_scale, valid)
+        r = cov / cfg.info_scale
+        upd = kf.correct(pred, p.translation, r, valid)
+        if cfg.maneuver_nis is not None:  # an impact: restart v from the last two positions
+            restart, hit = kf.maneuver_reset(fcfg, state, pred, p.translation, r, cfg.maneuver_nis)
+            upd = jax.tree.map(lambda a, b: jnp.where(valid & hit, a, b), restart, upd)
         new = jax.tree.map(lambda a, b: jnp.where(first & valid, a, b), fresh, upd)
         asc = loc.association
         return Finished(
@@ -790,6 +801,19 @@ class BoxTracker:
 
         if tracking:
             fin = self._fit(prior, segp, mask, gray, not self._started)
+            if (
+                cfg.stop_hypothesis
+                and not gated(fin)
+                and self._started
+                and self._last_good is not None
+            ):
+                # second hypothesis: the box stopped since its last fit (an impact, e.g. caught
+                # by a hand), where the constant-acceleration prediction carries it on
+                prior = (rot_prev, np.asarray(self._last_good[1]))
+                corners = project_corners_np(*prior, self.size, k)
+                seg = detect.detect_segments(gray, _window(corners, cfg.roi_margin))
+                segp, mask = detect.pad_segments(seg, m)
+                fin = self._fit(prior, segp, mask, gray, False)
         if not gated(fin):
             # lost, or the tracked fit failed: search this frame from scratch (near the
             # prediction while the filter runs; anywhere, with a new filter, once lost)
