@@ -197,6 +197,10 @@ def rollout(
     conditions: PendulumConditions | None = None,
     f_contact0: jax.Array | None = None,
     active: jax.Array | None = None,
+    *,
+    observe: Callable | None = None,
+    dynamics: Callable | None = None,
+    checkpoint: bool = False,
 ) -> tuple[tuple[mjx.Data, Any], Trajectory]:
     """Runs ``policy`` in closed loop for ``f_ext.shape[0]`` steps in one ``lax.scan``
     (pure, jittable).
@@ -214,12 +218,17 @@ def rollout(
         active: (T,) bool; steps where it is False leave the state (data, policy state, force
             measurement) unchanged and their rows are meaningless: segments of different lengths
             then share one compiled scan. Default: all steps active.
+        observe, dynamics: replacements of :func:`observe_stages` / :func:`dynamics_stages` with
+            the same signatures (e.g. ``differentiable.dynamics_stages`` for exact gradients).
+        checkpoint: rematerialise each step in the backward pass (``jax.checkpoint`` of the body).
 
     Returns:
         ((final data, final policy state), Trajectory).
     """
     if f_ext.ndim != 2 or f_ext.shape[1] != 3:
         raise ValueError(f"f_ext must have shape (T, 3), got {f_ext.shape}")
+    observe = observe_stages if observe is None else observe
+    dynamics = dynamics_stages if dynamics is None else dynamics
 
     def body(carry, xs):
         f_ext_k, active_k = xs
@@ -227,10 +236,10 @@ def rollout(
         if conditions is not None:
             d = _hold_pendulum(d, ids, conditions)
         xfrc = jnp.zeros_like(d.xfrc_applied).at[ids.hand_body, :3].set(f_ext_k)
-        d = observe_stages(m, d.replace(xfrc_applied=xfrc))
+        d = observe(m, d.replace(xfrc_applied=xfrc))
         f_int = f_contact_prev + f_ext_k
         ctrl, ps, aux = policy(ps, m, SimStep(d=d, f_int=f_int, t=d.time))
-        d_acc, f_contact = dynamics_stages(m, ids, d, ctrl)
+        d_acc, f_contact = dynamics(m, ids, d, ctrl)
         row = Trajectory(
             t=d_acc.time,
             qpos=d_acc.qpos,
@@ -251,6 +260,8 @@ def rollout(
             new = jax.tree_util.tree_map(lambda n, o: jnp.where(active_k, n, o), new, carry)
         return new, row
 
+    if checkpoint:
+        body = jax.checkpoint(body)
     f0 = jnp.zeros(3, dtype=f_ext.dtype) if f_contact0 is None else f_contact0
     (d, ps, _), traj = jax.lax.scan(body, (d0, policy_state0, f0), (f_ext, active))
     return (d, ps), traj
