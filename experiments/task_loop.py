@@ -27,8 +27,6 @@ from hec_jax.control import (
     sphere_kinematics,
 )
 from hec_jax.mjx_scene import (
-    CUBE_EDGE,
-    HAND_RADIUS,
     PendulumConditions,
     SimStep,
     apply_conditions,
@@ -222,13 +220,6 @@ def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
         # constant-acceleration filter only learns some frames after an impact.
         use_eye = sw.eye.use > 0
         x_eye, xd_eye, xdd_eye = eye_object_state(sw.eye, step.t)
-        # the hand is solid: an estimate (or its prediction) closer to the hand's centre than a
-        # cube face resting on it, HAND_RADIUS + CUBE_EDGE / 2, is moved out to that distance along
-        # its direction (near |X_r| = 0 the sphere geometry of Eqs. 45-47 is singular)
-        rel = x_eye - obs.x_e
-        dist = jnp.sqrt(jnp.sum(rel**2))
-        d_min = HAND_RADIUS + 0.5 * CUBE_EDGE
-        x_eye = jnp.where(dist < d_min, obs.x_e + rel * (d_min / jnp.maximum(dist, 1e-9)), x_eye)
         xd_eye = jnp.where(in_contact, obs.xd_e, xd_eye)
         xdd_eye = jnp.where(in_contact, xdd_e, xdd_eye)
         obs = obs._replace(
