@@ -414,7 +414,8 @@ class BoxTrack(NamedTuple):
     z forward).
 
     The main fields are offline estimates (:mod:`smooth`: the whole sequence, rotations on SO(3)
-    with an angular-acceleration prior, centres by a constant-acceleration RTS smoother); the
+    with an angular-acceleration prior, centres by a constant-acceleration RTS smoother; or, where
+    it fits the measurements, one rotation about a fixed axis, e.g. a pendulum's hinge); the
     ``causal_*`` fields are what was known at each frame (per-frame fit, forward Kalman filter).
 
     Attributes:
@@ -435,6 +436,8 @@ class BoxTrack(NamedTuple):
         edge_ids: (T, M) their model edge ids (-1 where unassigned).
         timing_ms: dict of mean per-frame times [ms]: detection, estimation (incl. the causal
             filter), total = detection + estimation, smoothing (offline pass, per frame).
+        hinge: bool, the main fields come from the fixed-axis model (:func:`smooth.fit_hinge`).
+        hinge_axis: (3,) its unit axis in the camera frame (NaN if not fitted).
     """
 
     position: np.ndarray
@@ -454,6 +457,8 @@ class BoxTrack(NamedTuple):
     segments: np.ndarray
     edge_ids: np.ndarray
     timing_ms: dict
+    hinge: np.ndarray
+    hinge_axis: np.ndarray
 
 
 def cube_symmetries() -> np.ndarray:
@@ -982,5 +987,7 @@ def track_box(
         pose_rotation=sm.rotation if valid.any() else stack("pose_rotation"),
         causal_rotation=relative(causal_pose_rotation),
         timing_ms=timing,
+        hinge=np.bool_(sm.hinge),
+        hinge_axis=np.asarray(sm.hinge_axis),
         **out,
     )
