@@ -37,6 +37,7 @@ from hec_jax.geometry.box_model import (
 )
 from hec_jax.geometry.camera import pixel_to_normalized
 from hec_jax.geometry.parallel_motion import estimate_motion_core
+from hec_jax.geometry.synthetic import CUBE_CORNERS_UNIT
 
 
 def so3_exp(w: Array) -> Array:
@@ -104,20 +105,26 @@ def solve_spd(a: Array, b: Array) -> Array:
     elementwise operations, so that a vmapped batch runs as vector code instead of a loop of
     LAPACK calls (the LM step's 6x6 system)."""
     n = a.shape[-1]
+    return jnp.stack(_solve_spd_lists([[a[i, j] for j in range(n)] for i in range(n)], list(b)))
+
+
+def _solve_spd_lists(a: list, b: list) -> list:
+    """:func:`solve_spd` on scalars: a nested list (n x n, lower triangle read), b a list (n)."""
+    n = len(b)
     low = [[None] * n for _ in range(n)]
     for j in range(n):
-        d = a[j, j] - sum(low[j][k] * low[j][k] for k in range(j))
+        d = a[j][j] - sum(low[j][k] * low[j][k] for k in range(j))
         ljj = jnp.sqrt(jnp.maximum(d, 1e-300))
         low[j][j] = ljj
         for i in range(j + 1, n):
-            low[i][j] = (a[i, j] - sum(low[i][k] * low[j][k] for k in range(j))) / ljj
+            low[i][j] = (a[i][j] - sum(low[i][k] * low[j][k] for k in range(j))) / ljj
     y = []
     for i in range(n):  # L y = b
         y.append((b[i] - sum(low[i][k] * y[k] for k in range(i))) / low[i][i])
     x = [None] * n
     for i in reversed(range(n)):  # L^T x = y
         x[i] = (y[i] - sum(low[k][i] * x[k] for k in range(i + 1, n))) / low[i][i]
-    return jnp.stack(x)
+    return x
 
 
 def _huber_rho(r: Array, delta: float) -> Array:
@@ -203,14 +210,119 @@ def edge_residuals(pose: Pose, endpoints: Array, edge_ids: Array, size, intrinsi
     return (cross / length[:, None]).reshape(-1)
 
 
+def _so3_exp_lists(w: list) -> list:
+    """:func:`so3_exp` on scalars: w a list (3) [rad] -> nested list (3 x 3)."""
+    theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    small = theta2 < 1e-12
+    theta = jnp.sqrt(jnp.where(small, 1.0, theta2))
+    a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
+    b = jnp.where(
+        small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / jnp.where(small, 1.0, theta2)
+    )
+    # I + a [w]x + b [w]x^2, [w]x^2 = w w^T - |w|^2 I
+    kx = [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]]
+    return [
+        [
+            (1.0 if i == j else 0.0)
+            + a * kx[i][j]
+            + b * (w[i] * w[j] - (theta2 if i == j else 0.0))
+            for j in range(3)
+        ]
+        for i in range(3)
+    ]
+
+
+def _corner_terms(rot: list, t: list, pixels: Array, size, intrinsics: Array, jacobian: bool):
+    """Reprojection residuals [px] of the 8 corners, (u, v) as two (8,) arrays, and, if
+    ``jacobian``, their derivatives over the left perturbation (dw, dt) of the pose as two lists
+    of six (8,) arrays: with q = R X and P = q + t, dP/ddw = -[q]x and dP/ddt = I, so
+    d(u)/d(dw) = q x d(u)/dP (d(u, v)/dP the pinhole derivative of
+    :func:`hec_jax.geometry.camera.project_to_pixels`, skew included). ``rot`` is a nested list
+    (3 x 3) and ``t`` a list (3) of scalars."""
+    k = intrinsics
+    fx, skew, cx, fy, cy = k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2]
+    obj = CUBE_CORNERS_UNIT * size  # (8, 3) [m]
+    q = [rot[i][0] * obj[:, 0] + rot[i][1] * obj[:, 1] + rot[i][2] * obj[:, 2] for i in range(3)]
+    iz = 1.0 / (q[2] + t[2])
+    x, y = (q[0] + t[0]) * iz, (q[1] + t[1]) * iz
+    ru = fx * x + skew * y + cx - pixels[:, 0]
+    rv = fy * y + cy - pixels[:, 1]
+    if not jacobian:
+        return ru, rv, None, None
+    zero = jnp.zeros_like(iz)
+    jac = []
+    for d in ((fx * iz, skew * iz, -(fx * x + skew * y) * iz), (zero, fy * iz, -fy * y * iz)):
+        jac.append(
+            [q[1] * d[2] - q[2] * d[1], q[2] * d[0] - q[0] * d[2], q[0] * d[1] - q[1] * d[0], *d]
+        )
+    return ru, rv, jac[0], jac[1]
+
+
 def refine_corners(
     pose: Pose, pixels: Array, weights: Array, size, intrinsics: Array, iters: int = 10
 ) -> Fit:
-    """LM on the reprojection error of the corners with per-corner weights (8,)."""
-    w = jnp.repeat(weights, 2)
-    return levenberg_marquardt(
-        lambda p: corner_residuals(p, pixels, size, intrinsics), pose, w, iters
-    )
+    """LM on the reprojection error of the corners with per-corner weights (8,).
+
+    The iteration of :func:`levenberg_marquardt` (least squares, Marquardt scaling, a rejected step
+    only raises the damping) with the analytic Jacobian (:func:`_corner_terms`) instead of
+    ``jax.jacfwd``, and the 6x6 normal equations and the pose update written on scalars: under
+    ``vmap`` these are vectors over the batch, so a batch runs as fused vector code (the batched
+    two-frame core's main cost).
+    """
+    dtype = pose.translation.dtype
+
+    def normal(rot, t):
+        ru, rv, ju, jv = _corner_terms(rot, t, pixels, size, intrinsics, True)
+        a = [
+            [
+                jnp.sum(weights * (ju[i] * ju[j] + jv[i] * jv[j])) if j <= i else None
+                for j in range(6)
+            ]
+            for i in range(6)
+        ]
+        a = [[a[i][j] if j <= i else a[j][i] for j in range(6)] for i in range(6)]
+        g = [jnp.sum(weights * (ju[i] * ru + jv[i] * rv)) for i in range(6)]
+        return ru, rv, a, g
+
+    def cost(rot, t):
+        ru, rv, _, _ = _corner_terms(rot, t, pixels, size, intrinsics, False)
+        return jnp.sum(weights * (ru * ru + rv * rv))
+
+    def lists(rot, t):
+        return [[rot[i, j] for j in range(3)] for i in range(3)], [t[i] for i in range(3)]
+
+    def step(carry, _):
+        rot, t, lam, c = carry
+        rot3, t3 = lists(rot, t)
+        _, _, a, g = normal(rot3, t3)
+        damped = [
+            [a[i][j] + (lam * (a[i][i] + 1e-12) if i == j else 0.0) for j in range(6)]
+            for i in range(6)
+        ]
+        delta = [-x for x in _solve_spd_lists(damped, g)]
+        e = _so3_exp_lists(delta[:3])
+        new_rot = jnp.stack(
+            [
+                jnp.stack([sum(e[i][k] * rot3[k][j] for k in range(3)) for j in range(3)])
+                for i in range(3)
+            ]
+        )
+        new_t = jnp.stack([t3[i] + delta[3 + i] for i in range(3)])
+        c_new = cost(*lists(new_rot, new_t))
+        ok = jnp.isfinite(c_new) & (c_new < c)
+        rot = jnp.where(ok, new_rot, rot)
+        t = jnp.where(ok, new_t, t)
+        lam = jnp.where(ok, lam * 0.3, lam * 10.0)
+        return (rot, t, lam, jnp.where(ok, c_new, c)), None
+
+    init = (pose.rotation, pose.translation, jnp.asarray(1e-3, dtype), cost(*lists(*pose)))
+    (rot, t, _, c), _ = jax.lax.scan(step, init, None, iters)
+    ru, rv, a, _ = normal(*lists(rot, t))
+    r = jnp.stack([ru, rv], -1).reshape(-1)
+    wv = jnp.repeat(weights, 2)
+    used = jnp.maximum(jnp.sum(wv > 0), 1)
+    rms = jnp.sqrt(jnp.sum(jnp.where(wv > 0, r * r, 0.0)) / used)
+    return Fit(Pose(rot, t), c, rms, jnp.stack([jnp.stack(row) for row in a]))
 
 
 def refine_edges(
