@@ -18,6 +18,7 @@ Phi = R1 R0^T, Gamma = t1 - Phi t0 (Eq. 1).
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import jax
@@ -232,21 +233,22 @@ def _so3_exp_lists(w: list) -> list:
     ]
 
 
-def _corner_terms(rot: list, t: list, pixels: Array, size, intrinsics: Array, jacobian: bool):
-    """Reprojection residuals [px] of the 8 corners, (u, v) as two (8,) arrays, and, if
-    ``jacobian``, their derivatives over the left perturbation (dw, dt) of the pose as two lists
-    of six (8,) arrays: with q = R X and P = q + t, dP/ddw = -[q]x and dP/ddt = I, so
-    d(u)/d(dw) = q x d(u)/dP (d(u, v)/dP the pinhole derivative of
-    :func:`hec_jax.geometry.camera.project_to_pixels`, skew included). ``rot`` is a nested list
-    (3 x 3) and ``t`` a list (3) of scalars."""
+def _projection_terms(rot: list, t: list, obj: list, uv: tuple, intrinsics: Array, jacobian: bool):
+    """Reprojection residuals (u, v) [px] of object points and, if ``jacobian``, their
+    derivatives over the left perturbation (dw, dt) of the pose (two lists of six): with
+    q = R X and P = q + t, dP/ddw = -[q]x and dP/ddt = I, so d(u)/d(dw) = q x d(u)/dP (d(u, v)/dP
+    the pinhole derivative of :func:`hec_jax.geometry.camera.project_to_pixels`, skew included).
+
+    ``rot`` nested list (3 x 3) and ``t`` list (3) of scalars; ``obj`` the three coordinates
+    [m] and ``uv`` the measured pixels [px], each an (n,) array or one scalar (then everything
+    is scalar: under ``vmap`` one vector over the batch)."""
     k = intrinsics
     fx, skew, cx, fy, cy = k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2]
-    obj = CUBE_CORNERS_UNIT * size  # (8, 3) [m]
-    q = [rot[i][0] * obj[:, 0] + rot[i][1] * obj[:, 1] + rot[i][2] * obj[:, 2] for i in range(3)]
+    q = [rot[i][0] * obj[0] + rot[i][1] * obj[1] + rot[i][2] * obj[2] for i in range(3)]
     iz = 1.0 / (q[2] + t[2])
     x, y = (q[0] + t[0]) * iz, (q[1] + t[1]) * iz
-    ru = fx * x + skew * y + cx - pixels[:, 0]
-    rv = fy * y + cy - pixels[:, 1]
+    ru = fx * x + skew * y + cx - uv[0]
+    rv = fy * y + cy - uv[1]
     if not jacobian:
         return ru, rv, None, None
     zero = jnp.zeros_like(iz)
@@ -258,71 +260,161 @@ def _corner_terms(rot: list, t: list, pixels: Array, size, intrinsics: Array, ja
     return ru, rv, jac[0], jac[1]
 
 
-def refine_corners(
-    pose: Pose, pixels: Array, weights: Array, size, intrinsics: Array, iters: int = 10
-) -> Fit:
-    """LM on the reprojection error of the corners with per-corner weights (8,).
+def _corner_terms(rot: list, t: list, pixels: Array, size, intrinsics: Array, jacobian: bool):
+    """:func:`_projection_terms` of the 8 corners ((8,) arrays) against ``pixels`` (8, 2)."""
+    obj = CUBE_CORNERS_UNIT * size  # (8, 3) [m]
+    uv = (pixels[:, 0], pixels[:, 1])
+    return _projection_terms(rot, t, [obj[:, i] for i in range(3)], uv, intrinsics, jacobian)
 
-    The iteration of :func:`levenberg_marquardt` (least squares, Marquardt scaling, a rejected step
-    only raises the damping) with the analytic Jacobian (:func:`_corner_terms`) instead of
-    ``jax.jacfwd``, and the 6x6 normal equations and the pose update written on scalars: under
-    ``vmap`` these are vectors over the batch, so a batch runs as fused vector code (the batched
-    two-frame core's main cost).
-    """
+
+def _corner_rows(rot: list, t: list, pixels: Array, size, intrinsics: Array, jacobian: bool):
+    """:func:`_corner_terms` on scalars: 16 residuals (u, v per corner, the order of
+    :func:`corner_residuals`) and, if ``jacobian``, their 16 rows of 6."""
+    res, rows = [], []
+    for j in range(8):
+        obj = [float(c) * size for c in CUBE_CORNERS_UNIT[j]]
+        ru, rv, ju, jv = _projection_terms(
+            rot, t, obj, (pixels[j, 0], pixels[j, 1]), intrinsics, jacobian
+        )
+        res += [ru, rv]
+        rows += [ju, jv]
+    return res, rows
+
+
+def _corner_lm(pose: Pose, pixels, weights, size, intrinsics, iters: int):
+    """The iteration of :func:`levenberg_marquardt` (least squares, Marquardt scaling, a rejected
+    step only raises the damping) on the corners, with the analytic Jacobian, the normal
+    equations, the Cholesky step and the pose update all on scalars: under ``vmap`` every
+    quantity is one vector over the batch, so a batch runs as fused vector code. Returns
+    (R (3, 3), t (3,), cost)."""
     dtype = pose.translation.dtype
+    w = [weights[j // 2] for j in range(16)]
 
     def normal(rot, t):
-        ru, rv, ju, jv = _corner_terms(rot, t, pixels, size, intrinsics, True)
+        r, rows = _corner_rows(rot, t, pixels, size, intrinsics, True)
         a = [
             [
-                jnp.sum(weights * (ju[i] * ju[j] + jv[i] * jv[j])) if j <= i else None
+                sum(w[m] * rows[m][i] * rows[m][j] for m in range(16)) if j <= i else None
                 for j in range(6)
             ]
             for i in range(6)
         ]
         a = [[a[i][j] if j <= i else a[j][i] for j in range(6)] for i in range(6)]
-        g = [jnp.sum(weights * (ju[i] * ru + jv[i] * rv)) for i in range(6)]
-        return ru, rv, a, g
+        g = [sum(w[m] * rows[m][i] * r[m] for m in range(16)) for i in range(6)]
+        return a, g
 
     def cost(rot, t):
-        ru, rv, _, _ = _corner_terms(rot, t, pixels, size, intrinsics, False)
-        return jnp.sum(weights * (ru * ru + rv * rv))
+        r, _ = _corner_rows(rot, t, pixels, size, intrinsics, False)
+        return sum(w[m] * r[m] * r[m] for m in range(16))
 
-    def lists(rot, t):
-        return [[rot[i, j] for j in range(3)] for i in range(3)], [t[i] for i in range(3)]
+    def mat(rot9):
+        return [list(rot9[3 * i : 3 * i + 3]) for i in range(3)]
 
     def step(carry, _):
-        rot, t, lam, c = carry
-        rot3, t3 = lists(rot, t)
-        _, _, a, g = normal(rot3, t3)
+        rot9, t3, lam, c = carry
+        rot3 = mat(rot9)
+        a, g = normal(rot3, list(t3))
         damped = [
             [a[i][j] + (lam * (a[i][i] + 1e-12) if i == j else 0.0) for j in range(6)]
             for i in range(6)
         ]
         delta = [-x for x in _solve_spd_lists(damped, g)]
         e = _so3_exp_lists(delta[:3])
-        new_rot = jnp.stack(
-            [
-                jnp.stack([sum(e[i][k] * rot3[k][j] for k in range(3)) for j in range(3)])
-                for i in range(3)
-            ]
-        )
-        new_t = jnp.stack([t3[i] + delta[3 + i] for i in range(3)])
-        c_new = cost(*lists(new_rot, new_t))
+        new_rot = [sum(e[i][k] * rot3[k][j] for k in range(3)) for i in range(3) for j in range(3)]
+        new_t = [t3[i] + delta[3 + i] for i in range(3)]
+        c_new = cost(mat(new_rot), new_t)
         ok = jnp.isfinite(c_new) & (c_new < c)
-        rot = jnp.where(ok, new_rot, rot)
-        t = jnp.where(ok, new_t, t)
+        rot9 = tuple(jnp.where(ok, x, y) for x, y in zip(new_rot, rot9, strict=True))
+        t3 = tuple(jnp.where(ok, x, y) for x, y in zip(new_t, t3, strict=True))
         lam = jnp.where(ok, lam * 0.3, lam * 10.0)
-        return (rot, t, lam, jnp.where(ok, c_new, c)), None
+        return (rot9, t3, lam, jnp.where(ok, c_new, c)), None
 
-    init = (pose.rotation, pose.translation, jnp.asarray(1e-3, dtype), cost(*lists(*pose)))
-    (rot, t, _, c), _ = jax.lax.scan(step, init, None, iters)
-    ru, rv, a, _ = normal(*lists(rot, t))
+    r0, t0 = pose.rotation, pose.translation
+    rot9 = tuple(r0[i, j] for i in range(3) for j in range(3))
+    t3 = tuple(t0[i] for i in range(3))
+    init = (rot9, t3, jnp.asarray(1e-3, dtype), cost(mat(rot9), list(t3)))
+    (rot9, t3, _, c), _ = jax.lax.scan(step, init, None, iters)
+    return jnp.stack([jnp.stack(row) for row in mat(rot9)]), jnp.stack(t3), c
+
+
+def _corner_summary(rot, t, pixels, weights, size, intrinsics):
+    """(rms, information (6, 6), jacobian (16, 6), residuals (16,)) at a pose."""
+    rot3 = [[rot[i, j] for j in range(3)] for i in range(3)]
+    ru, rv, ju, jv = _corner_terms(rot3, [t[i] for i in range(3)], pixels, size, intrinsics, True)
     r = jnp.stack([ru, rv], -1).reshape(-1)
+    jac = jnp.stack([jnp.stack(ju, -1), jnp.stack(jv, -1)], 1).reshape(16, 6)
     wv = jnp.repeat(weights, 2)
     used = jnp.maximum(jnp.sum(wv > 0), 1)
     rms = jnp.sqrt(jnp.sum(jnp.where(wv > 0, r * r, 0.0)) / used)
-    return Fit(Pose(rot, t), c, rms, jnp.stack([jnp.stack(row) for row in a]))
+    return rms, jac.T @ (wv[:, None] * jac), jac, r
+
+
+def refine_corners(
+    pose: Pose, pixels: Array, weights: Array, size, intrinsics: Array, iters: int = 10
+) -> Fit:
+    """LM on the reprojection error of the corners with per-corner weights (8,).
+
+    The iteration (:func:`_corner_lm`) is not differentiated through: the derivative is the
+    implicit one of the optimum (:func:`_refine_corners_jvp`), exact at convergence (matches
+    central differences in ``tests/test_eye_refine.py``) and cheap to compile.
+    """
+    dtype = pose.translation.dtype
+    return _refine_corners(
+        iters, pose, pixels, weights, jnp.asarray(size, dtype), jnp.asarray(intrinsics, dtype)
+    )
+
+
+@partial(jax.custom_jvp, nondiff_argnums=(0,))
+def _refine_corners(iters, pose, pixels, weights, size, intrinsics):
+    rot, t, c = _corner_lm(pose, pixels, weights, size, intrinsics, iters)
+    rms, info, _, _ = _corner_summary(rot, t, pixels, weights, size, intrinsics)
+    return Fit(Pose(rot, t), c, rms, info)
+
+
+@_refine_corners.defjvp
+def _refine_corners_jvp(iters, primals, tangents):
+    """Implicit derivative at the optimum: the cost's gradient over the pose perturbation,
+    g = J^T W r, vanishes there, so dp = -(dg/dp)^-1 (dg/d(data) d(data)) with the exact Hessian
+    dg/dp (curvature of the residuals included); the start pose has no influence."""
+    pose, pixels, weights, size, intrinsics = primals
+    _, d_pixels, d_weights, d_size, d_k = tangents
+    fit = _refine_corners(iters, *primals)
+    rot, t = fit.pose
+    zero6 = jnp.zeros(6, rot.dtype)
+
+    def gradient(delta, px, w, s, k):
+        p = retract(Pose(rot, t), delta)
+        rot3 = [[p.rotation[i, j] for j in range(3)] for i in range(3)]
+        ru, rv, ju, jv = _corner_terms(rot3, [p.translation[i] for i in range(3)], px, s, k, True)
+        return jnp.stack([jnp.sum(w * (ju[i] * ru + jv[i] * rv)) for i in range(6)])
+
+    hess = jax.jacfwd(gradient)(zero6, pixels, weights, size, intrinsics)
+    _, d_g = jax.jvp(
+        lambda px, w, s, k: gradient(zero6, px, w, s, k),
+        (pixels, weights, size, intrinsics),
+        (d_pixels, d_weights, d_size, d_k),
+    )
+    delta = -jnp.linalg.solve(0.5 * (hess + hess.T), d_g)
+    zero = jnp.zeros((), rot.dtype)
+    hat = jnp.stack(
+        [
+            jnp.stack([zero, -delta[2], delta[1]]),
+            jnp.stack([delta[2], zero, -delta[0]]),
+            jnp.stack([-delta[1], delta[0], zero]),
+        ]
+    )
+    d_rot, d_t = hat @ rot, delta[3:]
+
+    def summary(rot, t, px, w, s, k):
+        rms, info, _, r = _corner_summary(rot, t, px, w, s, k)
+        return jnp.sum(jnp.repeat(w, 2) * r * r), rms, info
+
+    _, (d_c, d_rms, d_info) = jax.jvp(
+        summary,
+        (rot, t, pixels, weights, size, intrinsics),
+        (d_rot, d_t, d_pixels, d_weights, d_size, d_k),
+    )
+    return fit, Fit(Pose(d_rot, d_t), d_c, d_rms, d_info)
 
 
 def refine_edges(
