@@ -95,8 +95,8 @@ def main(argv=None):
     (d_start, ps_start), _ = jax.jit(run, static_argnums=2)(d0, ps0, args.start)
 
     def loss(params, fn=sim_rollout):
-        cs, ls, sw = ps_start
-        (_, _), traj = run(d_start, (cs, ls._replace(params=params), sw), args.steps, fn)
+        ps = ps_start._replace(learner=ps_start.learner._replace(params=params))
+        (_, _), traj = run(d_start, ps, args.steps, fn)
         return jnp.sum(traj.f_contact**2) * 1e-5 + jnp.sum(traj.x_hand[:, 0]), traj.f_contact
 
     value_and_grad = jax.jit(jax.value_and_grad(loss, has_aux=True))

@@ -66,7 +66,7 @@ def build_exact_loop(config: tl.TaskConfig, pendulum) -> tl.Loop:
         return jnp.concatenate([d1.site_xpos[ids.hand_site][axes], J @ d1.qvel[dof]])
 
     def policy(ps, m, step: SimStep):
-        cs, ls, sw = ps
+        cs, ls, sw, touch = ps
         obs = observe(m, ids, step)
         xdd_e = (obs.xd_e - cs.xd_e_prev) / dt
         xdd_o = (obs.xd_o - cs.xd_o_prev) / dt
@@ -122,7 +122,7 @@ def build_exact_loop(config: tl.TaskConfig, pendulum) -> tl.Loop:
             de_df_exact=cot,
             de_df_paper=jnp.where(out.learning, out.de_df_act, 0.0),
         )
-        return tau, (cs_new, ls_new, sw), aux
+        return tau, tl.PolicyState(cs_new, ls_new, sw, touch), aux
 
     return base._replace(policy=policy)
 

@@ -52,12 +52,108 @@ def test_eye_object_state_is_the_constant_acceleration_prediction():
     np.testing.assert_allclose(v, np.ones(2), rtol=0)
 
 
+def test_touch_over_vision_and_the_guard_after_contact():
+    """In contact the object sits TOUCH_DISTANCE from the hand against the force on it and moves
+    with the hand; after the contact, an estimate from a frame exposed before the last touch (+
+    guard) is replaced by the last touch extrapolated at constant velocity; a later frame's
+    estimate is used as is."""
+    d = tl.TOUCH_DISTANCE
+    x_eye = jnp.array([[0.40, 0.40], [0.42, 0.41]])  # (estimate, axis) [m], well off the hand
+    eye = tl.EyeInput(
+        use=jnp.asarray(1.0),
+        seen=jnp.asarray(1.0),
+        t_stamp=jnp.array([0.100, 0.200]),
+        t_switch=jnp.asarray(0.230),
+        x=x_eye,
+        xd=jnp.full((2, 2), 1.0),
+        xdd=jnp.zeros((2, 2)),
+        touch_guard=jnp.asarray(0.050),
+        touch_memory=jnp.asarray(0.100),
+    )
+    x_e, xd_e, xdd_e = jnp.array([0.6, 0.5]), jnp.array([-0.3, 0.1]), jnp.array([2.0, 1.0])
+    f_int = jnp.array([3.0, -4.0])  # [N] on the hand: the object lies along (-0.6, 0.8)
+    args = (x_e, xd_e, xdd_e)
+    # in contact at t = 0.12 (the old estimate's frame predates it)
+    x, xd, xdd, known, mem = tl.touch_object_state(
+        eye, tl.no_touch(), jnp.asarray(0.12), *args, f_int, jnp.asarray(True), d
+    )
+    np.testing.assert_allclose(x, np.array([0.6, 0.5]) + d * np.array([-0.6, 0.8]), atol=1e-12)
+    np.testing.assert_allclose(xd, xd_e, rtol=0)
+    np.testing.assert_allclose(xdd, xdd_e, rtol=0)
+    assert float(mem.t) == pytest.approx(0.12) and bool(known)
+    # 40 ms after the contact, still on the old estimate (frame at 0.100 < 0.12 + 0.05): the
+    # memory moves away from the (now fixed) hand
+    x, xd, xdd, known2, mem2 = tl.touch_object_state(
+        eye, mem, jnp.asarray(0.16), x_e, jnp.zeros(2), xdd_e, jnp.zeros(2), False, d
+    )
+    np.testing.assert_allclose(x, mem.x + 0.04 * xd_e, atol=1e-12)
+    np.testing.assert_allclose(xd, xd_e, rtol=0)
+    np.testing.assert_allclose(xdd, 0.0, atol=0)
+    assert float(mem2.t) == pytest.approx(0.12) and bool(known2)  # out of contact: kept
+    # the eye has lost the object: the touch stands in for touch_memory = 0.1 s, then unseen
+    lost = eye._replace(seen=jnp.asarray(0.0))
+    out = [
+        tl.touch_object_state(lost, mem, jnp.asarray(t), *args, jnp.zeros(2), False, d)
+        for t in (0.21, 0.23)
+    ]
+    np.testing.assert_allclose(out[0][0], mem.x + 0.09 * xd_e, atol=1e-12)
+    assert bool(out[0][3]) and not bool(out[1][3])
+    # the new estimate (frame at 0.200 >= 0.17) from t_switch on: the eye's prediction
+    x, xd, _, _, _ = tl.touch_object_state(
+        eye, mem, jnp.asarray(0.24), *args, jnp.zeros(2), jnp.asarray(False), d
+    )
+    np.testing.assert_allclose(x, x_eye[1] + 0.04 * 1.0, atol=1e-12)
+    np.testing.assert_allclose(xd, 1.0, rtol=0)
+    # never touched: the eye alone, even for the old frame
+    x, _, _, _, _ = tl.touch_object_state(
+        eye, tl.no_touch(), jnp.asarray(0.16), *args, jnp.zeros(2), jnp.asarray(False), d
+    )
+    np.testing.assert_allclose(x, x_eye[0] + 0.06 * 1.0, atol=1e-12)
+
+
+def test_estimate_inside_the_hand_is_projected_out_without_contact():
+    """No force felt, eye estimate 3 cm from the hand's centre: the position goes out to
+    TOUCH_DISTANCE along the same direction, the velocity is the eye's; an estimate outside the
+    hand is untouched."""
+    d = tl.TOUCH_DISTANCE
+    x_e, xd_e = jnp.array([0.6, 0.5]), jnp.array([0.1, 0.0])
+    u = np.array([-0.6, 0.8])
+    xd_o = jnp.array([0.9, -0.4])
+
+    def eye_at(x):
+        return tl.EyeInput(
+            use=jnp.asarray(1.0),
+            seen=jnp.asarray(1.0),
+            t_stamp=jnp.zeros(2),
+            t_switch=jnp.asarray(jnp.inf),
+            x=jnp.stack([x, x]),
+            xd=jnp.stack([xd_o, xd_o]),
+            xdd=jnp.zeros((2, 2)),
+            touch_guard=jnp.asarray(0.05),
+            touch_memory=jnp.asarray(0.1),
+        )
+
+    no = (jnp.zeros(2), jnp.asarray(False), d)
+    for inside, dist in ((True, 0.03), (False, 0.2)):
+        x, xd, _, known, _ = tl.touch_object_state(
+            eye_at(x_e + dist * u), tl.no_touch(), 0.0, x_e, xd_e, jnp.zeros(2), *no
+        )
+        want = np.asarray(x_e) + (d if inside else dist) * u
+        np.testing.assert_allclose(x, want, atol=1e-12)
+        np.testing.assert_allclose(xd, xd_o, rtol=0)
+        assert bool(known)
+
+
 def test_eye_input_respects_latency():
     est = [he._Estimate(0.040, 0.005, np.ones(2), np.zeros(2), np.zeros(2))]
-    none = he._eye_input(est, 0.0, 0.033)  # nothing has arrived by the segment's start
+    none = he._eye_input(est, 0.0, 0.033, 0.0, 0.0)  # nothing has arrived by the segment's start
     assert float(none.seen) == 0.0
     mid = he._eye_input(
-        est + [he._Estimate(0.070, 0.035, 2 * np.ones(2), *[np.zeros(2)] * 2)], 0.066, 0.099
+        est + [he._Estimate(0.070, 0.035, 2 * np.ones(2), *[np.zeros(2)] * 2)],
+        0.066,
+        0.099,
+        0.0,
+        0.0,
     )
     assert float(mid.seen) == 1.0 and float(mid.t_switch) == pytest.approx(0.070)
     np.testing.assert_array_equal(mid.x[0], np.ones(2))
