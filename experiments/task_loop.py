@@ -198,8 +198,12 @@ def touch_object_state(
     while the eye has nothing newer, or the eye sees it (``eye.seen``); otherwise it counts as
     unseen (the caller then drops the virtual force and learning).
 
-    * In contact: the centre at ``distance`` from the hand's centre against the force on the hand,
-      moving with the hand (velocity and acceleration the hand's).
+    * In contact: the force on the (spherical, frictionless) hand is along the contact normal n,
+      so touch fixes the centre along n only: at ``distance`` from the hand's centre; across n
+      (where on its face the cube is held) the position is the eye's prediction (measured, main
+      catching run: taking the centre on the hand's normal line instead gave 44-50 mm errors
+      while a cube was held off-centre, and the hand pushed it out). Velocity and acceleration
+      are the hand's (the eye's across n made the hold chatter, measured: 8-18 contacts a swing).
     * Out of contact the force sensor says the object does not touch the hand, so an estimate
       closer than ``distance`` contradicts it: the position is moved out to ``distance`` along the
       same direction (projected onto what the sensor allows). Near X_r = 0 the sphere geometry of
@@ -215,13 +219,15 @@ def touch_object_state(
     f_sq = jnp.sum(f_int**2)
     pos = f_sq > 0.0
     inv = jnp.where(pos, 1.0 / jnp.sqrt(jnp.where(pos, f_sq, 1.0)), 0.0)
-    x_touch = x_e - distance * f_int * inv  # the object lies against the force on the hand
+    n = -f_int * inv  # unit contact normal, hand -> object (F_int acts ON the hand)
+    x_eye, xd_eye, xdd_eye = eye_object_state(eye, t)
+    # touch along n, the eye's position across it (where on the face the hand holds the cube)
+    x_touch = x_eye + n * jnp.dot(n, x_e + distance * n - x_eye)
     touch = jax.tree_util.tree_map(
         lambda new, old: jnp.where(in_contact, new, old),
         TouchMemory(jnp.asarray(t, touch.t.dtype), x_touch, xd_e),
         touch,
     )
-    x_eye, xd_eye, xdd_eye = eye_object_state(eye, t)
     i = (t >= eye.t_switch).astype(jnp.int32)
     stale = eye.t_stamp[i] < touch.t + eye.touch_guard  # the frame predates the last touch
     since = t - jnp.where(jnp.isfinite(touch.t), touch.t, t)

@@ -53,8 +53,9 @@ def test_eye_object_state_is_the_constant_acceleration_prediction():
 
 
 def test_touch_over_vision_and_the_guard_after_contact():
-    """In contact the object sits TOUCH_DISTANCE from the hand against the force on it and moves
-    with the hand; after the contact, an estimate from a frame exposed before the last touch (+
+    """In contact the object sits TOUCH_DISTANCE from the hand along the contact normal (against
+    the force on it), where the eye puts it across the normal, and moves with the hand; after the
+    contact, an estimate from a frame exposed before the last touch (+
     guard) is replaced by the last touch extrapolated at constant velocity; a later frame's
     estimate is used as is."""
     d = tl.TOUCH_DISTANCE
@@ -77,7 +78,10 @@ def test_touch_over_vision_and_the_guard_after_contact():
     x, xd, xdd, known, mem = tl.touch_object_state(
         eye, tl.no_touch(), jnp.asarray(0.12), *args, f_int, jnp.asarray(True), d
     )
-    np.testing.assert_allclose(x, np.array([0.6, 0.5]) + d * np.array([-0.6, 0.8]), atol=1e-12)
+    n, tangent = np.array([-0.6, 0.8]), np.array([0.8, 0.6])
+    x_pred = np.asarray(x_eye[0]) + 0.02 * 1.0  # the eye's prediction at t = 0.12
+    np.testing.assert_allclose(n @ (np.asarray(x) - np.asarray(x_e)), d, atol=1e-12)
+    np.testing.assert_allclose(tangent @ np.asarray(x), tangent @ x_pred, atol=1e-12)
     np.testing.assert_allclose(xd, xd_e, rtol=0)
     np.testing.assert_allclose(xdd, xdd_e, rtol=0)
     assert float(mem.t) == pytest.approx(0.12) and bool(known)
