@@ -246,3 +246,28 @@ def test_camera_loop_survives_blind_frames():
     assert np.all(np.isfinite(logs["x_e"])) and np.all(np.isfinite(logs["f_o"]))
     # no blow-up: nothing harder than the plain condition's impact (~260 N) after the blind spell
     assert tl.force_norm(logs)[0, 0, 14 * 33 :].max() < 100.0
+
+
+@pytest.mark.slow
+def test_camera_hitting_keeps_striking():
+    """Issue-7 hitting target on a shorter run (``-m slow``, a few minutes on 2 cores): with the
+    camera in the loop, 3 training swings of 2 s and then 8 s of continuous swinging give at least
+    5 periodic hits with bounded pulses, every sample strictly stable."""
+    from experiments import hitting
+
+    args = hitting.parse(
+        ["--seeds", "1", "--train-swings", "3", "--train-swing-s", "2.0", "--duration", "8.0"]
+    )
+    learner = tl.learner_from_args(args, "hitting", args.f_hd)
+    config = tl.config_from_args(
+        args, learner, args.train_swing_s, args.train_swings, final_s=args.duration
+    )
+    pendulum = default_conditions(release_angle=args.release_angle)
+    keys = jax.random.split(jax.random.PRNGKey(0), 1)
+    logs, eye, _ = he.run_camera(config, pendulum, keys, "learned", progress=False)
+    final = logs["final"]
+    series = tl.hit_series(tl.force_norm(final)[0, 0], 1e-3, config.contact_threshold)
+    assert series["periodic_hits"] >= 5, series
+    assert series["pulses_bounded"], series
+    assert tl.stability_summary(final)["all_strictly_stable"]
+    assert he.eye_metrics(eye["final"], final, 1e-3)["tracks_lost"] == 0
