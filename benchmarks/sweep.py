@@ -1,12 +1,15 @@
 """Sweep throughput: closed-loop learning rollouts over 1, 2, 4, ... devices vs MuJoCo C.
 
-    python benchmarks/sweep.py [--batch 4096] [--steps 500] [--float32]
+    python benchmarks/sweep.py [--batch 4096] [--steps 500] [--float32] [--per-device]
+        [--solver-iterations 4 8]
 
 One run prints a table: steps/s of the catching loop with online learning (``experiments/sweep.py``'s
 vmapped function: MJX physics + impedance control + learner), its run axis laid out over the first
 n devices with ``NamedSharding`` for n = 1, 2, 4, ... up to all devices, against MuJoCo C's
 ``mujoco.rollout`` (physics only, zero torques, all host cores) on the same scene and batch, measured
-in the same run. The gradient cost (value and gradient over forward) is measured by
+in the same run. ``--batch`` is the whole batch (strong scaling: n devices share it); with
+``--per-device`` every device gets ``--batch`` runs (weak scaling: n devices run n times the batch,
+as a sweep larger than one device's memory does). The gradient cost (value and gradient over forward) is measured by
 ``experiments/bptt_probe.py``.
 """
 
@@ -51,27 +54,36 @@ def main(argv=None):
     p.add_argument("--batch", type=int, default=256)
     p.add_argument("--steps", type=int, default=500)
     p.add_argument("--float32", action="store_true")
+    p.add_argument("--per-device", action="store_true", help="--batch runs on every device")
+    p.add_argument("--solver-iterations", type=int, nargs=2, default=None, metavar=("IT", "LS"))
+    p.add_argument("--c-repeats", type=int, default=3, help="timed repeats of mujoco.rollout")
     args = p.parse_args(argv)
     B, T = args.batch, args.steps
     config = tl.TaskConfig(
         learner=LearnerConfig(task="catching", r_b=0.085, eta=(0.3,) * 3),
         swing_steps=T,
         swings=1,
+        solver_iterations=None if args.solver_iterations is None else args.solver_iterations[0],
+        ls_iterations=None if args.solver_iterations is None else args.solver_iterations[1],
     )
     sweep = tl.make_sweep(config)
     base = default_conditions()
-    release = jnp.linspace(-0.55, -0.45, B)  # distinct runs: vmap cannot hoist the work
-    conditions = PendulumConditions(
-        **{k: jnp.broadcast_to(v, (B,)) for k, v in base._asdict().items()}
-    )._replace(release_angle=release)
-    keys = jax.random.split(jax.random.PRNGKey(0), B)
     sw = tl.switches("learned")
+
+    def batch_of(size):
+        release = jnp.linspace(-0.55, -0.45, size)  # distinct runs: vmap cannot hoist the work
+        conditions = PendulumConditions(
+            **{k: jnp.broadcast_to(v, (size,)) for k, v in base._asdict().items()}
+        )._replace(release_angle=release)
+        return jax.random.split(jax.random.PRNGKey(0), size), conditions, release
 
     rows = []
     n_dev = jax.device_count()
-    counts = [n for n in (1, 2, 4, 8, 16) if n <= n_dev and B % n == 0]
+    counts = [n for n in (1, 2, 4, 8, 16) if n <= n_dev and (args.per_device or B % n == 0)]
     rates = {}
     for n in counts:
+        size = B * n if args.per_device else B
+        keys, conditions, _ = batch_of(size)
         sharding = NamedSharding(Mesh(np.array(jax.devices()[:n]), ("runs",)), P("runs"))
         put = lambda x, s=sharding: jax.device_put(x, s)  # noqa: E731
         k_n = put(keys)
@@ -81,12 +93,20 @@ def main(argv=None):
         jax.block_until_ready(fn(k_n, c_n))
         compile_s = time.perf_counter() - t0
         wall = best_of(lambda fn=fn, k_n=k_n, c_n=c_n: jax.block_until_ready(fn(k_n, c_n)))
-        rates[n] = B * T / wall
+        rates[n] = size * T / wall
         rows.append(
-            (f"MJX learning loop, {n} device(s)", f"{rates[n]:.3g}", f"compile {compile_s:.0f} s")
+            (
+                f"MJX learning loop, {n} device(s), batch {size}",
+                f"{rates[n]:.3g}",
+                f"compile {compile_s:.0f} s, best of 3: {wall:.2f} s",
+            )
         )
 
+    _, _, release = batch_of(B)
+
     m = load_mj_model()
+    if args.solver_iterations is not None:  # the same solver settings as the MJX loop
+        m.opt.iterations, m.opt.ls_iterations = args.solver_iterations
     d = mujoco.MjData(m)
     nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)
     states = np.zeros((B, nstate))
@@ -99,14 +119,21 @@ def main(argv=None):
     datas = [mujoco.MjData(m) for _ in range(threads)]
     with mj_rollout.Rollout(nthread=threads) as r:
         r.rollout([m] * B, datas, states, ctrl)
-        wall = best_of(lambda: r.rollout([m] * B, datas, states, ctrl))
+        wall = best_of(lambda: r.rollout([m] * B, datas, states, ctrl), args.c_repeats)
     c_rate = B * T / wall
-    rows.append((f"MuJoCo C mujoco.rollout, physics only, {threads} threads", f"{c_rate:.3g}", ""))
+    rows.append(
+        (
+            f"MuJoCo C mujoco.rollout, physics only, {threads} threads, batch {B}",
+            f"{c_rate:.3g}",
+            f"best of {args.c_repeats}: {wall:.2f} s",
+        )
+    )
 
     dtype = "float32" if args.float32 else "float64"
     print(
         f"\n{jax.devices()[0].device_kind} x {n_dev} ({jax.default_backend()}), {dtype}, "
-        f"batch {B}, {T} steps per run\n"
+        f"batch {B}{' per device' if args.per_device else ''}, {T} steps per run, solver "
+        f"iterations {m.opt.iterations} / line search {m.opt.ls_iterations}\n"
     )
     print(f"{'what':55s} {'steps/s':>10s}  notes")
     for what, rate, note in rows:

@@ -73,6 +73,11 @@ class TaskConfig:
     # (0.005 s, 1: critically damped, restitution ~0). scene.xml itself is never changed.
     contact_solref: tuple[float, float] | None = None
     contact_solimp: tuple[float, float, float, float, float] | None = None
+    # Constraint solver caps (MuJoCo's ``opt.iterations`` / ``opt.ls_iterations``); None keeps
+    # scene.xml's (100 / 50: MuJoCo's defaults, a loop that stops at ``opt.tolerance``). A vmapped
+    # batch iterates until its slowest member converges; sweeps cap it (see experiments/sweep.py).
+    solver_iterations: int | None = None
+    ls_iterations: int | None = None
 
 
 def with_contact(mx, config: TaskConfig):
@@ -303,6 +308,10 @@ def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
     lc = config.learner
     m_c = load_mj_model()
     ids = scene_ids(m_c)
+    if config.solver_iterations is not None:
+        m_c.opt.iterations = config.solver_iterations
+    if config.ls_iterations is not None:
+        m_c.opt.ls_iterations = config.ls_iterations
     mx_base = load_mjx_model(m_c)
     if config.hinge_x is not None:  # move the ceiling hinge (the rod's parent body) along x
         ceiling = int(m_c.body_parentid[ids.rod_body])

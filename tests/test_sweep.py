@@ -65,3 +65,35 @@ def test_sharding_over_two_devices_matches(sharded_by_process, tmp_path):
     sharded, single = _load(tmp_path), _load(sharded_by_process)
     for k in ("peak_plain", "peak_learned", "min_margin", "settle_force"):
         np.testing.assert_allclose(sharded[k], single[k], rtol=1e-9, atol=1e-9, err_msg=k)
+
+
+def test_plain_runs_are_shared_across_seeds(sharded_by_process):
+    """Plain impedance ignores the networks: the sweep runs it once per distinct condition. Run it
+    here with two other network seeds and check both against the sweep's (seed-0) result."""
+    sys.path.insert(0, str(ROOT))
+    import jax
+
+    from experiments import sweep
+    from experiments import task_loop as tl
+    from hec_jax.mjx_scene import PendulumConditions
+
+    args = sweep.parse(["--out", str(sharded_by_process), *TINY])
+    config = tl.config_from_args(args, tl.learner_from_args(args, "catching", args.f_cd), 0.7, 2)
+    run = sweep.make_summary(config, tl.make_sweep(config))
+    conditions, _ = sweep.grid(args)
+    first = _load(sharded_by_process)
+    cond = PendulumConditions(**{k: np.repeat(conditions[k][1:2], 2) for k in conditions})
+    keys = jax.random.split(jax.random.PRNGKey(7), 2)
+    plain = np.asarray(run(keys, tl.switches("plain"), cond)["peak_per_swing"])
+    np.testing.assert_allclose(plain, first["peak_plain_per_swing"][[1, 1]], rtol=1e-12)
+    # and the distinct-condition table maps every run back to its own condition
+    table, inverse = sweep.unique_conditions(
+        {
+            k: np.array([0.6, 0.6, 0.65, 0.6]) if k == "rod_length" else np.zeros(4)
+            for k in conditions
+        },
+        3,
+    )
+    np.testing.assert_array_equal(table["rod_length"][inverse], [0.6, 0.6, 0.65, 0.6])
+    with pytest.raises(ValueError, match="do not fit"):
+        sweep.unique_conditions({k: np.arange(3.0) for k in conditions}, 2)
