@@ -446,14 +446,17 @@ def make_experiment(config: TaskConfig, pendulum: PendulumConditions):
     return jax.jit(jax.vmap(lambda key, sw: run_one_seed(key, sw, pendulum), in_axes=(0, None)))
 
 
-def make_sweep(config: TaskConfig):
+def make_sweep(config: TaskConfig, per_run_switches: bool = False):
     """``run(keys, switches, conditions) -> logs`` over a batch of runs: ``keys`` (B, 2) and every
     leaf of ``conditions`` (B,), one pendulum condition and network seed per run (``vmap``).
-    Not jitted here, so the caller can choose shardings."""
+    With ``per_run_switches`` the ``use_virtual``/``learn`` leaves of ``switches`` are (B,) too, so
+    plain and learned runs share one batch (and one compile). Not jitted here, so the caller can
+    choose shardings."""
     from hec_jax.mjx_scene import default_conditions
 
     run_one_seed = _make_seed_run(config, build_loop(config, default_conditions()))
-    return jax.vmap(run_one_seed, in_axes=(0, None, 0))
+    sw_axes = Switches(use_virtual=0, learn=0, eye=None) if per_run_switches else None
+    return jax.vmap(run_one_seed, in_axes=(0, sw_axes, 0))
 
 
 def run_conditions(config: TaskConfig, pendulum: PendulumConditions, seed: int, n_seeds: int):
