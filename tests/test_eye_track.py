@@ -34,6 +34,15 @@ def track(seq):
     return track_box(seq.frames, seq.intrinsics, EDGE, FPS)
 
 
+@pytest.fixture(scope="module")
+def swing_5s():
+    """The issue's sequence length (5 s at 30 fps). The fixed-axis model's acceptance is decided
+    by a median residual over the frames: on 24-48 frames of this swing it came out 0.39-0.61 on
+    one machine (threshold 0.5), on 150 frames 0.26, so the targets are checked at full length."""
+    seq = render_swing(0.5, 150)
+    return seq, track_box(seq.frames, seq.intrinsics, EDGE, FPS)
+
+
 def test_intrinsics_from_mjcf(seq):
     f = 240.0 / np.tan(np.deg2rad(45.0) / 2)
     np.testing.assert_allclose(seq.intrinsics, [[f, 0, 320], [0, f, 240], [0, 0, 1]])
@@ -49,16 +58,18 @@ def _rms(a, b, valid):
     return np.sqrt(np.mean(np.sum((a - b) ** 2, -1)[valid]))
 
 
-def test_issue_targets_position_velocity_acceleration(seq, track):
-    """Issue 5's rendered-sequence targets (on this short swing; the benchmark runs 5 s)."""
+def test_issue_targets_position_velocity_acceleration(swing_5s):
+    """Issue 5's rendered-sequence targets on a 5 s swing (release 0.5 rad)."""
+    seq, track = swing_5s
     v = track.valid
     assert _rms(track.position, seq.position, v) <= 0.005
     assert _rms(track.velocity, seq.velocity, v) <= 0.05
     assert _rms(track.acceleration, seq.acceleration, v) <= 0.5
 
 
-def test_issue_target_rotation(seq, track):
-    """Issue 5's rotation target: met through the fixed-axis model (the pendulum's hinge)."""
+def test_issue_target_rotation(swing_5s):
+    """Issue 5's rotation target on a 5 s swing: met through the fixed-axis model (the hinge)."""
+    seq, track = swing_5s
     v = track.valid
     assert track.hinge
     phi = seq.rotation @ seq.rotation[0].T
