@@ -141,3 +141,28 @@ def test_filter_recovers_constant_acceleration():
         state = upd(state, jnp.asarray(z))
     np.testing.assert_allclose(np.asarray(state.mean[6:]), acc, atol=0.2)
     np.testing.assert_allclose(np.asarray(state.mean[3:6]), acc * t[-1], atol=0.02)
+
+
+def test_best_parallel_pair_and_largest_face_match_sort_reference():
+    """The select/argmax forms of the pair and face choices against the sort-based definition
+    (NumPy, stable sort), on integer pixels (many ties and zero-length edges)."""
+    from hec_jax.geometry.box_model import EDGES
+    from hec_jax.geometry.refine import _best_parallel_pair, largest_visible_face
+
+    rng = np.random.default_rng(4)
+    pixels = rng.integers(0, 4, size=(3000, 8, 2)).astype(float)
+    visible = rng.uniform(size=(3000, 12)) < 0.6
+    got = np.asarray(jax.jit(jax.vmap(_best_parallel_pair))(pixels, visible))
+    length = np.linalg.norm(pixels[:, EDGES[:, 1]] - pixels[:, EDGES[:, 0]], axis=-1)
+    length = np.where(visible, length, 0.0).reshape(-1, 3, 4)
+    for n in range(len(pixels)):
+        fam = np.argmax(np.sort(length[n], axis=-1)[:, -2])
+        order = np.argsort(-length[n, fam], kind="stable")
+        i, j = fam * 4 + order[0], fam * 4 + order[1]
+        np.testing.assert_array_equal(got[n], [*EDGES[i], *EDGES[j]])
+    face, vis, area = jax.jit(jax.vmap(largest_visible_face))(jnp.asarray(pixels))
+    ref_vis, ref_area = image_face_visibility(jnp.asarray(pixels))
+    np.testing.assert_array_equal(np.asarray(vis), np.asarray(ref_vis))
+    np.testing.assert_allclose(np.asarray(area), np.asarray(ref_area))
+    ref_face = np.argmax(np.where(np.asarray(ref_vis), np.asarray(ref_area), -1.0), axis=-1)
+    np.testing.assert_array_equal(np.asarray(face), ref_face)

@@ -14,10 +14,20 @@ Two residuals:
 corners, initialised by a homography on the largest visible face and by the paper's
 ``estimate_motion_core`` on the longest visible parallel pair (whichever fits better), then
 Phi = R1 R0^T, Gamma = t1 - Phi t0 (Eq. 1).
+
+Speed of the batched (``vmap``) corner path on a CPU: it is written on scalars (nested lists of
+arrays), so that every quantity is one vector over the batch and XLA emits fused vector loops;
+no gathers, sorts, small batched matrix products or LAPACK calls (each runs as a slow loop over
+the batch). XLA:CPU recomputes a cheap expression inside every kernel that uses it, so values
+with many uses are made to end in a division (which it does not duplicate): the projected
+corners, the trial cost of the LM (:func:`_materialize`), the unit quaternion of
+``parallel_motion._special_polar``; data-dependent choices with many uses are ``jnp.argmax``
+reductions (computed once).
 """
 
 from __future__ import annotations
 
+import functools
 from functools import partial
 from typing import NamedTuple
 
@@ -26,14 +36,13 @@ import jax.numpy as jnp
 from jax import Array
 
 from hec_jax.geometry.box_model import (
+    EDGE_FACES,
     EDGE_FAMILY,
     EDGES,
+    FACE_ORIENTATION,
     FACES,
     Pose,
     box_corners,
-    corner_visibility,
-    edge_visibility,
-    image_face_visibility,
     project_corners,
 )
 from hec_jax.geometry.camera import pixel_to_normalized
@@ -267,74 +276,135 @@ def _corner_terms(rot: list, t: list, pixels: Array, size, intrinsics: Array, ja
     return _projection_terms(rot, t, [obj[:, i] for i in range(3)], uv, intrinsics, jacobian)
 
 
-def _corner_rows(rot: list, t: list, pixels: Array, size, intrinsics: Array, jacobian: bool):
-    """:func:`_corner_terms` on scalars: 16 residuals (u, v per corner, the order of
-    :func:`corner_residuals`) and, if ``jacobian``, their 16 rows of 6."""
-    res, rows = [], []
-    for j in range(8):
-        obj = [float(c) * size for c in CUBE_CORNERS_UNIT[j]]
-        ru, rv, ju, jv = _projection_terms(
-            rot, t, obj, (pixels[j, 0], pixels[j, 1]), intrinsics, jacobian
-        )
-        res += [ru, rv]
-        rows += [ju, jv]
-    return res, rows
+def _materialize(x, one):
+    """``x / one`` with ``one`` equal to 1 at run time: the same value, bit for bit. XLA counts a
+    division as expensive and so computes ``x`` once into a buffer; without it, it fuses (and
+    recomputes) the whole expression of ``x`` into each of its consumers."""
+    return x / one
+
+
+def _corner_project(rot: list, t: list, size) -> tuple[list, list, list]:
+    """Normalised image points (x, y) and inverse depths of the 8 corners at a pose (lists of 8).
+    The divisions make XLA compute them once, for all their uses."""
+    half = 0.5 * size
+    col = [[half * rot[i][j] for i in range(3)] for j in range(3)]  # R e_j size / 2
+    xs, ys, izs = [], [], []
+    for corner in CUBE_CORNERS_UNIT:
+        p = [
+            t[i] + sum(c[i] if s > 0 else -c[i] for c, s in zip(col, corner, strict=True))
+            for i in range(3)
+        ]
+        xs.append(p[0] / p[2])
+        ys.append(p[1] / p[2])
+        izs.append(1.0 / p[2])
+    return xs, ys, izs
+
+
+def _corner_cost(xs, ys, pixels, weights, intrinsics) -> tuple[Array, Array]:
+    """(sum w r^2, sum of r^2 over the corners of non-zero weight) from the projected corners."""
+    k = intrinsics
+    fx, skew, cx, fy, cy = k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2]
+    cost = rss = 0.0
+    for n in range(8):
+        ru = fx * xs[n] + skew * ys[n] + cx - pixels[n, 0]
+        rv = fy * ys[n] + cy - pixels[n, 1]
+        sq = ru * ru + rv * rv
+        cost = cost + weights[n] * sq
+        rss = rss + jnp.where(weights[n] > 0, sq, 0.0)
+    return cost, rss
+
+
+def _corner_normal(rot: list, xs, ys, izs, pixels, weights, size, intrinsics):
+    """Normal equations of the corner reprojection error at a pose: a = J^T W J (nested 6 x 6,
+    symmetric) and g = J^T W r (6), with the analytic Jacobian of :func:`_projection_terms` (left
+    perturbation (dw, dt): d(u)/d(dw) = q x d(u)/dP, q = R X) from the projected corners, its
+    known zeros left out."""
+    k = intrinsics
+    fx, skew, cx, fy, cy = k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2]
+    half = 0.5 * size
+    col = [[half * rot[i][j] for i in range(3)] for j in range(3)]
+    a = [[0.0] * 6 for _ in range(6)]
+    g = [0.0] * 6
+    for n, corner in enumerate(CUBE_CORNERS_UNIT):
+        q = [
+            sum(c[i] if s > 0 else -c[i] for c, s in zip(col, corner, strict=True))
+            for i in range(3)
+        ]
+        x, y, iz, w = xs[n], ys[n], izs[n], weights[n]
+        up = fx * x + skew * y
+        ru, rv = up + cx - pixels[n, 0], fy * y + cy - pixels[n, 1]
+        du = (fx * iz, skew * iz, -up * iz)  # d(u)/dP
+        dv1, dv2 = fy * iz, -fy * y * iz  # d(v)/dP = (0, dv1, dv2)
+        ju = [q[1] * du[2] - q[2] * du[1], q[2] * du[0] - q[0] * du[2], q[0] * du[1] - q[1] * du[0]]
+        ju += list(du)
+        jv = [q[1] * dv2 - q[2] * dv1, -q[0] * dv2, q[0] * dv1, None, dv1, dv2]
+        for r, jac in ((ru, ju), (rv, jv)):
+            for i in range(6):
+                if jac[i] is None:
+                    continue
+                wj = w * jac[i]
+                g[i] = g[i] + wj * r
+                for m in range(i + 1):
+                    if jac[m] is not None:
+                        a[i][m] = a[i][m] + wj * jac[m]
+    a = [[a[i][m] if m <= i else a[m][i] for m in range(6)] for i in range(6)]
+    return a, g
 
 
 def _corner_lm(pose: Pose, pixels, weights, size, intrinsics, iters: int):
     """The iteration of :func:`levenberg_marquardt` (least squares, Marquardt scaling, a rejected
     step only raises the damping) on the corners, with the analytic Jacobian, the normal
     equations, the Cholesky step and the pose update all on scalars: under ``vmap`` every
-    quantity is one vector over the batch, so a batch runs as fused vector code. Returns
-    (R (3, 3), t (3,), cost)."""
+    quantity is one vector over the batch, so a batch runs as fused vector code.
+
+    The projected corners (:func:`_corner_project`) are carried with the pose, so the normal
+    equations of the next step reuse those of the accepted trial pose; the trial cost is
+    materialised once (:func:`_materialize`) for the acceptance test and its many selects.
+    Returns (R (3, 3), t (3,), cost, rss, projected corners (xs, ys, izs))."""
     dtype = pose.translation.dtype
-    w = [weights[j // 2] for j in range(16)]
-
-    def normal(rot, t):
-        r, rows = _corner_rows(rot, t, pixels, size, intrinsics, True)
-        a = [
-            [
-                sum(w[m] * rows[m][i] * rows[m][j] for m in range(16)) if j <= i else None
-                for j in range(6)
-            ]
-            for i in range(6)
-        ]
-        a = [[a[i][j] if j <= i else a[j][i] for j in range(6)] for i in range(6)]
-        g = [sum(w[m] * rows[m][i] * r[m] for m in range(16)) for i in range(6)]
-        return a, g
-
-    def cost(rot, t):
-        r, _ = _corner_rows(rot, t, pixels, size, intrinsics, False)
-        return sum(w[m] * r[m] * r[m] for m in range(16))
 
     def mat(rot9):
         return [list(rot9[3 * i : 3 * i + 3]) for i in range(3)]
 
+    def project(rot9, t3):
+        xs, ys, izs = _corner_project(mat(rot9), list(t3), size)
+        c, _ = _corner_cost(xs, ys, pixels, weights, intrinsics)
+        return (tuple(xs), tuple(ys), tuple(izs)), c
+
     def step(carry, _):
-        rot9, t3, lam, c = carry
+        rot9, t3, lam, proj, c = carry
         rot3 = mat(rot9)
-        a, g = normal(rot3, list(t3))
+        a, g = _corner_normal(rot3, *proj, pixels, weights, size, intrinsics)
         damped = [
             [a[i][j] + (lam * (a[i][i] + 1e-12) if i == j else 0.0) for j in range(6)]
             for i in range(6)
         ]
         delta = [-x for x in _solve_spd_lists(damped, g)]
         e = _so3_exp_lists(delta[:3])
-        new_rot = [sum(e[i][k] * rot3[k][j] for k in range(3)) for i in range(3) for j in range(3)]
-        new_t = [t3[i] + delta[3 + i] for i in range(3)]
-        c_new = cost(mat(new_rot), new_t)
+        new_rot = tuple(
+            sum(e[i][k] * rot3[k][j] for k in range(3)) for i in range(3) for j in range(3)
+        )
+        new_t = tuple(t3[i] + delta[3 + i] for i in range(3))
+        new_proj, c_new = project(new_rot, new_t)
+        # a runtime 1 (finite lam: min(lam, 1) * 0 == 0)
+        c_new = _materialize(c_new, 1.0 + 0.0 * jnp.minimum(lam, 1.0))
         ok = jnp.isfinite(c_new) & (c_new < c)
-        rot9 = tuple(jnp.where(ok, x, y) for x, y in zip(new_rot, rot9, strict=True))
-        t3 = tuple(jnp.where(ok, x, y) for x, y in zip(new_t, t3, strict=True))
+        pick = lambda x, y: jnp.where(ok, x, y)  # noqa: E731
+        rot9, t3, proj, c = jax.tree.map(
+            pick, (new_rot, new_t, new_proj, c_new), (rot9, t3, proj, c)
+        )
         lam = jnp.where(ok, lam * 0.3, lam * 10.0)
-        return (rot9, t3, lam, jnp.where(ok, c_new, c)), None
+        return (rot9, t3, lam, proj, c), None
 
     r0, t0 = pose.rotation, pose.translation
     rot9 = tuple(r0[i, j] for i in range(3) for j in range(3))
     t3 = tuple(t0[i] for i in range(3))
-    init = (rot9, t3, jnp.asarray(1e-3, dtype), cost(mat(rot9), list(t3)))
-    (rot9, t3, _, c), _ = jax.lax.scan(step, init, None, iters)
-    return jnp.stack([jnp.stack(row) for row in mat(rot9)]), jnp.stack(t3), c
+    proj, c = project(rot9, t3)
+    init = (rot9, t3, jnp.asarray(1e-3, dtype), proj, c)
+    (rot9, t3, _, proj, c), _ = jax.lax.scan(step, init, None, iters)
+    _, rss = _corner_cost(proj[0], proj[1], pixels, weights, intrinsics)
+    rot = jnp.stack([jnp.stack(row) for row in mat(rot9)])
+    return rot, jnp.stack(t3), c, rss, proj
 
 
 def _corner_summary(rot, t, pixels, weights, size, intrinsics):
@@ -366,9 +436,10 @@ def refine_corners(
 
 @partial(jax.custom_jvp, nondiff_argnums=(0,))
 def _refine_corners(iters, pose, pixels, weights, size, intrinsics):
-    rot, t, c = _corner_lm(pose, pixels, weights, size, intrinsics, iters)
-    rms, info, _, _ = _corner_summary(rot, t, pixels, weights, size, intrinsics)
-    return Fit(Pose(rot, t), c, rms, info)
+    rot, t, c, rss, proj = _corner_lm(pose, pixels, weights, size, intrinsics, iters)
+    a, _ = _corner_normal(_lists(rot), *proj, pixels, weights, size, intrinsics)
+    used = jnp.maximum(jnp.sum(weights > 0), 1)
+    return Fit(Pose(rot, t), c, jnp.sqrt(rss / (2 * used)), _mat(a))
 
 
 @_refine_corners.defjvp
@@ -439,73 +510,216 @@ def refine_edges(
 
 # ---------------------------------------------------------------------------------------------
 # Initialisation.
+#
+# Written on scalars (nested lists of arrays, a Python loop over the 8 corners, 6 faces, 12
+# edges): under ``vmap`` every quantity is one vector over the batch, and a data-dependent choice
+# (largest face, best edge pair) is a chain of selects instead of a gather, a sort or a small
+# batched matrix product (each of those runs as a slow per-item loop on the CPU).
+
+
+def _select(index: Array, options: list):
+    """``options[index]`` for a traced integer index (a chain of selects; the last match wins, and
+    the indices are distinct)."""
+    out = options[0]
+    for i in range(1, len(options)):
+        out = jnp.where(index == i, options[i], out)
+    return out
+
+
+def _face_visibility_lists(pixels: Array) -> tuple[list, list]:
+    """:func:`hec_jax.geometry.box_model.image_face_visibility` on scalars: (6 visible, 6 areas)."""
+    p = [(pixels[c, 0], pixels[c, 1]) for c in range(8)]
+    visible, area = [], []
+    for f in range(6):
+        ids = FACES[f]
+        shoelace = 0.5 * sum(
+            p[ids[k]][0] * p[ids[(k + 1) % 4]][1] - p[ids[k]][1] * p[ids[(k + 1) % 4]][0]
+            for k in range(4)
+        )
+        signed = -shoelace * float(FACE_ORIENTATION[f])
+        visible.append(signed > 0)
+        area.append(jnp.maximum(signed, 0.0))
+    return visible, area
+
+
+def _corner_visibility_lists(visible: list) -> list:
+    """A corner is visible iff one of its faces is (8 bools)."""
+    return [
+        functools.reduce(jnp.logical_or, [visible[f] for f in range(6) if c in FACES[f]])
+        for c in range(8)
+    ]
+
+
+def _edge_visibility_lists(visible: list) -> list:
+    """An edge of a convex box is visible iff one of its two faces is (12 bools)."""
+    return [visible[f0] | visible[f1] for f0, f1 in EDGE_FACES]
+
+
+def _cross(a, b) -> list:
+    return [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]]
+
+
+def _norm(a) -> Array:
+    return jnp.sqrt(sum(x * x for x in a))
+
+
+def _face_pose_lists(x: list, obj: list) -> tuple[list, list]:
+    """:func:`face_pose_from_homography` on scalars: ``x`` the 4 corners' normalised image points
+    (pairs), ``obj`` their object points (triples) [m], a parallelogram in cyclic order. Returns
+    (R nested 3 x 3, t (3))."""
+    u = [obj[1][i] - obj[0][i] for i in range(3)]
+    v = [obj[3][i] - obj[0][i] for i in range(3)]
+    su, sv = _norm(u), _norm(v)
+    u_hat, v_hat = [c / su for c in u], [c / sv for c in v]
+    w_hat = _cross(u_hat, v_hat)
+    # The face plane in units of its edges is the unit square (0,0), (1,0), (1,1), (0,1): the DLT
+    # system (h33 = 1, 8 equations, 8 unknowns) has the closed-form solution of the square-to-
+    # quadrilateral map (Heckbert 1989), the same solution as the normal equations.
+    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = x
+    sx, sy = x0 - x1 + x2 - x3, y0 - y1 + y2 - y3
+    dx1, dx2, dy1, dy2 = x1 - x2, x3 - x2, y1 - y2, y3 - y2
+    den = dx1 * dy2 - dx2 * dy1
+    g, h = (sx * dy2 - dx2 * sy) / den, (dx1 * sy - sx * dy1) / den
+    one = jnp.ones_like(g)
+    hm = [  # columns: r_u / su, r_v / sv (plane in [m] again), p0
+        [(x1 - x0 + g * x1) / su, (x3 - x0 + h * x3) / sv, x0],
+        [(y1 - y0 + g * y1) / su, (y3 - y0 + h * y3) / sv, y0],
+        [g / su, h / sv, one],
+    ]
+    col = [[hm[i][j] for i in range(3)] for j in range(3)]
+    scale = 2.0 / (_norm(col[0]) + _norm(col[1]))
+    scale = scale * jnp.where(hm[2][2] < 0, -1.0, 1.0)  # p0 (third column) in front: z > 0
+    col = [[c * scale for c in cj] for cj in col]
+    # orthonormal pair closest to the (noisy) columns r_u, r_v, errors split evenly between them
+    r_u = [c / _norm(col[0]) for c in col[0]]
+    r_v = [c / _norm(col[1]) for c in col[1]]
+    c = [a + b for a, b in zip(r_u, r_v, strict=True)]
+    d = [a - b for a, b in zip(r_u, r_v, strict=True)]
+    nc, nd = _norm(c), _norm(d)
+    c, d = [a / nc for a in c], [a / nd for a in d]
+    root2 = jnp.sqrt(jnp.asarray(2.0, g.dtype))
+    e_u = [(a + b) / root2 for a, b in zip(c, d, strict=True)]
+    e_v = [(a - b) / root2 for a, b in zip(c, d, strict=True)]
+    e_w = _cross(e_u, e_v)
+    rot = [
+        [e_u[i] * u_hat[j] + e_v[i] * v_hat[j] + e_w[i] * w_hat[j] for j in range(3)]
+        for i in range(3)
+    ]
+    t = [col[2][i] - sum(rot[i][j] * obj[0][j] for j in range(3)) for i in range(3)]
+    return rot, t
+
+
+def _mat(rows: list) -> Array:
+    return jnp.stack([jnp.stack(row, -1) for row in rows], -2)
 
 
 def face_pose_from_homography(pixels4: Array, face: Array, size, intrinsics: Array) -> Pose:
-    """Box pose from the 4 image corners (4, 2) [px] of one face (corner ids ``face`` (4,)).
+    """Box pose from the 4 image corners (4, 2) [px] of one face (corner ids ``face`` (4,), in
+    cyclic order).
 
     DLT homography from the face plane to normalised image coordinates, H ~ [r_u r_v p0] (with
-    h33 = 1, normal equations), then the nearest orthonormal pair to (r_u, r_v) (the symmetric
-    split of their angle error). Sign chosen so that the face lies in front of the camera.
+    h33 = 1; the plane coordinates of the face are the unit square, so the 8 x 8 system has a
+    closed-form solution), then the nearest orthonormal pair to (r_u, r_v) (the symmetric split
+    of their angle error). Sign chosen so that the face lies in front of the camera.
     """
     obj = box_corners(size)[face]  # (4, 3)
-    u = obj[1] - obj[0]
-    v = obj[3] - obj[0]
-    su, sv = jnp.linalg.norm(u), jnp.linalg.norm(v)
-    u_hat, v_hat = u / su, v / sv
-    w_hat = jnp.cross(u_hat, v_hat)
-    rel = obj - obj[:1]
-    plane = jnp.stack([rel @ u_hat / su, rel @ v_hat / sv], -1)  # (4, 2) in [0, 1]
     x = pixel_to_normalized(pixels4, intrinsics)  # (4, 2)
-    one, zero = jnp.ones(4, x.dtype), jnp.zeros(4, x.dtype)
-    pa, pb = plane[:, 0], plane[:, 1]
-    rows1 = jnp.stack([pa, pb, one, zero, zero, zero, -x[:, 0] * pa, -x[:, 0] * pb, -x[:, 0]], -1)
-    rows2 = jnp.stack([zero, zero, zero, pa, pb, one, -x[:, 1] * pa, -x[:, 1] * pb, -x[:, 1]], -1)
-    a = jnp.concatenate([rows1, rows2], 0)  # (8, 9)
-    # h33 = 1 (the third column is the face corner p0, in front of the camera): 8 unknowns from
-    # the normal equations, solved as vector code (a batched SVD is a loop of LAPACK calls)
-    a8 = a[:, :8]
-    h = jnp.concatenate([solve_spd(a8.T @ a8, -a8.T @ a[:, 8]), jnp.ones(1, a.dtype)])
-    h = h.reshape(3, 3) / jnp.stack([su, sv, jnp.ones_like(su)])[None, :]  # plane in [m] again
-    scale = 2.0 / (jnp.linalg.norm(h[:, 0]) + jnp.linalg.norm(h[:, 1]))
-    h = h * scale * jnp.where(h[2, 2] < 0, -1.0, 1.0)  # p0 (third column) in front: z > 0
-    # orthonormal pair closest to the (noisy) columns r_u, r_v, errors split evenly between them
-    r_u = h[:, 0] / jnp.linalg.norm(h[:, 0])
-    r_v = h[:, 1] / jnp.linalg.norm(h[:, 1])
-    c = (r_u + r_v) / jnp.linalg.norm(r_u + r_v)
-    d = (r_u - r_v) / jnp.linalg.norm(r_u - r_v)
-    e_u, e_v = (c + d) / jnp.sqrt(2.0), (c - d) / jnp.sqrt(2.0)
-    rot = jnp.stack([e_u, e_v, jnp.cross(e_u, e_v)], -1) @ jnp.stack([u_hat, v_hat, w_hat], 0)
-    t = h[:, 2] - rot @ obj[0]
-    return Pose(rot, t)
+    rot, t = _face_pose_lists(
+        [(x[k, 0], x[k, 1]) for k in range(4)], [[obj[k, i] for i in range(3)] for k in range(4)]
+    )
+    return Pose(_mat(rot), jnp.stack(t, -1))
 
 
 def largest_visible_face(pixels: Array) -> tuple[Array, Array, Array]:
     """(face index, (6,) visible, (6,) area) of the largest visible face in the image."""
-    visible, area = image_face_visibility(pixels)
-    return jnp.argmax(jnp.where(visible, area, -1.0)), visible, area
+    visible, area = _face_visibility_lists(pixels)
+    return _largest(visible, area), jnp.stack(visible, -1), jnp.stack(area, -1)
+
+
+def _largest(visible: list, area: list) -> Array:
+    """Index of the largest visible face (``jnp.argmax``: a reduction, which XLA computes once
+    rather than in each of its uses)."""
+    return jnp.argmax(
+        jnp.stack([jnp.where(v, a, -1.0) for v, a in zip(visible, area, strict=True)])
+    )
+
+
+def _init_pose(normalized: list, visible: list, area: list, size) -> tuple[list, list]:
+    """Homography start on the largest visible face: (R nested 3 x 3, t (3)) from the 8 corners'
+    normalised image points (pairs) and the face visibility lists."""
+    face = _largest(visible, area)
+    x = [
+        tuple(_select(face, [normalized[FACES[f][k]][i] for f in range(6)]) for i in range(2))
+        for k in range(4)
+    ]
+    obj = [
+        [
+            _select(face, [float(CUBE_CORNERS_UNIT[FACES[f][k]][i]) for f in range(6)]) * size
+            for i in range(3)
+        ]
+        for k in range(4)
+    ]
+    return _face_pose_lists(x, obj)
+
+
+def _normalized_lists(pixels: Array, intrinsics: Array) -> list:
+    x = pixel_to_normalized(pixels, intrinsics)
+    return [(x[c, 0], x[c, 1]) for c in range(8)]
+
+
+def _pose_from_corners(pixels, normalized, visible, area, size, intrinsics, iters):
+    rot, t = _init_pose(normalized, visible, area, size)
+    wc = jnp.stack(_corner_visibility_lists(visible), -1).astype(pixels.dtype)
+    return refine_corners(
+        Pose(_mat(rot), jnp.stack(t, -1)), pixels, wc, size, intrinsics, iters
+    ), wc
 
 
 def pose_from_corners(pixels: Array, size, intrinsics: Array, iters: int = 10) -> tuple[Fit, Array]:
     """Pose from labelled corner pixels (8, 2): homography on the largest visible face, then LM on
     all visible corners. Returns (fit, (8,) visible corners)."""
-    face, visible, _ = largest_visible_face(pixels)
-    ids = jnp.asarray(FACES)[face]
-    init = face_pose_from_homography(pixels[ids], ids, size, intrinsics)
-    wc = corner_visibility(visible).astype(pixels.dtype)
-    return refine_corners(init, pixels, wc, size, intrinsics, iters), wc
+    visible, area = _face_visibility_lists(pixels)
+    normalized = _normalized_lists(pixels, intrinsics)
+    return _pose_from_corners(pixels, normalized, visible, area, size, intrinsics, iters)
+
+
+def _best_parallel_pair_lists(pixels: Array, visible_edges: list) -> list:
+    """Corner ids [A, B, C, D] of the two longest visible image edges of one family (the family
+    whose second-longest visible edge is longest; ties to the lower index, as a stable sort).
+
+    The three choices are ``jnp.argmax`` reductions: XLA computes a reduction once, where it
+    would recompute a chain of selects in every one of its many uses."""
+    length = []
+    for e, (a, b) in enumerate(EDGES):
+        d = [pixels[b, i] - pixels[a, i] for i in range(2)]
+        length.append(jnp.where(visible_edges[e], jnp.sqrt(d[0] * d[0] + d[1] * d[1]), 0.0))
+
+    def second_largest(a, b, c, d):
+        return jnp.maximum(
+            jnp.minimum(jnp.maximum(a, b), jnp.maximum(c, d)),
+            jnp.maximum(jnp.minimum(a, b), jnp.minimum(c, d)),
+        )
+
+    fam = jnp.argmax(jnp.stack([second_largest(*length[4 * f : 4 * f + 4]) for f in range(3)]))
+    sel = [_select(fam, [length[4 * f + k] for f in range(3)]) for k in range(4)]
+    i1 = jnp.argmax(jnp.stack(sel))  # first of a stable descending sort
+    i2 = jnp.argmax(jnp.stack([jnp.where(i1 == k, -jnp.inf, x) for k, x in enumerate(sel)]))
+    i, j = 4 * fam + i1, 4 * fam + i2
+    ends = [[int(EDGES[e][s]) for e in range(12)] for s in range(2)]
+    return [_select(i, ends[0]), _select(i, ends[1]), _select(j, ends[0]), _select(j, ends[1])]
 
 
 def _best_parallel_pair(pixels: Array, visible_edges: Array) -> Array:
     """Corner ids (A, B, C, D) (4,) of the two longest visible image edges of one family."""
-    e = jnp.asarray(EDGES)
-    length = jnp.linalg.norm(pixels[e[:, 1]] - pixels[e[:, 0]], axis=-1)
-    length = jnp.where(visible_edges, length, 0.0).reshape(3, 4)
-    top2 = jnp.sort(length, axis=-1)[:, -2:]  # (3, 2)
-    fam = jnp.argmax(top2[:, 0])  # family whose second-longest edge is longest
-    order = jnp.argsort(-length[fam])
-    i, j = fam * 4 + order[0], fam * 4 + order[1]
-    return jnp.stack([e[i, 0], e[i, 1], e[j, 0], e[j, 1]])
+    return jnp.stack(_best_parallel_pair_lists(pixels, [visible_edges[e] for e in range(12)]))
+
+
+def _lists(m: Array) -> list:
+    return [[m[i, j] for j in range(3)] for i in range(3)]
+
+
+def _matmul(a: list, b: list) -> list:
+    return [[sum(a[i][k] * b[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
 
 
 class TwoFrameMotion(NamedTuple):
@@ -543,23 +757,41 @@ def two_frame_motion(
     estimate (``estimate_motion_core`` on the longest visible parallel pair, |AB| = size); the
     start that ends with the lower cost wins. Jittable and vmappable.
     """
-    fit0, _ = pose_from_corners(pixels_before, size, intrinsics, iters)
-    fit1, w1 = pose_from_corners(pixels_after, size, intrinsics, iters)
+    vis_b, area_b = _face_visibility_lists(pixels_before)
+    vis_a, area_a = _face_visibility_lists(pixels_after)
+    norm_b = _normalized_lists(pixels_before, intrinsics)
+    norm_a = _normalized_lists(pixels_after, intrinsics)
+    fit0, _ = _pose_from_corners(pixels_before, norm_b, vis_b, area_b, size, intrinsics, iters)
+    fit1, w1 = _pose_from_corners(pixels_after, norm_a, vis_a, area_a, size, intrinsics, iters)
     # The paper's method (Eqs. 7-38) on the best visible pair, as a second start.
-    vis_b, _ = image_face_visibility(pixels_before)
-    vis_a, _ = image_face_visibility(pixels_after)
-    pair = _best_parallel_pair(pixels_after, edge_visibility(vis_b) & edge_visibility(vis_a))
-    nb = pixel_to_normalized(pixels_before[pair], intrinsics)
-    na = pixel_to_normalized(pixels_after[pair], intrinsics)
+    edges_b, edges_a = _edge_visibility_lists(vis_b), _edge_visibility_lists(vis_a)
+    both = [b & a for b, a in zip(edges_b, edges_a, strict=True)]
+    pair = _best_parallel_pair_lists(pixels_after, both)
+
+    def points(normalized):
+        return jnp.stack(
+            [
+                jnp.stack([_select(c, [normalized[k][i] for k in range(8)]) for i in range(2)], -1)
+                for c in pair
+            ],
+            -2,
+        )
+
+    nb, na = points(norm_b), points(norm_a)
     est = estimate_motion_core(nb, na, jnp.asarray(size, nb.dtype))
     p0 = fit0.pose
-    start = Pose(est.rotation @ p0.rotation, est.rotation @ p0.translation + est.translation)
+    e, r0, t0 = _lists(est.rotation), _lists(p0.rotation), [p0.translation[i] for i in range(3)]
+    start = Pose(
+        _mat(_matmul(e, r0)),
+        jnp.stack([sum(e[i][k] * t0[k] for k in range(3)) + est.translation[i] for i in range(3)]),
+    )
     fit1p = refine_corners(start, pixels_after, w1, size, intrinsics, iters)
     use_paper = est.valid & jnp.isfinite(fit1p.cost) & (fit1p.cost < fit1.cost)
     fit1 = jax.tree.map(lambda x, y: jnp.where(use_paper, x, y), fit1p, fit1)
     p1 = fit1.pose
-    phi = p1.rotation @ p0.rotation.T
-    gamma = p1.translation - phi @ p0.translation
+    phi = _matmul(_lists(p1.rotation), [list(row) for row in zip(*r0, strict=True)])  # R1 R0^T
+    gamma = [p1.translation[i] - sum(phi[i][k] * t0[k] for k in range(3)) for i in range(3)]
+    phi, gamma = _mat(phi), jnp.stack(gamma, -1)
     finite = jnp.all(jnp.isfinite(phi)) & jnp.all(jnp.isfinite(gamma))
     valid = finite & (fit0.rms < max_rms_px) & (fit1.rms < max_rms_px)
     valid = valid & (p0.translation[2] > 0) & (p1.translation[2] > 0)
