@@ -7,7 +7,9 @@ One run prints a table: steps/s of the catching loop with online learning (``exp
 vmapped function: MJX physics + impedance control + learner), its run axis laid out over the first
 n devices with ``NamedSharding`` for n = 1, 2, 4, ... up to all devices, against MuJoCo C's
 ``mujoco.rollout`` (physics only, zero torques, all host cores) on the same scene and batch, measured
-in the same run. ``--batch`` is the whole batch (strong scaling: n devices share it); with
+in the same run. A third row, MJX physics alone (``mjx.step`` in a ``lax.scan``, zero torques, the
+same solver settings and batch, one device), bounds what the learning loop can reach on that device:
+the loop adds the controller, the learner and the per-run models of the sweep on top of it. ``--batch`` is the whole batch (strong scaling: n devices share it); with
 ``--per-device`` every device gets ``--batch`` runs (weak scaling: n devices run n times the batch,
 as a sweep larger than one device's memory does). The gradient cost (value and gradient over forward) is measured by
 ``experiments/bptt_probe.py``.
@@ -33,6 +35,7 @@ import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.sharding import Mesh, NamedSharding  # noqa: E402
 from jax.sharding import PartitionSpec as P  # noqa: E402
+from mujoco import mjx  # noqa: E402
 from mujoco import rollout as mj_rollout  # noqa: E402
 
 from experiments import task_loop as tl  # noqa: E402
@@ -107,6 +110,35 @@ def main(argv=None):
     m = load_mj_model()
     if args.solver_iterations is not None:  # the same solver settings as the MJX loop
         m.opt.iterations, m.opt.ls_iterations = args.solver_iterations
+    mx = mjx.put_model(m)
+    d0 = mjx.make_data(mx)
+    hinge_adr = int(m.jnt_qposadr[m.joint("hinge").id])
+
+    @jax.jit
+    def physics_only(release):
+        def one(angle):
+            def step(d, _):
+                d = mjx.step(mx, d)
+                return d, d.qpos[hinge_adr]
+
+            d = d0.replace(qpos=d0.qpos.at[hinge_adr].set(angle))
+            return jnp.max(jax.lax.scan(step, d, None, length=T)[1])
+
+        return jax.vmap(one)(release)
+
+    t0 = time.perf_counter()
+    jax.block_until_ready(physics_only(release))
+    compile_s = time.perf_counter() - t0
+    wall = best_of(lambda: jax.block_until_ready(physics_only(release)))
+    phys_rate = B * T / wall
+    rows.append(
+        (
+            f"MJX physics only (mjx.step scan), 1 device, batch {B}",
+            f"{phys_rate:.3g}",
+            f"compile {compile_s:.0f} s, best of 3: {wall:.2f} s",
+        )
+    )
+
     d = mujoco.MjData(m)
     nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)
     states = np.zeros((B, nstate))
@@ -139,6 +171,11 @@ def main(argv=None):
     for what, rate, note in rows:
         print(f"{what:55s} {rate:>10s}  {note}")
     print("\nratios:")
+    print(
+        f"  MJX physics only / mujoco.rollout = {phys_rate / c_rate:.2f} (the bound for the "
+        f"learning loop on one device); learning loop on 1 device / MJX physics only = "
+        f"{rates[counts[0]] / phys_rate:.2f}"
+    )
     for n in counts:
         print(
             f"  {n} device(s): learning loop / mujoco.rollout = {rates[n] / c_rate:.2f}, "
