@@ -8,11 +8,15 @@ vmapped function: MJX physics + impedance control + learner), its run axis laid 
 n devices with ``NamedSharding`` for n = 1, 2, 4, ... up to all devices, against MuJoCo C's
 ``mujoco.rollout`` (physics only, zero torques, all host cores) on the same scene and batch, measured
 in the same run. A third row, MJX physics alone (``mjx.step`` in a ``lax.scan``, zero torques, the
-same solver settings and batch, one device), bounds what the learning loop can reach on that device:
-the loop adds the controller, the learner and the per-run models of the sweep on top of it. ``--batch`` is the whole batch (strong scaling: n devices share it); with
-``--per-device`` every device gets ``--batch`` runs (weak scaling: n devices run n times the batch,
-as a sweep larger than one device's memory does). The gradient cost (value and gradient over forward) is measured by
-``experiments/bptt_probe.py``.
+same solver settings and batch, one device), bounds what the learning loop can reach on that
+device: the loop adds the controller, the learner and the per-run models of the sweep on top of it.
+``--batch`` is the whole batch (strong scaling: n devices share it); with ``--per-device`` every
+device gets ``--batch`` runs (weak scaling: n devices run n times the batch, as a sweep larger than
+one device's memory does). The gradient-cost rows time, in the same run, the exact gradient of the
+catching loop with respect to all network weights (implicit derivative of the constraint solve,
+per-step rematerialisation, the scene's solver settings: ``benchmarks/gradients.py``'s ``catching``
+case) against its forward rollout, on ``--grad-batch`` conditions that reach the hand over
+``--grad-steps`` samples (1 s by default; ``--grad-batch 0`` skips them).
 """
 
 from __future__ import annotations
@@ -38,6 +42,7 @@ from jax.sharding import PartitionSpec as P  # noqa: E402
 from mujoco import mjx  # noqa: E402
 from mujoco import rollout as mj_rollout  # noqa: E402
 
+from benchmarks.gradients import catching_case  # noqa: E402
 from experiments import task_loop as tl  # noqa: E402
 from hec_jax.mjx_scene import PendulumConditions, default_conditions, load_mj_model  # noqa: E402
 from hec_jax.nets import LearnerConfig  # noqa: E402
@@ -60,6 +65,8 @@ def main(argv=None):
     p.add_argument("--per-device", action="store_true", help="--batch runs on every device")
     p.add_argument("--solver-iterations", type=int, nargs=2, default=None, metavar=("IT", "LS"))
     p.add_argument("--c-repeats", type=int, default=3, help="timed repeats of mujoco.rollout")
+    p.add_argument("--grad-batch", type=int, default=16, help="0: no gradient-cost row")
+    p.add_argument("--grad-steps", type=int, default=1000, help="gradient horizon [1 ms samples]")
     args = p.parse_args(argv)
     B, T = args.batch, args.steps
     config = tl.TaskConfig(
@@ -161,6 +168,38 @@ def main(argv=None):
         )
     )
 
+    grad_ratio = None
+    if args.grad_batch > 0:
+        forward, grads, fargs = catching_case(
+            args.grad_steps, args.grad_batch, jnp.float32 if args.float32 else jnp.float64
+        )
+        fns = {"forward": forward, "gradient": grads["implicit+remat"]}
+        compile_s = {}
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            out = jax.block_until_ready(fn(*fargs))
+            compile_s[name] = time.perf_counter() - t0
+            if not all(bool(np.all(np.isfinite(x))) for x in jax.tree_util.tree_leaves(out)):
+                raise FloatingPointError(f"non-finite {name} in the gradient-cost row")
+        times = {name: np.inf for name in fns}
+        for _ in range(3):  # interleaved, so that load changes hit both alike
+            for name, fn in fns.items():
+                times[name] = min(
+                    times[name], best_of(lambda fn=fn: jax.block_until_ready(fn(*fargs)), 1)
+                )
+        grad_ratio = times["gradient"] / times["forward"]
+        for name, what in (
+            ("forward", "catching loop forward (rollout)"),
+            ("gradient", "value_and_grad, all network weights (implicit+remat)"),
+        ):
+            rows.append(
+                (
+                    f"{what}, batch {args.grad_batch} x {args.grad_steps} steps",
+                    f"{args.grad_batch * args.grad_steps / times[name]:.3g}",
+                    f"compile {compile_s[name]:.0f} s, best of 3: {times[name]:.2f} s",
+                )
+            )
+
     dtype = "float32" if args.float32 else "float64"
     print(
         f"\n{jax.devices()[0].device_kind} x {n_dev} ({jax.default_backend()}), {dtype}, "
@@ -176,6 +215,8 @@ def main(argv=None):
         f"learning loop on one device); learning loop on 1 device / MJX physics only = "
         f"{rates[counts[0]] / phys_rate:.2f}"
     )
+    if grad_ratio is not None:
+        print(f"  exact gradient / forward rollout (catching, 1 device) = {grad_ratio:.2f}")
     for n in counts:
         print(
             f"  {n} device(s): learning loop / mujoco.rollout = {rates[n] / c_rate:.2f}, "
