@@ -73,6 +73,57 @@ def test_operational_inertia_damped_near_singularity():
     assert float(cond_s) > 1e10 and np.max(np.abs(np.asarray(Mx_s))) < 1e4
 
 
+def _damped_inverse_by_eigh(A, damping):
+    """Reference for Eq. 44's damped inverse (float64 NumPy eigendecomposition)."""
+    s, V = np.linalg.eigh(0.5 * (A + A.T))
+    s = np.maximum(s, 0.0)
+    return (V * (s / (s**2 + damping**2))[None, :]) @ V.T, s[-1] / s[0]
+
+
+@pytest.mark.parametrize("damping", [0.0, 1e-3, 0.3])
+def test_operational_inertia_closed_form_matches_eigh(damping):
+    """The closed form (Cayley-Hamilton, no eigendecomposition) equals V diag(s/(s^2+l^2)) V^T from
+    NumPy's eigh, for well and badly conditioned A = J M^-1 J^T, in float64 and float32."""
+    rng = np.random.default_rng(7)
+    for k in range(40):
+        obs = _random_obs(rng)
+        M, J = np.asarray(obs.M), np.asarray(obs.J)
+        if k % 4 == 3:  # nearly dependent rows: cond up to ~1e6
+            J = np.stack([J[0], J[0] + 10.0 ** -rng.uniform(1, 3) * rng.normal(size=3)])
+        A = J @ np.linalg.solve(M, J.T)
+        ref, cond_ref = _damped_inverse_by_eigh(A, damping)
+        Mx, cond = C.operational_inertia(jnp.asarray(M), jnp.asarray(J), damping)
+        np.testing.assert_allclose(np.asarray(Mx), ref, rtol=1e-7 * cond_ref, atol=0)
+        np.testing.assert_allclose(float(cond), cond_ref, rtol=1e-7 * cond_ref)
+        if cond_ref < 100:
+            Mx32, _ = C.operational_inertia(
+                jnp.asarray(M, jnp.float32), jnp.asarray(J, jnp.float32), damping
+            )
+            assert Mx32.dtype == jnp.float32
+            scale = np.max(np.abs(ref))
+            np.testing.assert_allclose(np.asarray(Mx32), ref, atol=1e-4 * scale * cond_ref)
+
+
+def test_operational_inertia_derivative_finite_at_equal_eigenvalues():
+    """A = J M^-1 J^T = c I (equal eigenvalues, where the derivative of an eigendecomposition is
+    singular): finite derivative, equal to central differences."""
+    M = jnp.eye(3) * 2.0
+    J = jnp.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # A = I / 2
+
+    def f(J):
+        return jnp.sum(C.operational_inertia(M, J, 1e-3)[0] * jnp.array([[1.0, 2.0], [3.0, 4.0]]))
+
+    g = np.asarray(jax.grad(f)(J))
+    assert np.all(np.isfinite(g))
+    h = 1e-6
+    fd = np.zeros((2, 3))
+    for i in range(2):
+        for j in range(3):
+            e = jnp.zeros((2, 3)).at[i, j].set(h)
+            fd[i, j] = (float(f(J + e)) - float(f(J - e))) / (2 * h)
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
+
+
 def _poly_path(a, b, c):
     return lambda t: a + b * t + c * t**2
 

@@ -128,16 +128,32 @@ DEFAULT_CONFIG = ControllerConfig()
 def operational_inertia(M: jax.Array, J: jax.Array, damping: float) -> tuple[jax.Array, jax.Array]:
     """Eq. 44, M_x = (J M^-1 J^T)^-1 [kg] (2, 2), with a damped inverse; also its condition number.
 
-    Lambda^-1 = J M^-1 J^T = V diag(s) V^T, M_x = V diag(s / (s^2 + lambda^2)) V^T (equal to the
-    exact inverse up to a relative lambda^2/s^2). cond = s_max / s_min (inf at a singularity).
+    Lambda^-1 = J M^-1 J^T = A = V diag(s) V^T (2 x 2, symmetric positive semi-definite); the
+    damped inverse is M_x = V diag(s / (s^2 + lambda^2)) V^T = A (A^2 + lambda^2 I)^-1, equal to
+    the exact inverse up to a relative lambda^2/s^2. For a 2 x 2 matrix it is computed in closed
+    form from the invariants t = s1 + s2 = tr A and p = s1 s2 = det A (Cayley-Hamilton):
+
+        M_x = alpha I + beta A,  alpha = p t / D,  beta = (lambda^2 - p) / D,
+        D = (s1^2 + lambda^2)(s2^2 + lambda^2) = p^2 + lambda^2 (t^2 - 2 p) + lambda^4,
+
+    (at lambda = 0: (t I - A) / p = A^-1). No eigendecomposition: smooth in A for lambda > 0, also
+    where s1 = s2 (there the derivative of an eigendecomposition is singular), and on a GPU one
+    fused elementwise kernel instead of a batched ``eigh``. p is clamped at 0 (A is PSD up to
+    rounding). cond = s_max / s_min = s_max^2 / p (inf at a singularity).
     """
-    lam_inv = J @ jnp.linalg.solve(M, J.T)
-    lam_inv = 0.5 * (lam_inv + lam_inv.T)
-    s, V = jnp.linalg.eigh(lam_inv)
-    s = jnp.maximum(s, 0.0)
-    inv_s = s / (s**2 + damping**2)
-    M_x = (V * inv_s[None, :]) @ V.T
-    cond = jnp.where(s[0] > 0, s[-1] / jnp.where(s[0] > 0, s[0], 1.0), jnp.inf)
+    A = J @ jnp.linalg.solve(M, J.T)
+    a, b, d = A[0, 0], 0.5 * (A[0, 1] + A[1, 0]), A[1, 1]
+    A = jnp.stack([jnp.stack([a, b]), jnp.stack([b, d])])
+    t = a + d  # [1/kg]
+    p = jnp.maximum(a * d - b * b, 0.0)  # [1/kg^2]
+    lam2 = damping**2
+    D = p * p + lam2 * (t * t - 2.0 * p) + lam2 * lam2
+    M_x = (p * t / D) * jnp.eye(2, dtype=A.dtype) + ((lam2 - p) / D) * A
+    # condition number from the eigenvalues s_max = t/2 + r, s_min = p / s_max (no cancellation)
+    q = (0.5 * (a - d)) ** 2 + b * b
+    r = jnp.where(q > 0, jnp.sqrt(jnp.where(q > 0, q, 1.0)), 0.0)  # NaN-free derivative at q = 0
+    s_max = 0.5 * t + r
+    cond = jnp.where(p > 0, s_max * s_max / jnp.where(p > 0, p, 1.0), jnp.inf)
     return M_x, cond
 
 
