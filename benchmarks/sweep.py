@@ -42,7 +42,7 @@ from jax.sharding import PartitionSpec as P  # noqa: E402
 from mujoco import mjx  # noqa: E402
 from mujoco import rollout as mj_rollout  # noqa: E402
 
-from benchmarks.gradients import catching_case  # noqa: E402
+from benchmarks.gradients import _compiled, _timed, catching_case  # noqa: E402
 from experiments import task_loop as tl  # noqa: E402
 from hec_jax.mjx_scene import PendulumConditions, default_conditions, load_mj_model  # noqa: E402
 from hec_jax.nets import LearnerConfig  # noqa: E402
@@ -174,19 +174,15 @@ def main(argv=None):
             args.grad_steps, args.grad_batch, jnp.float32 if args.float32 else jnp.float64
         )
         fns = {"forward": forward, "gradient": grads["implicit+remat"]}
-        compile_s = {}
+        grad_compile_s = {}
         for name, fn in fns.items():
-            t0 = time.perf_counter()
-            out = jax.block_until_ready(fn(*fargs))
-            compile_s[name] = time.perf_counter() - t0
+            out, grad_compile_s[name] = _compiled(fn, *fargs)
             if not all(bool(np.all(np.isfinite(x))) for x in jax.tree_util.tree_leaves(out)):
                 raise FloatingPointError(f"non-finite {name} in the gradient-cost row")
         times = {name: np.inf for name in fns}
         for _ in range(3):  # interleaved, so that load changes hit both alike
             for name, fn in fns.items():
-                times[name] = min(
-                    times[name], best_of(lambda fn=fn: jax.block_until_ready(fn(*fargs)), 1)
-                )
+                times[name] = min(times[name], _timed(fn, *fargs, repeat=1))
         grad_ratio = times["gradient"] / times["forward"]
         for name, what in (
             ("forward", "catching loop forward (rollout)"),
@@ -196,7 +192,7 @@ def main(argv=None):
                 (
                     f"{what}, batch {args.grad_batch} x {args.grad_steps} steps",
                     f"{args.grad_batch * args.grad_steps / times[name]:.3g}",
-                    f"compile {compile_s[name]:.0f} s, best of 3: {times[name]:.2f} s",
+                    f"compile {grad_compile_s[name]:.0f} s, best of 3: {times[name]:.2f} s",
                 )
             )
 
