@@ -142,8 +142,8 @@ def operational_inertia(M: jax.Array, J: jax.Array, damping: float) -> tuple[jax
     rounding). cond = s_max / s_min = s_max^2 / p (inf at a singularity).
     """
     A = J @ jnp.linalg.solve(M, J.T)
-    a, b, d = A[0, 0], 0.5 * (A[0, 1] + A[1, 0]), A[1, 1]
-    A = jnp.stack([jnp.stack([a, b]), jnp.stack([b, d])])
+    A = 0.5 * (A + A.T)
+    a, b, d = A[0, 0], A[0, 1], A[1, 1]
     t = a + d  # [1/kg]
     p = jnp.maximum(a * d - b * b, 0.0)  # [1/kg^2]
     lam2 = damping**2

@@ -95,15 +95,6 @@ def edge_visibility(face_visible: Array) -> Array:
     return jnp.any(face_visible[..., EDGE_FACES], axis=-1)
 
 
-def corner_visibility(face_visible: Array) -> Array:
-    """(..., 8) bool: a corner is visible iff one of its faces is."""
-    member = np.zeros((6, 8), bool)
-    for f in range(6):
-        member[f, FACES[f]] = True
-    member = jnp.asarray(member).reshape((1,) * (face_visible.ndim - 1) + (6, 8))
-    return jnp.any(face_visible[..., :, None] & member, axis=-2)
-
-
 def project_edges(pose: Pose, size, intrinsics: Array) -> Array:
     """(..., 12, 2, 2) pixel end points [px] of the 12 edges."""
     return project_corners(pose, size, intrinsics)[..., EDGES, :]
