@@ -48,6 +48,41 @@ def test_stability_by_construction_under_random_weights():
         assert np.min(margins) >= config.margin * 0.999  # at least margin x min(M_e) (M_e >= 1)
 
 
+def test_apply_matches_the_flax_reference_module():
+    """``apply`` (weights (out, in), multiply-and-sum layers) against Flax ``nn.Dense`` layers
+    (kernels (in, out), matrix products) on the same weights, for a non-default structure too."""
+    for config in (NetConfig(), NetConfig(n_axes=3, hidden=(7, 5, 3), theta=-0.4)):
+        key, k_in, k_w = jax.random.split(jax.random.PRNGKey(len(config.hidden)), 3)
+        params = nets.init_params(key, config, jnp.float64)
+        # random weights everywhere (the initial output layer is nearly zero)
+        leaves, tree = jax.tree_util.tree_flatten(params)
+        noise = jax.random.split(k_w, len(leaves))
+        params = jax.tree_util.tree_unflatten(
+            tree,
+            [
+                w + jax.random.normal(kk, w.shape, w.dtype)
+                for w, kk in zip(leaves, noise, strict=True)
+            ],
+        )
+        flax_params = nets.to_flax(params, len(config.hidden))
+        back = nets.from_flax(flax_params, len(config.hidden))
+        for a, b in zip(
+            jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(back), strict=True
+        ):
+            np.testing.assert_array_equal(a, b)
+        inputs = jax.random.normal(k_in, (64, config.n_axes, 4), jnp.float64)
+        u = jnp.arange(1.0, 1.0 + 3 * config.n_axes).reshape(config.n_axes, 3)
+        got = jax.vmap(nets.apply, in_axes=(None, None, 0, None))(params, config, inputs, u)
+        model = nets.FlaxMlp(config.hidden, config.init_output_std)
+        per_net = lambda p, x, model=model: model.apply({"params": p}, x)  # noqa: E731
+        pre = jax.vmap(jax.vmap(jax.vmap(per_net, (0, None)), (0, 0)), (None, 0))(
+            flax_params, inputs
+        )
+        want = np.asarray(u) / 2 * np.tanh((np.asarray(pre) - config.theta) / 2)
+        assert got.shape == (64, config.n_axes, 3)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
 def test_gain_functions_eq62_eq66():
     r, r_b = 0.25, 0.06
     rho = jnp.array([0.0, 0.03, r_b, (r + r_b) / 2, r, 0.3])
@@ -130,29 +165,30 @@ def test_update_equals_hand_computed_update_1d():
     np.testing.assert_allclose(out.de_df_act, [g], rtol=1e-12)
     o = np.zeros(3)
     for k in range(3):
-        w1, b1 = p["Dense_0"]["kernel"][k], p["Dense_0"]["bias"][k]
-        w2, b2 = p["Dense_1"]["kernel"][k], p["Dense_1"]["bias"][k]
-        w3, b3 = p["Dense_2"]["kernel"][k], p["Dense_2"]["bias"][k]
-        y1 = _sigmoid(net_in @ w1 + b1)
-        y2 = _sigmoid(y1 @ w2 + b2)
-        x = y2 @ w3 + b3
-        th = np.tanh((x[0] - cfg.net.theta) / 2)
+        # weights (out, in) as Eq. 50 indexes them: w_ij from unit j to unit i
+        w1, b1 = p["hidden_0"]["weight"][k], p["hidden_0"]["bias"][k]
+        w2, b2 = p["hidden_1"]["weight"][k], p["hidden_1"]["bias"][k]
+        w3, b3 = p["output"]["weight"][k], p["output"]["bias"][k]
+        y1 = _sigmoid(w1 @ net_in + b1)
+        y2 = _sigmoid(w2 @ y1 + b2)
+        x = w3 @ y2 + b3
+        th = np.tanh((x - cfg.net.theta) / 2)
         o[k] = u[k] / 2 * th
         delta = g * terms[k] * u[k] / 4 * (1 - th**2)  # dE/dx of the output unit
         eta = cfg.eta[k]
         np.testing.assert_allclose(
-            np.asarray(new_state.params["Dense_2"]["bias"][0, k]), b3 - eta * delta, rtol=1e-10
+            np.asarray(new_state.params["output"]["bias"][0, k]), b3 - eta * delta, rtol=1e-10
         )
         np.testing.assert_allclose(
-            np.asarray(new_state.params["Dense_2"]["kernel"][0, k]),
-            w3 - eta * delta * y2[:, None],
+            np.asarray(new_state.params["output"]["weight"][0, k]),
+            w3 - eta * delta * y2,
             rtol=1e-10,
         )
-        delta2 = (w3[:, 0] * delta) * y2 * (1 - y2)
-        delta1 = (w2 @ delta2) * y1 * (1 - y1)
+        delta2 = (w3 * delta) * y2 * (1 - y2)
+        delta1 = (delta2 @ w2) * y1 * (1 - y1)
         np.testing.assert_allclose(
-            np.asarray(new_state.params["Dense_0"]["kernel"][0, k]),
-            w1 - eta * np.outer(net_in, delta1),
+            np.asarray(new_state.params["hidden_0"]["weight"][0, k]),
+            w1 - eta * np.outer(delta1, net_in),
             rtol=1e-10,
             atol=1e-16,
         )

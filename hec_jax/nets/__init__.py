@@ -2,13 +2,17 @@
 
 from hec_jax.nets.impedance_nets import (
     KINDS,
+    FlaxMlp,
     NetConfig,
     apply,
+    from_flax,
     init_params,
     normalise_inputs,
     output_unit,
     output_unit_derivative,
+    pre_activation,
     stability_margins,
+    to_flax,
     u_max,
 )
 from hec_jax.nets.learner import (
@@ -24,6 +28,7 @@ from hec_jax.nets.learner import (
 )
 
 __all__ = [
+    "FlaxMlp",
     "KINDS",
     "LearnerConfig",
     "LearnerInputs",
@@ -32,6 +37,7 @@ __all__ = [
     "NetConfig",
     "SphereGeometry",
     "apply",
+    "from_flax",
     "gain_alpha",
     "gain_beta",
     "init_params",
@@ -39,7 +45,9 @@ __all__ = [
     "normalise_inputs",
     "output_unit",
     "output_unit_derivative",
+    "pre_activation",
     "stability_margins",
     "task_energy",
+    "to_flax",
     "u_max",
 ]
