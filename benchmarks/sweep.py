@@ -1,7 +1,7 @@
 """Sweep throughput: closed-loop learning rollouts over 1, 2, 4, ... devices vs MuJoCo C.
 
     python benchmarks/sweep.py [--batch 4096] [--steps 500] [--float32] [--per-device]
-        [--solver-iterations 4 8]
+        [--solver-iterations 4 8] [--warp]
 
 One run prints a table: steps/s of the catching loop with online learning (``experiments/sweep.py``'s
 vmapped function: MJX physics + impedance control + learner), its run axis laid out over the first
@@ -16,7 +16,10 @@ one device's memory does). The gradient-cost rows time, in the same run, the exa
 catching loop with respect to all network weights (implicit derivative of the constraint solve,
 per-step rematerialisation, the scene's solver settings: ``benchmarks/gradients.py``'s ``catching``
 case) against its forward rollout, on ``--grad-batch`` conditions that reach the hand over
-``--grad-steps`` samples (1 s by default; ``--grad-batch 0`` skips them).
+``--grad-steps`` samples (1 s by default; ``--grad-batch 0`` skips them). With ``--warp`` the
+physics-alone row is repeated on MuJoCo Warp (``mjx.put_model(m, impl="warp")``, the same scan;
+needs ``pip install -e ".[warp]"``), with the largest difference of its results from MJX's: the
+learning loop itself runs on MJX's JAX implementation only (its staged calls have no Warp version).
 """
 
 from __future__ import annotations
@@ -67,6 +70,11 @@ def main(argv=None):
     p.add_argument("--c-repeats", type=int, default=3, help="timed repeats of mujoco.rollout")
     p.add_argument("--grad-batch", type=int, default=16, help="0: no gradient-cost row")
     p.add_argument("--grad-steps", type=int, default=1000, help="gradient horizon [1 ms samples]")
+    p.add_argument(
+        "--warp",
+        action="store_true",
+        help="also time physics alone on MuJoCo Warp (MJX impl='warp', needs warp-lang)",
+    )
     args = p.parse_args(argv)
     B, T = args.batch, args.steps
     config = tl.TaskConfig(
@@ -117,34 +125,49 @@ def main(argv=None):
     m = load_mj_model()
     if args.solver_iterations is not None:  # the same solver settings as the MJX loop
         m.opt.iterations, m.opt.ls_iterations = args.solver_iterations
-    mx = mjx.put_model(m)
-    d0 = mjx.make_data(mx)
     hinge_adr = int(m.jnt_qposadr[m.joint("hinge").id])
 
-    @jax.jit
-    def physics_only(release):
-        def one(angle):
-            def step(d, _):
-                d = mjx.step(mx, d)
-                return d, d.qpos[hinge_adr]
+    def physics_row(impl):
+        """Times ``mjx.step`` in a scan (zero torques) with MJX's ``impl``; returns the rate, the
+        row and each run's largest hinge angle (to compare implementations)."""
+        mx = mjx.put_model(m, impl=impl)
+        if impl == "warp":  # contact buffers are shared by all worlds: one hand-cube contact each
+            d0 = mjx.make_data(m, impl="warp", naconmax=max(B, 8), njmax=16)
+        else:
+            d0 = mjx.make_data(mx)
 
-            d = d0.replace(qpos=d0.qpos.at[hinge_adr].set(angle))
-            return jnp.max(jax.lax.scan(step, d, None, length=T)[1])
+        @jax.jit
+        def physics_only(release):
+            def one(angle):
+                def step(d, _):
+                    d = mjx.step(mx, d)
+                    return d, d.qpos[hinge_adr]
 
-        return jax.vmap(one)(release)
+                d = d0.replace(qpos=d0.qpos.at[hinge_adr].set(angle))
+                return jnp.max(jax.lax.scan(step, d, None, length=T)[1])
 
-    t0 = time.perf_counter()
-    jax.block_until_ready(physics_only(release))
-    compile_s = time.perf_counter() - t0
-    wall = best_of(lambda: jax.block_until_ready(physics_only(release)))
-    phys_rate = B * T / wall
-    rows.append(
-        (
-            f"MJX physics only (mjx.step scan), 1 device, batch {B}",
-            f"{phys_rate:.3g}",
+            return jax.vmap(one)(release)
+
+        t0 = time.perf_counter()
+        result = np.asarray(jax.block_until_ready(physics_only(release)))
+        compile_s = time.perf_counter() - t0
+        wall = best_of(lambda: jax.block_until_ready(physics_only(release)))
+        rate = B * T / wall
+        what = "MJX physics only (mjx.step scan)" if impl == "jax" else "MuJoCo Warp physics only"
+        row = (
+            f"{what}, 1 device, batch {B}",
+            f"{rate:.3g}",
             f"compile {compile_s:.0f} s, best of 3: {wall:.2f} s",
         )
-    )
+        return rate, row, result
+
+    phys_rate, row, hinge_max = physics_row("jax")
+    rows.append(row)
+    warp_rate = None
+    if args.warp:
+        warp_rate, row, hinge_max_warp = physics_row("warp")
+        diff = float(np.max(np.abs(hinge_max_warp - hinge_max)))
+        rows.append((row[0], row[1], f"{row[2]}; largest hinge angle differs by {diff:.1e} rad"))
 
     d = mujoco.MjData(m)
     nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)
@@ -211,6 +234,11 @@ def main(argv=None):
         f"learning loop on one device); learning loop on 1 device / MJX physics only = "
         f"{rates[counts[0]] / phys_rate:.2f}"
     )
+    if warp_rate is not None:
+        print(
+            f"  MuJoCo Warp physics only / mujoco.rollout = {warp_rate / c_rate:.2f}; "
+            f"/ MJX physics only = {warp_rate / phys_rate:.2f}"
+        )
     if grad_ratio is not None:
         print(f"  exact gradient / forward rollout (catching, 1 device) = {grad_ratio:.2f}")
     for n in counts:
