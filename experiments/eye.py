@@ -8,16 +8,19 @@ Outputs in --out: config.json, metrics.json, track.npz, state.png, rotation_erro
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 
-import cv2
-import mujoco
-import numpy as np
+os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering (before mujoco is imported)
 
-from hec_jax.geometry import rotation_error_deg
-from hec_jax.geometry.render import render_rollout
-from hec_jax.runs import save_figure, start_run, write_json, write_npz
+import cv2  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+from hec_jax.geometry import rotation_error_deg  # noqa: E402
+from hec_jax.geometry.render import render_rollout  # noqa: E402
+from hec_jax.runs import save_figure, start_run, write_json, write_npz  # noqa: E402
 
 FPS = 30.0
 EDGE = 0.1
