@@ -1,6 +1,6 @@
 """Network step throughput: ``hec_jax.nets.apply`` against the Flax ``nn.Dense`` reference.
 
-    python benchmarks/nets.py [--batch 65536] [--steps 200] [--float64]
+    python benchmarks/nets.py [--batch 4096] [--steps 200] [--float64]
 
 The online learner runs, once per sample and per run, the six 4-20-20-1 networks forward, one
 vector-Jacobian product back to their weights and the update of Eq. 52 (``hec_jax.nets.learner``).

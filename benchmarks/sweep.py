@@ -25,6 +25,7 @@ learning loop itself runs on MJX's JAX implementation only (its staged calls hav
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 import sys
 import time
@@ -76,6 +77,8 @@ def main(argv=None):
         help="also time physics alone on MuJoCo Warp (MJX impl='warp', needs warp-lang)",
     )
     args = p.parse_args(argv)
+    if args.warp and importlib.util.find_spec("warp") is None:  # fail before the long rows
+        p.error('--warp needs warp-lang: pip install -e ".[warp]"')
     B, T = args.batch, args.steps
     config = tl.TaskConfig(
         learner=LearnerConfig(task="catching", r_b=0.085, eta=(0.3,) * 3),
@@ -129,7 +132,7 @@ def main(argv=None):
 
     def physics_row(impl):
         """Times ``mjx.step`` in a scan (zero torques) with MJX's ``impl``; returns the rate, the
-        row and each run's largest hinge angle (to compare implementations)."""
+        row and each run's largest hinge angle and final qpos (to compare implementations)."""
         mx = mjx.put_model(m, impl=impl)
         if impl == "warp":  # contact buffers are shared by all worlds: one hand-cube contact each
             d0 = mjx.make_data(m, impl="warp", naconmax=max(B, 8), njmax=16)
@@ -144,12 +147,13 @@ def main(argv=None):
                     return d, d.qpos[hinge_adr]
 
                 d = d0.replace(qpos=d0.qpos.at[hinge_adr].set(angle))
-                return jnp.max(jax.lax.scan(step, d, None, length=T)[1])
+                d, hinge = jax.lax.scan(step, d, None, length=T)
+                return jnp.max(hinge), d.qpos
 
             return jax.vmap(one)(release)
 
         t0 = time.perf_counter()
-        result = np.asarray(jax.block_until_ready(physics_only(release)))
+        result = [np.asarray(x) for x in jax.block_until_ready(physics_only(release))]
         compile_s = time.perf_counter() - t0
         wall = best_of(lambda: jax.block_until_ready(physics_only(release)))
         rate = B * T / wall
@@ -161,13 +165,22 @@ def main(argv=None):
         )
         return rate, row, result
 
-    phys_rate, row, hinge_max = physics_row("jax")
+    phys_rate, row, jax_result = physics_row("jax")
     rows.append(row)
     warp_rate = None
     if args.warp:
-        warp_rate, row, hinge_max_warp = physics_row("warp")
-        diff = float(np.max(np.abs(hinge_max_warp - hinge_max)))
-        rows.append((row[0], row[1], f"{row[2]}; largest hinge angle differs by {diff:.1e} rad"))
+        warp_rate, row, warp_result = physics_row("warp")
+        hinge_diff, qpos_diff = (
+            float(np.max(np.abs(w - j))) for w, j in zip(warp_result, jax_result, strict=True)
+        )
+        rows.append(
+            (
+                row[0],
+                row[1],
+                f"{row[2]}; vs MJX: largest hinge angle {hinge_diff:.1e} rad, final qpos "
+                f"{qpos_diff:.1e} rad",
+            )
+        )
 
     d = mujoco.MjData(m)
     nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)

@@ -157,7 +157,12 @@ def pre_activation(params: dict, inputs: Array) -> Array:
         params: from :func:`init_params`.
         inputs: (n_axes, 4) normalised inputs of each axis, shared by its three networks.
     """
-    n_hidden = len(params) - 1
+    if "output" not in params:
+        raise ValueError(
+            "params need 'hidden_<l>' and 'output' entries (weights (out, in)); got keys "
+            f"{sorted(params)} (Flax 'Dense_<l>' params convert with from_flax)"
+        )
+    n_hidden = sum(key.startswith("hidden_") for key in params)
     y = inputs[:, None, :]  # (n_axes, 1, 4): broadcast over the kinds
     for layer in range(n_hidden):
         hidden = params[f"hidden_{layer}"]
