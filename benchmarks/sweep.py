@@ -1,7 +1,7 @@
 """Sweep throughput: closed-loop learning rollouts over 1, 2, 4, ... devices vs MuJoCo C.
 
     python benchmarks/sweep.py [--batch 4096] [--steps 500] [--float32] [--per-device]
-        [--solver-iterations 4 8] [--warp]
+        [--solver-iterations 4 8] [--solver cg] [--jacobian sparse] [--warp]
 
 One run prints a table: steps/s of the catching loop with online learning (``experiments/sweep.py``'s
 vmapped function: MJX physics + impedance control + learner), its run axis laid out over the first
@@ -20,6 +20,10 @@ case) against its forward rollout, on ``--grad-batch`` conditions that reach the
 physics-alone row is repeated on MuJoCo Warp (``mjx.put_model(m, impl="warp")``, the same scan;
 needs ``pip install -e ".[warp]"``), with the largest difference of its results from MJX's: the
 learning loop itself runs on MJX's JAX implementation only (its staged calls have no Warp version).
+``--solver`` / ``--jacobian`` set MuJoCo's ``opt.solver`` / ``opt.jacobian`` on every row (MJX and C
+alike, ``hec_jax.mjx_scene.set_solver_options``); when they differ from scene.xml's, MuJoCo C is
+timed with scene.xml's as well and the ratios use the faster C row, so that a setting that suits MJX
+cannot make the baseline look slower.
 """
 
 from __future__ import annotations
@@ -48,7 +52,12 @@ from mujoco import rollout as mj_rollout  # noqa: E402
 
 from benchmarks.gradients import _compiled, _timed, catching_case  # noqa: E402
 from experiments import task_loop as tl  # noqa: E402
-from hec_jax.mjx_scene import PendulumConditions, default_conditions, load_mj_model  # noqa: E402
+from hec_jax.mjx_scene import (  # noqa: E402
+    PendulumConditions,
+    default_conditions,
+    load_mj_model,
+    set_solver_options,
+)
 from hec_jax.nets import LearnerConfig  # noqa: E402
 
 
@@ -68,6 +77,8 @@ def main(argv=None):
     p.add_argument("--float32", action="store_true")
     p.add_argument("--per-device", action="store_true", help="--batch runs on every device")
     p.add_argument("--solver-iterations", type=int, nargs=2, default=None, metavar=("IT", "LS"))
+    p.add_argument("--solver", choices=("newton", "cg"), default=None, help="opt.solver")
+    p.add_argument("--jacobian", choices=("dense", "sparse"), default=None, help="opt.jacobian")
     p.add_argument("--c-repeats", type=int, default=3, help="timed repeats of mujoco.rollout")
     p.add_argument("--grad-batch", type=int, default=16, help="0: no gradient-cost row")
     p.add_argument("--grad-steps", type=int, default=1000, help="gradient horizon [1 ms samples]")
@@ -86,6 +97,8 @@ def main(argv=None):
         swings=1,
         solver_iterations=None if args.solver_iterations is None else args.solver_iterations[0],
         ls_iterations=None if args.solver_iterations is None else args.solver_iterations[1],
+        solver=args.solver,
+        jacobian=args.jacobian,
     )
     sweep = tl.make_sweep(config)
     base = default_conditions()
@@ -125,9 +138,13 @@ def main(argv=None):
 
     _, _, release = batch_of(B)
 
-    m = load_mj_model()
-    if args.solver_iterations is not None:  # the same solver settings as the MJX loop
-        m.opt.iterations, m.opt.ls_iterations = args.solver_iterations
+    m = set_solver_options(  # the same solver settings as the MJX loop
+        load_mj_model(),
+        config.solver_iterations,
+        config.ls_iterations,
+        config.solver,
+        config.jacobian,
+    )
     hinge_adr = int(m.jnt_qposadr[m.joint("hinge").id])
 
     def physics_row(impl):
@@ -182,27 +199,40 @@ def main(argv=None):
             )
         )
 
-    d = mujoco.MjData(m)
-    nstate = mujoco.mj_stateSize(m, mujoco.mjtState.mjSTATE_FULLPHYSICS)
-    states = np.zeros((B, nstate))
-    for i, angle in enumerate(np.asarray(release)):
-        mujoco.mj_resetData(m, d)
-        d.qpos[m.jnt_qposadr[m.joint("hinge").id]] = angle
-        mujoco.mj_getState(m, d, states[i], mujoco.mjtState.mjSTATE_FULLPHYSICS)
-    ctrl = np.zeros((B, T, m.nu))
-    threads = os.cpu_count() or 1
-    datas = [mujoco.MjData(m) for _ in range(threads)]
-    with mj_rollout.Rollout(nthread=threads) as r:
-        r.rollout([m] * B, datas, states, ctrl)
-        wall = best_of(lambda: r.rollout([m] * B, datas, states, ctrl), args.c_repeats)
-    c_rate = B * T / wall
-    rows.append(
-        (
-            f"MuJoCo C mujoco.rollout, physics only, {threads} threads, batch {B}",
-            f"{c_rate:.3g}",
-            f"best of {args.c_repeats}: {wall:.2f} s",
+    def c_row(m_c, what):
+        """Times MuJoCo C's ``mujoco.rollout`` (zero torques, all host cores) on ``m_c``."""
+        d = mujoco.MjData(m_c)
+        nstate = mujoco.mj_stateSize(m_c, mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        states = np.zeros((B, nstate))
+        for i, angle in enumerate(np.asarray(release)):
+            mujoco.mj_resetData(m_c, d)
+            d.qpos[hinge_adr] = angle
+            mujoco.mj_getState(m_c, d, states[i], mujoco.mjtState.mjSTATE_FULLPHYSICS)
+        ctrl = np.zeros((B, T, m_c.nu))
+        threads = os.cpu_count() or 1
+        datas = [mujoco.MjData(m_c) for _ in range(threads)]
+        with mj_rollout.Rollout(nthread=threads) as r:
+            r.rollout([m_c] * B, datas, states, ctrl)
+            wall = best_of(lambda: r.rollout([m_c] * B, datas, states, ctrl), args.c_repeats)
+        rows.append(
+            (
+                f"MuJoCo C mujoco.rollout, physics only, {threads} threads, batch {B}",
+                f"{B * T / wall:.3g}",
+                f"{what}, best of {args.c_repeats}: {wall:.2f} s",
+            )
         )
-    )
+        return B * T / wall
+
+    def solver_name(m_c):
+        return (
+            f"{mujoco.mjtSolver(m_c.opt.solver).name}, {mujoco.mjtJacobian(m_c.opt.jacobian).name}"
+        )
+
+    c_rates = [c_row(m, f"same settings ({solver_name(m)})")]
+    m_scene = set_solver_options(load_mj_model(), config.solver_iterations, config.ls_iterations)
+    if (m_scene.opt.solver, m_scene.opt.jacobian) != (m.opt.solver, m.opt.jacobian):
+        c_rates.append(c_row(m_scene, f"scene.xml's {solver_name(m_scene)}"))
+    c_rate = max(c_rates)  # the baseline: MuJoCo C at its fastest of the settings timed
 
     grad_ratio = None
     if args.grad_batch > 0:
@@ -236,12 +266,12 @@ def main(argv=None):
     print(
         f"\n{jax.devices()[0].device_kind} x {n_dev} ({jax.default_backend()}), {dtype}, "
         f"batch {B}{' per device' if args.per_device else ''}, {T} steps per run, solver "
-        f"iterations {m.opt.iterations} / line search {m.opt.ls_iterations}\n"
+        f"iterations {m.opt.iterations} / line search {m.opt.ls_iterations}, {solver_name(m)}\n"
     )
-    print(f"{'what':55s} {'steps/s':>10s}  notes")
+    print(f"{'what':62s} {'steps/s':>10s}  notes")
     for what, rate, note in rows:
-        print(f"{what:55s} {rate:>10s}  {note}")
-    print("\nratios:")
+        print(f"{what:62s} {rate:>10s}  {note}")
+    print("\nratios (against the fastest MuJoCo C row):")
     print(
         f"  MJX physics only / mujoco.rollout = {phys_rate / c_rate:.2f} (the bound for the "
         f"learning loop on one device); learning loop on 1 device / MJX physics only = "

@@ -74,6 +74,19 @@ def parse(argv=None):
         metavar=("ITER", "LS_ITER"),
         help="cap MuJoCo's opt.iterations / opt.ls_iterations (default: scene.xml's 100 / 50)",
     )
+    p.add_argument(
+        "--solver",
+        choices=("newton", "cg"),
+        default=None,
+        help="MuJoCo's opt.solver (default: scene.xml's Newton)",
+    )
+    p.add_argument(
+        "--jacobian",
+        choices=("dense", "sparse"),
+        default=None,
+        help="MuJoCo's opt.jacobian (default: scene.xml's auto = dense); cg + sparse is the "
+        "fastest on a GPU",
+    )
     p.add_argument("--shard-index", type=int, default=0)
     p.add_argument("--num-shards", type=int, default=1)
     p.add_argument("--merge-only", action="store_true")
@@ -201,6 +214,7 @@ def main(argv=None):
                 solver_iterations=args.solver_iterations[0],
                 ls_iterations=args.solver_iterations[1],
             )
+        config = dataclasses.replace(config, solver=args.solver, jacobian=args.jacobian)
         n_dev = jax.device_count()
         sharding = None
         if n_dev > 1 and args.chunk % n_dev == 0:

@@ -35,6 +35,7 @@ from hec_jax.mjx_scene import (
     make_data,
     rollout,
     scene_ids,
+    set_solver_options,
     solve_posture,
 )
 from hec_jax.mjx_scene.model import CUBE_EDGE, HAND_RADIUS
@@ -78,6 +79,12 @@ class TaskConfig:
     # batch iterates until its slowest member converges; sweeps cap it (see experiments/sweep.py).
     solver_iterations: int | None = None
     ls_iterations: int | None = None
+    # Solver algorithm and inertia layout (``opt.solver`` "newton" / "cg", ``opt.jacobian``
+    # "dense" / "sparse"); None keeps scene.xml's (Newton, dense). "cg" + "sparse" runs the same
+    # physics without batched Cholesky factorisations, the fastest on a GPU
+    # (``hec_jax.mjx_scene.set_solver_options``).
+    solver: str | None = None
+    jacobian: str | None = None
 
 
 def with_contact(mx, config: TaskConfig):
@@ -308,10 +315,9 @@ def build_loop(config: TaskConfig, pendulum: PendulumConditions) -> Loop:
     lc = config.learner
     m_c = load_mj_model()
     ids = scene_ids(m_c)
-    if config.solver_iterations is not None:
-        m_c.opt.iterations = config.solver_iterations
-    if config.ls_iterations is not None:
-        m_c.opt.ls_iterations = config.ls_iterations
+    set_solver_options(
+        m_c, config.solver_iterations, config.ls_iterations, config.solver, config.jacobian
+    )
     mx_base = load_mjx_model(m_c)
     if config.hinge_x is not None:  # move the ceiling hinge (the rod's parent body) along x
         ceiling = int(m_c.body_parentid[ids.rod_body])

@@ -104,6 +104,51 @@ def test_operational_inertia_closed_form_matches_eigh(damping):
             np.testing.assert_allclose(np.asarray(Mx32), ref, atol=1e-4 * scale * cond_ref)
 
 
+def test_solve_spd_matches_numpy_and_its_derivative_central_differences():
+    """The unrolled Cholesky solve equals NumPy's LU solve on random SPD matrices (n = 1..5,
+    condition numbers up to ~1e6) in float64, reads only the lower triangle, and its derivative in
+    A and B equals central differences; float32 to its precision."""
+    rng = np.random.default_rng(11)
+    for n in range(1, 6):
+        for k in range(10):
+            Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+            s = 10.0 ** rng.uniform(-3 * (k % 3), 0, size=n)
+            A = (Q * s) @ Q.T + 1e-3 * np.eye(n)
+            B = rng.normal(size=(n, 2))
+            ref = np.linalg.solve(A, B)
+            cond = np.linalg.cond(A)
+            x = np.asarray(C.solve_spd(jnp.asarray(A), jnp.asarray(B)))
+            np.testing.assert_allclose(x, ref, rtol=0, atol=1e-13 * cond * np.abs(ref).max())
+            upper_garbage = np.triu(rng.normal(size=(n, n)), 1)  # only tril is read
+            x_tril = np.asarray(C.solve_spd(jnp.asarray(np.tril(A) + upper_garbage), B))
+            np.testing.assert_array_equal(x_tril, x)
+            if cond < 100:
+                x32 = C.solve_spd(jnp.asarray(A, jnp.float32), jnp.asarray(B, jnp.float32))
+                assert x32.dtype == jnp.float32
+                np.testing.assert_allclose(
+                    np.asarray(x32), ref, atol=1e-5 * cond * np.abs(ref).max()
+                )
+    A = jnp.asarray(np.array([[2.0, 0.3, 0.1], [0.3, 1.5, -0.2], [0.1, -0.2, 1.0]]))
+    B = jnp.asarray(rng.normal(size=(3, 2)))
+    W = jnp.asarray(rng.normal(size=(3, 2)))
+
+    def f(A, B):  # symmetric use of A, as for M(theta)
+        return jnp.sum(W * C.solve_spd(0.5 * (A + A.T), B))
+
+    gA, gB = jax.grad(f, argnums=(0, 1))(A, B)
+    ref_gA, ref_gB = jax.grad(
+        lambda A, B: jnp.sum(W * jnp.linalg.solve(0.5 * (A + A.T), B)), argnums=(0, 1)
+    )(A, B)
+    np.testing.assert_allclose(np.asarray(gA), np.asarray(ref_gA), rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(gB), np.asarray(ref_gB), rtol=1e-12, atol=1e-14)
+    h = 1e-6
+    e = jnp.zeros((3, 3)).at[2, 0].set(h)
+    fd = (float(f(A + e, B)) - float(f(A - e, B))) / (2 * h)
+    np.testing.assert_allclose(float(gA[2, 0]), fd, rtol=1e-7)
+    with pytest.raises(ValueError, match="need A"):
+        C.solve_spd(jnp.eye(3), jnp.zeros((2, 2)))
+
+
 def test_operational_inertia_derivative_finite_at_equal_eigenvalues():
     """A = J M^-1 J^T = c I (equal eigenvalues, where the derivative of an eigendecomposition is
     singular): finite derivative, equal to central differences."""

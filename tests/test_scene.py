@@ -245,3 +245,48 @@ def test_conditions_validation():
         S.validate_conditions(S.default_conditions(cube_mass=0.0))
     with pytest.raises(ValueError):
         S.default_conditions(rod_lenght=0.5)
+
+
+def test_cg_sparse_solver_matches_c_and_newton():
+    """``set_solver_options(..., "cg", "sparse")`` (no batched Cholesky in an MJX step): MJX's
+    constraint solve equals MuJoCo C's with the same settings, and both equal scene.xml's Newton
+    solve, at states with the hand pressing into the cube (one active contact) and without."""
+    mm_newton = S.load_mj_model()
+    mm_cg = S.set_solver_options(S.load_mj_model(), 8, 8, "cg", "sparse")
+    assert mm_cg.opt.solver == mujoco.mjtSolver.mjSOL_CG
+    assert mm_cg.opt.jacobian == mujoco.mjtJacobian.mjJAC_SPARSE
+    ids = S.scene_ids(mm_cg)
+    mx = S.load_mjx_model(mm_cg)
+    q_home = S.solve_posture(mm_cg, ids, S.X_HOME)
+    qpos = np.zeros((N_BATCH, 4))
+    qpos[:, :3] = q_home
+    qpos[:, 3] = np.arcsin((np.array([0.57, 0.565, 0.56, 0.2]) - 0.35) / 0.65)  # 3 in contact
+    qvel = np.array([[0.3, -0.2, 0.5, 1.0], [0.0, 0.0, 0.0, 0.5], [1.0, 0.5, -0.5, 2.0], [0.0] * 4])
+    ctrl = np.array([[5.0, -3.0, 1.0], [0.0, 0.0, 0.0], [-8.0, 4.0, 2.0], [1.0, 1.0, 1.0]])
+
+    def one(qpos, qvel, ctrl):
+        d = mjx.make_data(mx).replace(qpos=qpos, qvel=qvel, ctrl=ctrl)
+        with _mjx_ctx():
+            d = mjx.forward(mx, d)
+        return d.qacc, S.hand_contact_force(mx, d, ids)
+
+    qacc_mjx, f_mjx = jax.tree.map(np.asarray, jax.jit(jax.vmap(one))(qpos, qvel, ctrl))
+    for i in range(N_BATCH):
+        qacc = {}
+        for name, mm in (("cg", mm_cg), ("newton", mm_newton)):
+            d = mujoco.MjData(mm)
+            d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[i], qvel[i], ctrl[i]
+            mujoco.mj_forward(mm, d)
+            assert d.ncon == (1 if i < 3 else 0)
+            qacc[name] = d.qacc.copy()
+        # iterative solves that stop at opt.tolerance (1e-8, relative): agreement to 10x that
+        tol = 10 * mm_cg.opt.tolerance * np.abs(qacc["newton"]).max()
+        np.testing.assert_allclose(qacc_mjx[i], qacc["cg"], rtol=0, atol=tol)
+        np.testing.assert_allclose(qacc["cg"], qacc["newton"], rtol=0, atol=tol)
+    assert np.all(np.linalg.norm(f_mjx[:3], axis=-1) > 1.0) and np.all(f_mjx[3] == 0)
+    with pytest.raises(ValueError, match="solver"):
+        S.set_solver_options(S.load_mj_model(), solver="pgs")
+    with pytest.raises(ValueError, match="jacobian"):
+        S.set_solver_options(S.load_mj_model(), jacobian="banded")
+    with pytest.raises(ValueError, match="iterations"):
+        S.set_solver_options(S.load_mj_model(), iterations=0)

@@ -15,6 +15,7 @@ from hec_jax.control.impedance import (
     impedance_torque,
     make_impedance_controller,
     operational_inertia,
+    solve_spd,
 )
 from hec_jax.control.kinematics import (
     TaskObs,
@@ -55,6 +56,7 @@ __all__ = [
     "observe",
     "observe_c",
     "operational_inertia",
+    "solve_spd",
     "project_stable",
     "sphere_kinematics",
     "task_jacobians",

@@ -125,6 +125,33 @@ class ControllerConfig:
 DEFAULT_CONFIG = ControllerConfig()
 
 
+def solve_spd(A: jax.Array, B: jax.Array) -> jax.Array:
+    """A^-1 B for a small symmetric positive definite A (n, n), B (n, k), n static.
+
+    Cholesky factorisation A = L L^T and the two triangular solves, unrolled over the (static)
+    entries: elementwise arithmetic only, so that under ``vmap`` on a GPU it is one fused kernel
+    instead of a batched LU factorisation and solves (library calls); ``jit``, ``vmap`` and
+    ``grad`` go through it. Only the lower triangle of A is read. Meant for the arm's 3 x 3
+    joint-space inertia M(theta) (SPD: armature on every joint); an A that is not positive definite
+    gives NaN, as a singular matrix gives inf/NaN in ``jnp.linalg.solve``.
+    """
+    n = A.shape[-1]
+    if A.shape != (n, n) or B.shape[0] != n:
+        raise ValueError(f"need A (n, n) and B (n, ...), got {A.shape} and {B.shape}")
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        L[j][j] = jnp.sqrt(A[j, j] - sum(L[j][k] * L[j][k] for k in range(j)))
+        for i in range(j + 1, n):
+            L[i][j] = (A[i, j] - sum(L[i][k] * L[j][k] for k in range(j))) / L[j][j]
+    y = []  # L y = B
+    for i in range(n):
+        y.append((B[i] - sum(L[i][k] * y[k] for k in range(i))) / L[i][i])
+    x = [None] * n  # L^T x = y
+    for i in reversed(range(n)):
+        x[i] = (y[i] - sum(L[k][i] * x[k] for k in range(i + 1, n))) / L[i][i]
+    return jnp.stack(x)
+
+
 def operational_inertia(M: jax.Array, J: jax.Array, damping: float) -> tuple[jax.Array, jax.Array]:
     """Eq. 44, M_x = (J M^-1 J^T)^-1 [kg] (2, 2), with a damped inverse; also its condition number.
 
@@ -139,9 +166,10 @@ def operational_inertia(M: jax.Array, J: jax.Array, damping: float) -> tuple[jax
     (at lambda = 0: (t I - A) / p = A^-1). No eigendecomposition: smooth in A for lambda > 0, also
     where s1 = s2 (there the derivative of an eigendecomposition is singular), and on a GPU one
     fused elementwise kernel instead of a batched ``eigh``. p is clamped at 0 (A is PSD up to
-    rounding). cond = s_max / s_min = s_max^2 / p (inf at a singularity).
+    rounding). cond = s_max / s_min = s_max^2 / p (inf at a singularity). M^-1 J^T comes from
+    :func:`solve_spd` (unrolled Cholesky, no batched LU on a GPU).
     """
-    A = J @ jnp.linalg.solve(M, J.T)
+    A = J @ solve_spd(M, J.T)
     A = 0.5 * (A + A.T)
     a, b, d = A[0, 0], A[0, 1], A[1, 1]
     t = a + d  # [1/kg]
@@ -199,7 +227,7 @@ def impedance_torque(
     f_int_term = obs.f_int - M_x @ (inv_m_e * obs.f_int)  # (I - M_x M_e^-1) F_int [N]
     tau_eff = J.T @ (M_x @ acc - f_int_term)
     # Eq. 43: J^T M_x J M^-1 h = J^T Jbar^T h, Jbar = M^-1 J^T M_x (dynamically consistent inverse)
-    Jbar = jnp.linalg.solve(M, J.T) @ M_x  # (3, 2)
+    Jbar = solve_spd(M, J.T) @ M_x  # (3, 2)
     tau_comp = J.T @ (Jbar.T @ h)
     # null space: rest of h and posture PD, projected by N^T = I - J^T Jbar^T
     tau_0 = h + M @ (-cfg.null_kp * (obs.q - q_posture) - cfg.null_kd * obs.qd)

@@ -46,6 +46,7 @@ from hec_jax.mjx_scene.model import (
     load_mjx_model,
     mj_model_with_conditions,
     scene_ids,
+    set_solver_options,
     solve_posture,
     validate_conditions,
 )
@@ -106,5 +107,6 @@ __all__ = [
     "rollout",
     "rollout_c",
     "scene_ids",
+    "set_solver_options",
     "validate_conditions",
 ]

@@ -159,6 +159,55 @@ def load_mj_model(path: str | Path = SCENE_XML) -> mujoco.MjModel:
     return mujoco.MjModel.from_xml_path(str(path))
 
 
+SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}
+JACOBIANS = {
+    "dense": mujoco.mjtJacobian.mjJAC_DENSE,
+    "sparse": mujoco.mjtJacobian.mjJAC_SPARSE,
+    "auto": mujoco.mjtJacobian.mjJAC_AUTO,
+}
+
+
+def set_solver_options(
+    m: mujoco.MjModel,
+    iterations: int | None = None,
+    ls_iterations: int | None = None,
+    solver: str | None = None,
+    jacobian: str | None = None,
+) -> mujoco.MjModel:
+    """Sets MuJoCo's constraint-solver options on ``m`` in place (and returns it); None keeps
+    scene.xml's value (100 / 50 iterations, Newton, ``auto``).
+
+    Args:
+        iterations, ls_iterations: caps of ``opt.iterations`` / ``opt.ls_iterations`` (>= 1).
+        solver: ``opt.solver``, "newton" or "cg". Both minimise the same convex problem; CG
+            preconditions with M^-1 instead of factoring the Newton Hessian.
+        jacobian: ``opt.jacobian``, "dense", "sparse" or "auto" (dense for this scene's nv = 4).
+            In MJX it picks the layout of the joint-space inertia: "sparse" factors M as L D L^T
+            along the kinematic tree (elementwise arithmetic for this scene) instead of a batched
+            dense Cholesky. With "cg" + "sparse" an MJX step of this scene has no Cholesky or
+            triangular solve left, the cheapest form on a GPU (``benchmarks/sweep.py``).
+
+    The same model then serves MuJoCo C and MJX (``load_mjx_model(m)``), so both sides of a
+    comparison run the same settings.
+    """
+    for name, v in (("iterations", iterations), ("ls_iterations", ls_iterations)):
+        if v is not None and (int(v) != v or v < 1):
+            raise ValueError(f"{name} must be an integer >= 1, got {v}")
+    if solver is not None and solver not in SOLVERS:
+        raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
+    if jacobian is not None and jacobian not in JACOBIANS:
+        raise ValueError(f"jacobian must be one of {sorted(JACOBIANS)}, got {jacobian!r}")
+    if iterations is not None:
+        m.opt.iterations = int(iterations)
+    if ls_iterations is not None:
+        m.opt.ls_iterations = int(ls_iterations)
+    if solver is not None:
+        m.opt.solver = SOLVERS[solver]
+    if jacobian is not None:
+        m.opt.jacobian = JACOBIANS[jacobian]
+    return m
+
+
 def load_mjx_model(m: mujoco.MjModel | None = None) -> mjx.Model:
     """Puts the model on the default device with the pure-JAX MJX implementation."""
     if m is None:
