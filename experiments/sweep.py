@@ -9,7 +9,8 @@ arrival phases, times ``--seeds`` network initialisations. Each run is one catch
 (``experiments/task_loop.py``): ``--swings`` swings with the weights carried over, plus the plain
 impedance baseline (F_o = 0) under the same condition. Runs are processed in chunks of ``--chunk``
 (one ``vmap``); each finished chunk is written atomically to ``chunks/chunk_NNNNN.npz``, and a
-restarted sweep skips the chunks already there, so an interrupted sweep loses at most one chunk.
+restarted sweep skips the chunks already there, so an interrupted sweep loses at most one chunk; it
+must be restarted with the same arguments (checked against ``chunks/sweep_settings.json``).
 With several devices (GPUs of one host, or CPU devices forced with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) the run axis of a chunk is sharded across
 them with ``NamedSharding``; across hosts, ``--shard-index/--num-shards`` take every n-th chunk and
@@ -22,6 +23,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import itertools
+import json
 import sys
 import time
 from pathlib import Path
@@ -190,6 +192,35 @@ def run_chunk(run, inputs, rows_plain):
     )
 
 
+# arguments that do not change a chunk's results (where it is computed, and how it is merged)
+PLACEMENT_ARGS = ("out", "shard_index", "num_shards", "merge_only")
+
+
+def check_same_sweep(chunk_dir: Path, args, n_runs: int, n_chunks: int) -> None:
+    """Refuses to resume (or add a shard to) a sweep whose chunks were computed with other settings.
+
+    The first process writes ``chunks/sweep_settings.json`` (atomically); a later one with other
+    grid, learner, solver or chunk settings would otherwise mix chunks of two sweeps in one folder.
+    """
+    settings = {k: v for k, v in sorted(vars(args).items()) if k not in PLACEMENT_ARGS}
+    settings = json.loads(json.dumps(dict(settings, n_runs=n_runs, n_chunks=n_chunks)))
+    path = chunk_dir / "sweep_settings.json"
+    if path.exists():
+        before = json.loads(path.read_text())
+        if before != settings:
+            diff = {
+                k: (before.get(k), settings.get(k))
+                for k in sorted(set(before) | set(settings))
+                if before.get(k) != settings.get(k)
+            }
+            raise SystemExit(
+                f"{path} belongs to a sweep with other settings (before, now): {diff}; "
+                "resume with the same arguments, or use another --out"
+            )
+    else:
+        write_json(path, settings)
+
+
 def main(argv=None):
     args = parse(argv)
     enable_compile_cache()
@@ -205,6 +236,7 @@ def main(argv=None):
     folder = Path(args.out)
     chunk_dir = folder / "chunks"
     if not args.merge_only:
+        check_same_sweep(chunk_dir, args, n_runs, n_chunks)
         start_run(folder / f"shard_{args.shard_index}", args.seed, settings)
         learner = tl.learner_from_args(args, "catching", args.f_cd)
         config = tl.config_from_args(args, learner, args.swing_s, args.swings)

@@ -58,6 +58,15 @@ def test_shards_merge_and_resume(sharded_by_process):
     again = _load(out)
     for k in first:
         np.testing.assert_allclose(again[k], first[k], rtol=1e-12, err_msg=k)
+    # resuming with other settings would mix two sweeps' chunks: refused before any work
+    proc = subprocess.run(
+        [sys.executable, "experiments/sweep.py", "--out", str(out), *TINY, "--chunk", "1",
+         "--solver", "cg"],
+        cwd=ROOT, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert proc.returncode != 0 and "other settings" in proc.stderr
+    assert "'solver': (None, 'cg')" in proc.stderr
+    assert chunk0.stat().st_mtime_ns == mtime0
 
 
 def test_sharding_over_two_devices_matches(sharded_by_process, tmp_path):
