@@ -109,14 +109,16 @@ def test_solve_spd_matches_numpy_and_its_derivative_central_differences():
     condition numbers up to ~1e6) in float64, reads only the lower triangle, and its derivative in
     A and B equals central differences; float32 to its precision."""
     rng = np.random.default_rng(11)
+    conds = []
     for n in range(1, 6):
         for k in range(10):
             Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
             s = 10.0 ** rng.uniform(-3 * (k % 3), 0, size=n)
-            A = (Q * s) @ Q.T + 1e-3 * np.eye(n)
+            A = (Q * s) @ Q.T + 1e-7 * np.eye(n)  # eigenvalues 1e-6..1 (+1e-7): cond to ~1e6
             B = rng.normal(size=(n, 2))
             ref = np.linalg.solve(A, B)
             cond = np.linalg.cond(A)
+            conds.append(cond)
             x = np.asarray(C.solve_spd(jnp.asarray(A), jnp.asarray(B)))
             np.testing.assert_allclose(x, ref, rtol=0, atol=1e-13 * cond * np.abs(ref).max())
             upper_garbage = np.triu(rng.normal(size=(n, n)), 1)  # only tril is read
@@ -128,6 +130,10 @@ def test_solve_spd_matches_numpy_and_its_derivative_central_differences():
                 np.testing.assert_allclose(
                     np.asarray(x32), ref, atol=1e-5 * cond * np.abs(ref).max()
                 )
+    assert max(conds) > 1e5  # the claimed range was reached
+    for bad_a, bad_b in ((np.eye(3)[:2], np.ones(3)), (np.eye(3), np.ones(2)), (np.eye(3), 1.0)):
+        with pytest.raises(ValueError, match="need A"):
+            C.solve_spd(jnp.asarray(bad_a), jnp.asarray(bad_b))
     A = jnp.asarray(np.array([[2.0, 0.3, 0.1], [0.3, 1.5, -0.2], [0.1, -0.2, 1.0]]))
     B = jnp.asarray(rng.normal(size=(3, 2)))
     W = jnp.asarray(rng.normal(size=(3, 2)))

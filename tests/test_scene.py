@@ -268,9 +268,12 @@ def test_cg_sparse_solver_matches_c_and_newton():
         d = mjx.make_data(mx).replace(qpos=qpos, qvel=qvel, ctrl=ctrl)
         with _mjx_ctx():
             d = mjx.forward(mx, d)
-        return d.qacc, S.hand_contact_force(mx, d, ids)
+        # the sparse inertia path was taken: MJX keeps M as the nC entries of the tree
+        # (a private field of MJX 3.17's JAX implementation; the dense path keeps no such M)
+        assert d._impl.M.shape == (mx.nC,)
+        return d.qacc, S.hand_contact_force(mx, d, ids), S.full_mass_matrix(mx, d)
 
-    qacc_mjx, f_mjx = jax.tree.map(np.asarray, jax.jit(jax.vmap(one))(qpos, qvel, ctrl))
+    qacc_mjx, f_mjx, m_mjx = jax.tree.map(np.asarray, jax.jit(jax.vmap(one))(qpos, qvel, ctrl))
     for i in range(N_BATCH):
         qacc = {}
         for name, mm in (("cg", mm_cg), ("newton", mm_newton)):
@@ -279,7 +282,17 @@ def test_cg_sparse_solver_matches_c_and_newton():
             mujoco.mj_forward(mm, d)
             assert d.ncon == (1 if i < 3 else 0)
             qacc[name] = d.qacc.copy()
-        # iterative solves that stop at opt.tolerance (1e-8, relative): agreement to 10x that
+            if name == "cg":  # the controller's inputs read from sparse-inertia data
+                m_full = np.zeros((mm.nv, mm.nv))
+                mujoco.mj_fullM(mm, d, m_full)
+                np.testing.assert_allclose(m_mjx[i], m_full, rtol=1e-10, atol=1e-12)
+                # in-plane components (MJX's sphere-box normal: see the test above)
+                f_c = S.hand_contact_force_c(mm, d, ids)
+                np.testing.assert_allclose(f_mjx[i][PLANE], f_c[PLANE], rtol=1e-6, atol=1e-9)
+                assert abs(f_mjx[i][1]) <= 1e-3 * np.linalg.norm(f_mjx[i])
+        # iterative solves that stop at opt.tolerance (1e-8): agreement to 10x that, scaled by
+        # the largest acceleration (a rule of thumb: MuJoCo's own stopping test scales the
+        # improvement by trace(M) and the number of dofs, not by |qacc|)
         tol = 10 * mm_cg.opt.tolerance * np.abs(qacc["newton"]).max()
         np.testing.assert_allclose(qacc_mjx[i], qacc["cg"], rtol=0, atol=tol)
         np.testing.assert_allclose(qacc["cg"], qacc["newton"], rtol=0, atol=tol)
@@ -290,3 +303,47 @@ def test_cg_sparse_solver_matches_c_and_newton():
         S.set_solver_options(S.load_mj_model(), jacobian="banded")
     with pytest.raises(ValueError, match="iterations"):
         S.set_solver_options(S.load_mj_model(), iterations=0)
+    with pytest.raises(ValueError, match="iterations"):
+        S.set_solver_options(S.load_mj_model(), iterations=True)
+    with pytest.warns(UserWarning, match="CG with opt.iterations 4"):
+        S.set_solver_options(S.load_mj_model(), 4, 8, "cg")
+
+
+def test_implicit_solve_derivatives_do_not_depend_on_cg_sparse():
+    """``differentiable.solve`` under CG with the sparse inertia: the same qacc and the same
+    forward- and reverse-mode derivatives (float64) as under scene.xml's Newton/dense, at a
+    contact state (its derivative is one Newton step at the solution, whatever found it)."""
+    from hec_jax.mjx_scene import differentiable as D
+
+    results = {}
+    for name, settings in (("newton", (100, 50)), ("cg", (100, 50, "cg", "sparse"))):
+        mm = S.set_solver_options(S.load_mj_model(), *settings)
+        ids = S.scene_ids(mm)
+        mx = S.load_mjx_model(mm)
+        qpos = np.zeros(4)
+        qpos[:3] = S.solve_posture(mm, ids, S.X_HOME)
+        qpos[3] = np.arcsin((0.57 - 0.35) / 0.65)  # the hand presses into the cube
+
+        def qacc(qvel, mx=mx, qpos=qpos):
+            d = mjx.make_data(mx).replace(
+                qpos=jnp.asarray(qpos), qvel=qvel, ctrl=jnp.array([5.0, -3.0, 1.0])
+            )
+            with _mjx_ctx():
+                for stage in (
+                    mjx.fwd_position,
+                    mjx.fwd_velocity,
+                    mjx.fwd_actuation,
+                    mjx.fwd_acceleration,
+                ):
+                    d = stage(mx, d)
+                return D.solve(mx, d).qacc
+
+        qvel = jnp.array([0.3, -0.2, 0.5, 1.0])
+        results[name] = [
+            np.asarray(jax.jit(f)(qvel)) for f in (qacc, jax.jacfwd(qacc), jax.jacrev(qacc))
+        ]
+    for what, newton, cg in zip(("qacc", "jacfwd", "jacrev"), *results.values(), strict=True):
+        assert np.abs(newton).max() > 1.0, what  # contact: large, non-trivial values
+        np.testing.assert_allclose(
+            cg, newton, rtol=0, atol=1e-9 * np.abs(newton).max(), err_msg=what
+        )

@@ -136,7 +136,7 @@ def solve_spd(A: jax.Array, B: jax.Array) -> jax.Array:
     gives NaN, as a singular matrix gives inf/NaN in ``jnp.linalg.solve``.
     """
     n = A.shape[-1]
-    if A.shape != (n, n) or B.shape[0] != n:
+    if A.ndim != 2 or A.shape != (n, n) or B.ndim < 1 or B.shape[0] != n:
         raise ValueError(f"need A (n, n) and B (n, ...), got {A.shape} and {B.shape}")
     L = [[None] * n for _ in range(n)]
     for j in range(n):

@@ -10,6 +10,7 @@ compiler would have produced for those values.
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from pathlib import Path
 from typing import NamedTuple
 
@@ -167,6 +168,9 @@ JACOBIANS = {
 }
 
 
+CG_MIN_ITERATIONS = 8  # CG below this cap changed learned runs of this scene (see below)
+
+
 def set_solver_options(
     m: mujoco.MjModel,
     iterations: int | None = None,
@@ -187,11 +191,15 @@ def set_solver_options(
             dense Cholesky. With "cg" + "sparse" an MJX step of this scene has no Cholesky or
             triangular solve left, the cheapest form on a GPU (``benchmarks/sweep.py``).
 
+    CG needs more iterations than Newton to reach the same solution: on this scene's learning
+    runs (float64, docs/benchmarks_gpu.md) CG capped at 4 iterations moved learned peak forces by
+    up to 22 N from Newton's, while 8 or more agreed to 6e-7 N; a CG cap below 8 warns.
+
     The same model then serves MuJoCo C and MJX (``load_mjx_model(m)``), so both sides of a
     comparison run the same settings.
     """
     for name, v in (("iterations", iterations), ("ls_iterations", ls_iterations)):
-        if v is not None and (int(v) != v or v < 1):
+        if v is not None and (isinstance(v, bool) or int(v) != v or v < 1):
             raise ValueError(f"{name} must be an integer >= 1, got {v}")
     if solver is not None and solver not in SOLVERS:
         raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")
@@ -205,6 +213,13 @@ def set_solver_options(
         m.opt.solver = SOLVERS[solver]
     if jacobian is not None:
         m.opt.jacobian = JACOBIANS[jacobian]
+    if m.opt.solver == mujoco.mjtSolver.mjSOL_CG and m.opt.iterations < CG_MIN_ITERATIONS:
+        warnings.warn(
+            f"opt.solver CG with opt.iterations {m.opt.iterations} < {CG_MIN_ITERATIONS}: on this "
+            "scene CG stops short of Newton's solution in some contact states and learned runs "
+            "diverge from Newton's (docs/benchmarks_gpu.md)",
+            stacklevel=2,
+        )
     return m
 
 

@@ -247,7 +247,11 @@ def make_online_learner(
         f_o = jnp.where(inside, jnp.sum(o * terms.astype(o.dtype), axis=-1), 0.0)  # Eq. 47
         return f_o, o
 
-    def update(state: LearnerState, inputs: LearnerInputs) -> tuple[LearnerState, LearnerOutput]:
+    def update(
+        state: LearnerState, inputs: LearnerInputs, allow: Array | bool = True
+    ) -> tuple[LearnerState, LearnerOutput]:
+        """One control sample; ``allow`` (bool ()) False: no Eq. 52 step this sample (the
+        weights are held, ``LearnerOutput.learning`` is False)."""
         x_r = inputs.x_o - inputs.x_e
         xd_r = inputs.xd_o - inputs.xd_e
         xdd_r = inputs.xdd_o - inputs.xdd_e
@@ -265,7 +269,7 @@ def make_online_learner(
             lambda xe, xde: task_energy(config, xe, xde, inputs, xd_r_tc, touched), argnums=(0, 1)
         )(inputs.x_e, inputs.xd_e)
         de_df_act = de_dx * config.dt**2 + de_dxd * config.dt  # Eqs. 54-58
-        learning = inside
+        learning = inside & allow
         if config.gate_receding:
             receding = jnp.dot(x_r, xd_r) > 0
             gate = receding & ~inputs.in_contact
