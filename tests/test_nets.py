@@ -230,6 +230,19 @@ def test_no_learning_outside_sphere_and_while_receding_without_contact():
         ):
             np.testing.assert_array_equal(a, b)
     assert float(update(state, inputs)[1].f_o[0]) != 0.0  # inside: F_o acts even when not learning
+    # a sample that does not learn keeps the weights exactly, also when a forward value is not
+    # finite (a NaN acceleration estimate: 0 * NaN in the backward pass must not reach them)
+    bad = LearnerInputs(
+        *(jnp.array([v]) for v in (0.01, 0.05, 0.3, 0.2, -0.9, np.nan, 0.0)), jnp.asarray(False)
+    )
+    held_state, held_out = update(state._replace(was_inside=jnp.asarray(True)), bad, False)
+    assert not bool(held_out.learning) and np.isnan(held_out.f_o[0])
+    for a, b in zip(
+        jax.tree_util.tree_leaves(state.params),
+        jax.tree_util.tree_leaves(held_state.params),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(a, b)
 
 
 @pytest.fixture(scope="module")

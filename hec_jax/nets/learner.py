@@ -279,7 +279,11 @@ def make_online_learner(
         cotangent = jnp.where(learning, de_df_act, 0.0).astype(f_o.dtype)
         (grad_w,) = pullback(cotangent)  # (dE/dF_act)^T (dF_o/dO) (dO/dw), Eq. 53
         lr = lambda g: eta.reshape((1, 3) + (1,) * (g.ndim - 2)).astype(g.dtype)  # noqa: E731
-        params = jax.tree_util.tree_map(lambda w, g: w - lr(g) * g, state.params, grad_w)  # Eq. 52
+        # Eq. 52; the select keeps the weights exactly (also were a forward value non-finite,
+        # where the zero cotangent would give 0 * inf = NaN) on samples that do not learn
+        params = jax.tree_util.tree_map(
+            lambda w, g: jnp.where(learning, w - lr(g) * g, w), state.params, grad_w
+        )
         _, f_d = desired_force(config, x_r, inputs.in_contact)
         energy_f = state.energy_f + 0.5 * jnp.sum((f_d - inputs.f_int) ** 2) * config.dt
         new_state = LearnerState(
