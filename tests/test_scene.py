@@ -268,8 +268,8 @@ def test_cg_sparse_solver_matches_c_and_newton():
         d = mjx.make_data(mx).replace(qpos=qpos, qvel=qvel, ctrl=ctrl)
         with _mjx_ctx():
             d = mjx.forward(mx, d)
-        # the sparse inertia path was taken: MJX keeps M as the nC entries of the tree
-        # (a private field of MJX 3.17's JAX implementation; the dense path keeps no such M)
+        # the sparse inertia path was taken: MJX keeps M as the nC entries of the tree (a private
+        # field of MJX 3.17's JAX implementation; the dense path keeps it as (nv, nv))
         assert d._impl.M.shape == (mx.nC,)
         return d.qacc, S.hand_contact_force(mx, d, ids), S.full_mass_matrix(mx, d)
 
@@ -305,6 +305,8 @@ def test_cg_sparse_solver_matches_c_and_newton():
         S.set_solver_options(S.load_mj_model(), iterations=0)
     with pytest.raises(ValueError, match="iterations"):
         S.set_solver_options(S.load_mj_model(), iterations=True)
+    with pytest.raises(ValueError, match="ls_iterations"):
+        S.set_solver_options(S.load_mj_model(), ls_iterations=np.True_)
     with pytest.warns(UserWarning, match="CG with opt.iterations 4"):
         S.set_solver_options(S.load_mj_model(), 4, 8, "cg")
 
@@ -323,6 +325,10 @@ def test_implicit_solve_derivatives_do_not_depend_on_cg_sparse():
         qpos = np.zeros(4)
         qpos[:3] = S.solve_posture(mm, ids, S.X_HOME)
         qpos[3] = np.arcsin((0.57 - 0.35) / 0.65)  # the hand presses into the cube
+        d_c = mujoco.MjData(mm)
+        d_c.qpos[:] = qpos
+        mujoco.mj_forward(mm, d_c)
+        assert d_c.ncon == 1  # a contact state (MuJoCo C)
 
         def qacc(qvel, mx=mx, qpos=qpos):
             d = mjx.make_data(mx).replace(

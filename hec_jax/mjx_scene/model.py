@@ -199,7 +199,7 @@ def set_solver_options(
     comparison run the same settings.
     """
     for name, v in (("iterations", iterations), ("ls_iterations", ls_iterations)):
-        if v is not None and (isinstance(v, bool) or int(v) != v or v < 1):
+        if v is not None and (isinstance(v, (bool, np.bool_)) or int(v) != v or v < 1):
             raise ValueError(f"{name} must be an integer >= 1, got {v}")
     if solver is not None and solver not in SOLVERS:
         raise ValueError(f"solver must be one of {sorted(SOLVERS)}, got {solver!r}")

@@ -1,8 +1,9 @@
 """Online learning of the virtual impedance (Sec. 5.2, Eqs. 52-58) for catching and hitting.
 
 ``make_online_learner(config, sphere_fn)`` returns pure ``init(key) -> LearnerState`` and
-``update(state, inputs) -> (state, LearnerOutput)``; ``update`` runs once per control sample
-inside the jitted rollout (one ``lax.scan``), never in Python.
+``update(state, inputs, allow=True) -> (state, LearnerOutput)``; ``update`` runs once per control
+sample inside the jitted rollout (one ``lax.scan``), never in Python; ``allow`` False (e.g. the
+object not seen) holds the weights for that sample.
 
 Per sample (readings from paper-notes Sec. 3):
 
@@ -216,7 +217,7 @@ def task_energy(
 
 def make_online_learner(
     config: LearnerConfig, sphere_fn: SphereFn
-) -> tuple[Callable[[Array], LearnerState], Callable[[LearnerState, LearnerInputs], tuple]]:
+) -> tuple[Callable[[Array], LearnerState], Callable[..., tuple[LearnerState, LearnerOutput]]]:
     """Factory of the pure ``init`` and ``update`` of the online learner (Eqs. 52-58).
 
     Args:
