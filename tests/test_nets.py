@@ -137,6 +137,12 @@ def _sigmoid(x):
     return 1.0 / (1.0 + np.exp(-x))
 
 
+def _assert_same_params(a: dict, b: dict) -> None:
+    """Bitwise equal network parameters."""
+    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
 def test_update_equals_hand_computed_update_1d():
     """1-D point mass, object approaching inside the sphere, no contact: the learner's weight change
     equals Eqs. 52-58 worked out by hand in NumPy (forward pass, dE/dF_act, backprop); with
@@ -150,7 +156,6 @@ def test_update_equals_hand_computed_update_1d():
         *(jnp.array([v]) for v in (x_e, v_e, a_e, x_o, v_o, a_o, 0.0)), jnp.asarray(False)
     )
     new_state, out = update(state, inputs)
-    new_params = new_state.params
     # --- by hand ---
     cfg, r, r_b, dt = CFG_1D, CFG_1D.radius, CFG_1D.r_b, CFG_1D.dt
     x_r, v_r, a_r = x_o - x_e, v_o - v_e, a_o - a_e
@@ -179,23 +184,23 @@ def test_update_equals_hand_computed_update_1d():
         delta = g * terms[k] * u[k] / 4 * (1 - th**2)  # dE/dx of the output unit
         eta = cfg.eta[k]
         np.testing.assert_allclose(
-            np.asarray(new_params["output"]["bias"][0, k]), b3 - eta * delta, rtol=1e-10
+            np.asarray(new_state.params["output"]["bias"][0, k]), b3 - eta * delta, rtol=1e-10
         )
         np.testing.assert_allclose(
-            np.asarray(new_params["output"]["weight"][0, k]),
+            np.asarray(new_state.params["output"]["weight"][0, k]),
             w3 - eta * delta * y2,
             rtol=1e-10,
         )
         delta2 = (w3 * delta) * y2 * (1 - y2)
         np.testing.assert_allclose(
-            np.asarray(new_params["hidden_1"]["weight"][0, k]),
+            np.asarray(new_state.params["hidden_1"]["weight"][0, k]),
             w2 - eta * np.outer(delta2, y1),
             rtol=1e-10,
             atol=1e-16,
         )
         delta1 = (delta2 @ w2) * y1 * (1 - y1)
         np.testing.assert_allclose(
-            np.asarray(new_params["hidden_0"]["weight"][0, k]),
+            np.asarray(new_state.params["hidden_0"]["weight"][0, k]),
             w1 - eta * np.outer(delta1, net_in),
             rtol=1e-10,
             atol=1e-16,
@@ -206,12 +211,7 @@ def test_update_equals_hand_computed_update_1d():
     held_state, held_out = update(state, inputs, False)
     assert not bool(held_out.learning)
     np.testing.assert_array_equal(held_out.f_o, out.f_o)
-    for a, b in zip(
-        jax.tree_util.tree_leaves(state.params),
-        jax.tree_util.tree_leaves(held_state.params),
-        strict=True,
-    ):
-        np.testing.assert_array_equal(a, b)
+    _assert_same_params(state.params, held_state.params)
 
 
 def test_no_learning_outside_sphere_and_while_receding_without_contact():
@@ -223,12 +223,7 @@ def test_no_learning_outside_sphere_and_while_receding_without_contact():
         )
         new_state, out = update(state, inputs)
         assert not bool(out.learning)
-        for a, b in zip(
-            jax.tree_util.tree_leaves(state.params),
-            jax.tree_util.tree_leaves(new_state.params),
-            strict=True,
-        ):
-            np.testing.assert_array_equal(a, b)
+        _assert_same_params(state.params, new_state.params)
     assert float(update(state, inputs)[1].f_o[0]) != 0.0  # inside: F_o acts even when not learning
     # a sample that does not learn keeps the weights exactly, also when a forward value is not
     # finite (a NaN acceleration estimate: 0 * NaN in the backward pass must not reach them)
@@ -237,12 +232,7 @@ def test_no_learning_outside_sphere_and_while_receding_without_contact():
     )
     held_state, held_out = update(state._replace(was_inside=jnp.asarray(True)), bad, False)
     assert not bool(held_out.learning) and np.isnan(held_out.f_o[0])
-    for a, b in zip(
-        jax.tree_util.tree_leaves(state.params),
-        jax.tree_util.tree_leaves(held_state.params),
-        strict=True,
-    ):
-        np.testing.assert_array_equal(a, b)
+    _assert_same_params(state.params, held_state.params)
 
 
 @pytest.fixture(scope="module")
