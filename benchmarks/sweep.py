@@ -2,6 +2,7 @@
 
     python benchmarks/sweep.py [--batch 4096] [--steps 500] [--float32] [--per-device]
         [--solver-iterations 4 8] [--solver cg] [--jacobian sparse] [--warp]
+        [--kernel xla triton]
 
 One run prints a table: steps/s of the catching loop with online learning (``experiments/sweep.py``'s
 vmapped function: MJX physics + impedance control + learner), its run axis laid out over the first
@@ -23,7 +24,11 @@ learning loop itself runs on MJX's JAX implementation only (its staged calls hav
 ``--solver`` / ``--jacobian`` set MuJoCo's ``opt.solver`` / ``opt.jacobian`` on every row (MJX and C
 alike, ``hec_jax.mjx_scene.set_solver_options``); when they differ from scene.xml's, MuJoCo C is
 timed with scene.xml's as well and the ratios use the faster C row, so that a setting that suits MJX
-cannot make the baseline look slower.
+cannot make the baseline look slower. ``--kernel xla triton`` times the loop with each
+implementation of the learner's network step (``hec_jax.nets.network_step``; "triton" is a Pallas
+Triton kernel on CUDA GPUs and the XLA reference elsewhere) and prints how far their runs' peak
+contact forces differ, and the share of run-steps in which the learner updated its weights (the
+kernel writes only those runs' weights).
 """
 
 from __future__ import annotations
@@ -33,6 +38,7 @@ import importlib.util
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -87,6 +93,13 @@ def main(argv=None):
         action="store_true",
         help="also time physics alone on MuJoCo Warp (MJX impl='warp', needs warp-lang)",
     )
+    p.add_argument(
+        "--kernel",
+        nargs="+",
+        choices=("xla", "triton"),
+        default=["xla"],
+        help="learner network step(s) to time (hec_jax.nets.network_step); triton: CUDA only",
+    )
     args = p.parse_args(argv)
     if args.warp and importlib.util.find_spec("warp") is None:  # fail before the long rows
         p.error('--warp needs warp-lang: pip install -e ".[warp]"')
@@ -100,7 +113,6 @@ def main(argv=None):
         solver=args.solver,
         jacobian=args.jacobian,
     )
-    sweep = tl.make_sweep(config)
     base = default_conditions()
     sw = tl.switches("learned")
 
@@ -114,27 +126,42 @@ def main(argv=None):
     rows = []
     n_dev = jax.device_count()
     counts = [n for n in (1, 2, 4, 8, 16) if n <= n_dev and (args.per_device or B % n == 0)]
-    rates = {}
-    for n in counts:
-        size = B * n if args.per_device else B
-        keys, conditions, _ = batch_of(size)
-        sharding = NamedSharding(Mesh(np.array(jax.devices()[:n]), ("runs",)), P("runs"))
-        put = lambda x, s=sharding: jax.device_put(x, s)  # noqa: E731
-        k_n = put(keys)
-        c_n = jax.tree_util.tree_map(put, conditions)
-        fn = jax.jit(lambda k, c: jnp.max(jnp.abs(sweep(k, sw, c)["f_contact"]), axis=(-2, -1)))
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(k_n, c_n))
-        compile_s = time.perf_counter() - t0
-        wall = best_of(lambda fn=fn, k_n=k_n, c_n=c_n: jax.block_until_ready(fn(k_n, c_n)))
-        rates[n] = size * T / wall
-        rows.append(
-            (
-                f"MJX learning loop, {n} device(s), batch {size}",
-                f"{rates[n]:.3g}",
-                f"compile {compile_s:.0f} s, best of 3: {wall:.2f} s",
+    rates = {}  # (kernel, devices) -> steps/s
+    peaks = {}  # kernel -> each run's peak contact force on 1 device [N]
+    learning_fraction = None
+    for kernel in args.kernel:
+        sweep = tl.make_sweep(replace(config, learner=replace(config.learner, kernel=kernel)))
+
+        def measured(k, c, sweep=sweep):
+            logs = sweep(k, sw, c)
+            return jnp.max(jnp.abs(logs["f_contact"]), axis=(-2, -1)), jnp.mean(logs["learning"])
+
+        fn = jax.jit(measured)
+        for n in counts:
+            if n > 1 and kernel == "triton" and jax.default_backend() == "gpu":
+                continue  # one GPU per process (see experiments/sweep.py)
+            size = B * n if args.per_device else B
+            keys, conditions, _ = batch_of(size)
+            sharding = NamedSharding(Mesh(np.array(jax.devices()[:n]), ("runs",)), P("runs"))
+            put = lambda x, s=sharding: jax.device_put(x, s)  # noqa: E731
+            k_n = put(keys)
+            c_n = jax.tree_util.tree_map(put, conditions)
+            t0 = time.perf_counter()
+            peak, fraction = jax.block_until_ready(fn(k_n, c_n))
+            compile_s = time.perf_counter() - t0
+            if n == counts[0]:
+                peaks[kernel] = np.asarray(peak)
+                learning_fraction = float(fraction)
+            wall = best_of(lambda fn=fn, k_n=k_n, c_n=c_n: jax.block_until_ready(fn(k_n, c_n)))
+            rates[kernel, n] = size * T / wall
+            rows.append(
+                (
+                    f"MJX learning loop ({kernel} network step), {n} device(s), batch {size}",
+                    f"{rates[kernel, n]:.3g}",
+                    f"compile {compile_s:.0f} s, best of 3: {wall:.2f} s",
+                )
             )
-        )
+    first = args.kernel[0]
 
     _, _, release = batch_of(B)
 
@@ -283,8 +310,19 @@ def main(argv=None):
     print(
         f"  MJX physics only / mujoco.rollout = {phys_rate / c_rate:.2f} (the bound for the "
         f"learning loop on one device); learning loop on 1 device / MJX physics only = "
-        f"{rates[counts[0]] / phys_rate:.2f}"
+        f"{rates[first, counts[0]] / phys_rate:.2f}"
     )
+    print(
+        f"  the learner updated its weights in {100 * learning_fraction:.1f}% of the run-steps "
+        f"(the catching task learns only while the cube is inside the virtual sphere)"
+    )
+    for kernel in args.kernel[1:]:
+        diff = np.abs(peaks[kernel] - peaks[first])
+        print(
+            f"  {kernel} / {first} network step: {rates[kernel, counts[0]] / rates[first, counts[0]]:.2f}"
+            f" (1 device); peak contact force per run differs by at most {diff.max():.3g} N "
+            f"(median {np.median(diff):.2g} N, largest peak {peaks[first].max():.3g} N)"
+        )
     if warp_rate is not None:
         print(
             f"  MuJoCo Warp physics only / mujoco.rollout = {warp_rate / c_rate:.2f}; "
@@ -292,11 +330,15 @@ def main(argv=None):
         )
     if grad_ratio is not None:
         print(f"  exact gradient / forward rollout (catching, 1 device) = {grad_ratio:.2f}")
-    for n in counts:
-        print(
-            f"  {n} device(s): learning loop / mujoco.rollout = {rates[n] / c_rate:.2f}, "
-            f"speed-up over 1 device = {rates[n] / rates[counts[0]]:.2f}"
-        )
+    for kernel in args.kernel:
+        for n in counts:
+            if (kernel, n) not in rates:
+                continue
+            print(
+                f"  {n} device(s), {kernel} network step: learning loop / mujoco.rollout = "
+                f"{rates[kernel, n] / c_rate:.2f}, speed-up over 1 device = "
+                f"{rates[kernel, n] / rates[kernel, counts[0]]:.2f}"
+            )
 
 
 if __name__ == "__main__":

@@ -250,6 +250,13 @@ def main(argv=None):
         config = dataclasses.replace(config, solver=args.solver, jacobian=args.jacobian)
         n_dev = jax.device_count()
         sharding = None
+        if n_dev > 1 and args.kernel == "triton" and jax.default_backend() == "gpu":
+            # the kernel is a custom call with no partitioning rule for GSPMD, which may then
+            # gather every run's weights onto each device (not tried: no multi-GPU machine lent)
+            raise SystemExit(
+                "--kernel triton runs on one GPU per process: set CUDA_VISIBLE_DEVICES to one "
+                "device and split the grid with --shard-index/--num-shards, or use --kernel xla"
+            )
         if n_dev > 1 and args.chunk % n_dev == 0:
             sharding = NamedSharding(Mesh(np.array(jax.devices()), ("runs",)), P("runs"))
         n_plain = plain_rows(args.chunk, args.seeds, n_dev if sharding is not None else 1)

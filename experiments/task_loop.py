@@ -509,6 +509,13 @@ def add_common_args(parser, out_default: str) -> None:
     parser.add_argument(
         "--vel-after-contact", action="store_true", help="keep E_cv after contact (Eq. 59)"
     )
+    parser.add_argument(
+        "--kernel",
+        choices=("xla", "triton"),
+        default="xla",
+        help="learner's network step: XLA reference, or one Pallas Triton kernel per sample "
+        "(CUDA GPUs; the reference elsewhere; same results to rounding)",
+    )
 
 
 def learner_from_args(args, task: str, f_desired: float) -> LearnerConfig:
@@ -526,6 +533,7 @@ def learner_from_args(args, task: str, f_desired: float) -> LearnerConfig:
         contact_stiffness=args.contact_stiffness,
         contact_damping=args.contact_damping,
         velocity_after_contact=args.vel_after_contact,
+        kernel=getattr(args, "kernel", "xla"),
     )
 
 

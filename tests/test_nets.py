@@ -270,3 +270,112 @@ def test_catching_velocity_term_only_before_contact():
     e_cf = 0.5 * np.sum((-cfg.f_desired * n - np.array([-3.0, 1.0])) ** 2)
     np.testing.assert_allclose(after, cfg.mu * e_cf, rtol=1e-12)
     assert before > after
+
+
+# --- the network step's two implementations (hec_jax.nets.network_step) ---------------------
+
+
+def _batch_of_steps(dtype, batch=5, n_axes=2):
+    """Per-run parameters, inputs, dE/dO and learning flags (one run with a NaN dE/dO that does
+    not learn); rates and U shared, as the learner passes them."""
+    cfg = NetConfig(n_axes=n_axes)
+    keys = jax.random.split(jax.random.PRNGKey(7), batch)
+    params = jax.vmap(lambda k: nets.init_params(k, cfg, dtype))(keys)
+    params = jax.tree_util.tree_map(lambda p: 3.0 * p, params)  # outputs away from 0
+    k1, k2 = jax.random.split(jax.random.PRNGKey(8))
+    net_in = jax.random.normal(k1, (batch, n_axes, 4), dtype)
+    g_scale = 10.0 * jax.random.normal(k2, (batch, n_axes, 3), dtype)
+    g_scale = g_scale.at[1, 0, 0].set(jnp.nan)
+    learning = jnp.arange(batch) % 3 != 1  # run 1 (with the NaN) does not learn
+    eta = jnp.asarray([0.3, 0.2, 0.1], dtype)
+    u = jnp.broadcast_to(jnp.asarray([800.0, 80.0, 2.0], dtype), (n_axes, 3))
+    return params, net_in, g_scale, learning, eta, u
+
+
+def _vmapped_step(kernel, eta, u):
+    return jax.jit(
+        jax.vmap(
+            lambda p, x, g, lrn: nets.network_step(p, x, g, lrn, eta, u, 0.1, kernel),
+        )
+    )
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_network_step_kernel_matches_the_reference(dtype):
+    """The Pallas Triton kernel (through Pallas' interpreter) gives the reference's O and updated
+    weights to rounding, keeps the weights of runs that do not learn bitwise (also with a NaN
+    dE/dO), and changes the others by more than the tolerance."""
+    params, net_in, g, learning, eta, u = _batch_of_steps(dtype)
+    o_ref, p_ref = _vmapped_step("xla", eta, u)(params, net_in, g, learning)
+    o_ker, p_ker = _vmapped_step("interpret", eta, u)(params, net_in, g, learning)
+    rtol = 1e-13 if dtype == jnp.float64 else 1e-6  # of each leaf's largest entry (a few ulps)
+    scale = lambda a: float(jnp.max(jnp.abs(a)))  # noqa: E731
+    assert o_ker.dtype == dtype
+    np.testing.assert_allclose(o_ker, o_ref, rtol=0, atol=rtol * scale(o_ref))
+    moved = 0.0
+    for a, b, w in zip(
+        *(jax.tree_util.tree_leaves(t) for t in (p_ker, p_ref, params)), strict=True
+    ):
+        assert a.dtype == dtype and a.shape == w.shape
+        np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale(b))
+        np.testing.assert_array_equal(a[~learning], w[~learning])  # held exactly
+        moved = max(moved, scale(a[learning] - w[learning]) / scale(b))
+    assert moved > 1e3 * rtol
+
+
+def test_network_step_kernel_is_differentiable_through_the_reference():
+    """grad through the kernel's ``custom_jvp`` equals grad through the reference (float64)."""
+    params, net_in, g, learning, eta, u = _batch_of_steps(jnp.float64)
+    g = jnp.nan_to_num(g)
+
+    def loss(kernel, params, g):
+        o, new = jax.vmap(
+            lambda p, x, gg, lrn: nets.network_step(p, x, gg, lrn, eta, u, 0.1, kernel)
+        )(params, net_in, g, learning)
+        leaves = jax.tree_util.tree_leaves(new)
+        return jnp.sum(o**2) + sum(jnp.sum(jnp.sin(w)) for w in leaves)
+
+    ref = jax.grad(lambda p, gg: loss("xla", p, gg), argnums=(0, 1))(params, g)
+    ker = jax.grad(lambda p, gg: loss("interpret", p, gg), argnums=(0, 1))(params, g)
+    for a, b in zip(jax.tree_util.tree_leaves(ker), jax.tree_util.tree_leaves(ref), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(b))))
+
+
+def test_network_step_triton_off_the_gpu_and_unbatched_is_the_reference():
+    """kernel='triton' runs the reference (bitwise) where there is no CUDA device or no vmap, and
+    bad kernels or network shapes are refused."""
+    params, net_in, g, learning, eta, u = _batch_of_steps(jnp.float64)
+    if jax.default_backend() != "gpu":
+        batched = _vmapped_step("triton", eta, u)(params, net_in, g, learning)
+        _assert_same_params(batched, _vmapped_step("xla", eta, u)(params, net_in, g, learning))
+    one = lambda a: a[0]  # noqa: E731
+    args = (jax.tree_util.tree_map(one, params), net_in[0], g[0], learning[0], eta, u)
+    single = nets.network_step(*args, 0.1, "triton")
+    _assert_same_params(single, nets.network_step(*args, 0.1, "xla"))
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        nets.network_step(*args, 0.1, "cuda")
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        LearnerConfig(kernel="cuda")
+    deep = nets.init_params(jax.random.PRNGKey(0), NetConfig(hidden=(20, 20, 20)), jnp.float64)
+    with pytest.raises(ValueError, match="two hidden layers"):
+        nets.network_step(deep, net_in[0], g[0], learning[0], eta, u, 0.1, "triton")
+
+
+def test_learning_with_the_kernel_follows_the_reference_world():
+    """Two 1.2 s episodes of the 1-D world for three network seeds (vmapped) with the learner's
+    kernel (through Pallas' interpreter) and with the reference: the same contact forces,
+    impedances and final weights to float64 rounding."""
+    cfg_kernel = LearnerConfig(**{**CFG_1D.__dict__, "kernel": "interpret"})
+    keys = jax.random.split(jax.random.PRNGKey(0), 3)
+    runs = {}
+    for name, cfg in (("xla", CFG_1D), ("interpret", cfg_kernel)):
+        run = make_episodes(cfg, steps=1200, learn=True)
+        runs[name] = jax.vmap(lambda k, run=run: run(k, 2))(keys)
+    (ls_ref, logs_ref), (ls_ker, logs_ker) = runs["xla"], runs["interpret"]
+    assert np.mean(logs_ref["learning"]) > 0.05  # the comparison covers learning samples
+    peak = float(np.max(np.abs(logs_ref["f_int"])))
+    assert peak > 1.0  # and contact
+    np.testing.assert_allclose(logs_ker["f_int"], logs_ref["f_int"], rtol=0, atol=1e-9 * peak)
+    np.testing.assert_allclose(logs_ker["impedance"], logs_ref["impedance"], rtol=1e-9, atol=1e-9)
+    for a, b in zip(*(jax.tree_util.tree_leaves(s.params) for s in (ls_ker, ls_ref)), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)

@@ -26,9 +26,11 @@ from hec_jax.nets.learner import (
     make_online_learner,
     task_energy,
 )
+from hec_jax.nets.step_kernel import KERNELS, network_step
 
 __all__ = [
     "FlaxMlp",
+    "KERNELS",
     "KINDS",
     "LearnerConfig",
     "LearnerInputs",
@@ -42,6 +44,7 @@ __all__ = [
     "gain_beta",
     "init_params",
     "make_online_learner",
+    "network_step",
     "normalise_inputs",
     "output_unit",
     "output_unit_derivative",

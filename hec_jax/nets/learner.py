@@ -55,6 +55,7 @@ import jax.numpy as jnp
 from jax import Array
 
 from hec_jax.nets import impedance_nets as nets
+from hec_jax.nets.step_kernel import KERNELS, network_step
 
 TASKS = ("catching", "hitting")
 
@@ -80,6 +81,11 @@ class LearnerConfig:
         contact_damping: nominal b_c [N s/m] of the contact for dF_int/dX_e' = -b_c n n^T in
             contact (its gradient enters with dt instead of dt^2); 0: stiffness only.
         net: network structure.
+        kernel: implementation of the network step (forward, backpropagation, Eq. 52 update):
+            "xla" (reference) or "triton" (one Pallas Triton kernel per sample under ``vmap`` on
+            CUDA GPUs, the reference elsewhere; ``hec_jax.nets.network_step``) or "interpret" (that
+            kernel through Pallas' interpreter: slow, for tests on the CPU). Same results to
+            rounding; gradients through the learner go through the reference either way.
     """
 
     task: str = "catching"
@@ -97,8 +103,11 @@ class LearnerConfig:
     velocity_after_contact: bool = False
     contact_damping: float = 0.0
     net: nets.NetConfig = field(default_factory=nets.NetConfig)
+    kernel: str = "xla"
 
     def __post_init__(self):
+        if self.kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {KERNELS}, got {self.kernel!r}")
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
         if not (0.0 <= self.r_b < self.radius):
@@ -242,12 +251,6 @@ def make_online_learner(
             encounters=jnp.zeros((), jnp.int32),
         )
 
-    def virtual_force(params, net_in, geometry, inside):
-        o = nets.apply(params, config.net, net_in, u.astype(net_in.dtype))
-        terms = jnp.stack([geometry.dx_o, geometry.dxd_o, geometry.dxdd_o], axis=-1)  # K, B, M
-        f_o = jnp.where(inside, jnp.sum(o * terms.astype(o.dtype), axis=-1), 0.0)  # Eq. 47
-        return f_o, o
-
     def update(
         state: LearnerState, inputs: LearnerInputs, allow: Array | bool = True
     ) -> tuple[LearnerState, LearnerOutput]:
@@ -263,9 +266,6 @@ def make_online_learner(
         touched = (state.touched & ~entering) | (inside & inputs.in_contact)
         geometry = sphere_fn(x_r, xd_r, xdd_r, config.radius)
         net_in = nets.normalise_inputs(config.net, x_r, xd_r, xdd_r, inputs.f_int)
-        f_o, pullback, o = jax.vjp(
-            lambda p: virtual_force(p, net_in, geometry, inside), state.params, has_aux=True
-        )
         energy, (de_dx, de_dxd) = jax.value_and_grad(
             lambda xe, xde: task_energy(config, xe, xde, inputs, xd_r_tc, touched), argnums=(0, 1)
         )(inputs.x_e, inputs.xd_e)
@@ -277,14 +277,22 @@ def make_online_learner(
             if config.velocity_after_contact and config.task == "catching":
                 gate = gate & ~touched  # after the first contact the learning goes on
             learning = learning & ~gate
-        cotangent = jnp.where(learning, de_df_act, 0.0).astype(f_o.dtype)
-        (grad_w,) = pullback(cotangent)  # (dE/dF_act)^T (dF_o/dO) (dO/dw), Eq. 53
-        lr = lambda g: eta.reshape((1, 3) + (1,) * (g.ndim - 2)).astype(g.dtype)  # noqa: E731
-        # Eq. 52; the select keeps the weights exactly (also were a forward value non-finite,
-        # where the zero cotangent would give 0 * inf = NaN) on samples that do not learn
-        params = jax.tree_util.tree_map(
-            lambda w, g: jnp.where(learning, w - lr(g) * g, w), state.params, grad_w
-        )
+        # F_o = M_o dX_o'' + B_o dX_o' + K_o dX_o inside the sphere (Eq. 47), so
+        # dE/dO[axis, kind] = (dE/dF_act)_axis * (dX_o, dX_o', dX_o'')[kind] (Eq. 53, F_act = F_o)
+        terms = jnp.stack([geometry.dx_o, geometry.dxd_o, geometry.dxdd_o], axis=-1)  # K, B, M
+        dtype = state.params["output"]["bias"].dtype
+        g_scale = jnp.where(learning, de_df_act[:, None] * terms, 0.0).astype(dtype)
+        o, params = network_step(
+            state.params,
+            net_in.astype(dtype),
+            g_scale,
+            learning,
+            eta,
+            u.astype(dtype),
+            config.net.theta,
+            config.kernel,
+        )  # Eq. 52 where learning (the weights held exactly otherwise)
+        f_o = jnp.where(inside, jnp.sum(o * terms.astype(o.dtype), axis=-1), 0.0)  # Eq. 47
         _, f_d = desired_force(config, x_r, inputs.in_contact)
         energy_f = state.energy_f + 0.5 * jnp.sum((f_d - inputs.f_int) ** 2) * config.dt
         new_state = LearnerState(
