@@ -275,10 +275,10 @@ def test_catching_velocity_term_only_before_contact():
 # --- the network step's two implementations (hec_jax.nets.network_step) ---------------------
 
 
-def _batch_of_steps(dtype, batch=5, n_axes=2):
+def _batch_of_steps(dtype, batch=5, n_axes=2, hidden=(20, 20)):
     """Per-run parameters, inputs, dE/dO and learning flags (one run with a NaN dE/dO that does
     not learn); rates and U shared, as the learner passes them."""
-    cfg = NetConfig(n_axes=n_axes)
+    cfg = NetConfig(n_axes=n_axes, hidden=hidden)
     keys = jax.random.split(jax.random.PRNGKey(7), batch)
     params = jax.vmap(lambda k: nets.init_params(k, cfg, dtype))(keys)
     params = jax.tree_util.tree_map(lambda p: 3.0 * p, params)  # outputs away from 0
@@ -288,7 +288,7 @@ def _batch_of_steps(dtype, batch=5, n_axes=2):
     g_scale = g_scale.at[1, 0, 0].set(jnp.nan)
     learning = jnp.arange(batch) % 3 != 1  # run 1 (with the NaN) does not learn
     eta = jnp.asarray([0.3, 0.2, 0.1], dtype)
-    u = jnp.broadcast_to(jnp.asarray([800.0, 80.0, 2.0], dtype), (n_axes, 3))
+    u = jnp.asarray([[800.0, 80.0, 2.0]], dtype) / (1.0 + jnp.arange(n_axes, dtype=dtype)[:, None])
     return params, net_in, g_scale, learning, eta, u
 
 
@@ -300,15 +300,18 @@ def _vmapped_step(kernel, eta, u):
     )
 
 
-@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
-def test_network_step_kernel_matches_the_reference(dtype):
+@pytest.mark.parametrize(
+    ("dtype", "hidden"),
+    [(jnp.float32, (20, 20)), (jnp.float64, (20, 20)), (jnp.float64, (12, 24))],
+)
+def test_network_step_kernel_matches_the_reference(dtype, hidden):
     """The Pallas Triton kernel (through Pallas' interpreter) gives the reference's O and updated
     weights to rounding, keeps the weights of runs that do not learn bitwise (also with a NaN
     dE/dO), and changes the others by more than the tolerance."""
-    params, net_in, g, learning, eta, u = _batch_of_steps(dtype)
+    params, net_in, g, learning, eta, u = _batch_of_steps(dtype, hidden=hidden)
     o_ref, p_ref = _vmapped_step("xla", eta, u)(params, net_in, g, learning)
     o_ker, p_ker = _vmapped_step("interpret", eta, u)(params, net_in, g, learning)
-    rtol = 1e-13 if dtype == jnp.float64 else 1e-6  # of each leaf's largest entry (a few ulps)
+    rtol = 1e-13 if dtype == jnp.float64 else 1e-6  # of each leaf's largest entry
     scale = lambda a: float(jnp.max(jnp.abs(a)))  # noqa: E731
     assert o_ker.dtype == dtype
     np.testing.assert_allclose(o_ker, o_ref, rtol=0, atol=rtol * scale(o_ref))
@@ -359,6 +362,10 @@ def test_network_step_triton_off_the_gpu_and_unbatched_is_the_reference():
     deep = nets.init_params(jax.random.PRNGKey(0), NetConfig(hidden=(20, 20, 20)), jnp.float64)
     with pytest.raises(ValueError, match="two hidden layers"):
         nets.network_step(deep, net_in[0], g[0], learning[0], eta, u, 0.1, "triton")
+    for hidden in ((20, 40), (40, 20)):
+        wide = nets.init_params(jax.random.PRNGKey(0), NetConfig(hidden=hidden), jnp.float64)
+        with pytest.raises(ValueError, match="at most 32 units"):
+            nets.network_step(wide, net_in[0], g[0], learning[0], eta, u, 0.1, "triton")
 
 
 def test_learning_with_the_kernel_follows_the_reference_world():

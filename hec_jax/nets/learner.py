@@ -29,8 +29,8 @@ Per sample (readings from paper-notes Sec. 3):
 4. The paper's approximation (Eqs. 54-58, the hand as a unit mass over one sample):
    dE/dF_act = dE/dX_e dt^2 + dE/dX_e' dt (Eq. 54's second factor read as dX_e'/dF_act; Eq. 56's
    "(k)" is debris).
-5. dw = -eta (dE/dF_act)^T (dF_act/dO)(dO/dw) (Eqs. 52-53) with F_act = F_o: one vector-Jacobian
-   product through Eq. 47 and the networks (backpropagation). A separate learning rate per network
+5. dw = -eta (dE/dF_act)^T (dF_act/dO)(dO/dw) (Eqs. 52-53) with F_act = F_o: dE/dO formed from
+   Eq. 47, then backpropagation through the networks (``network_step``). A separate learning rate per network
    kind (VSN, VVN, VIN).
 6. Gate (found in a 1-D prototype, not in the paper): no learning while the object recedes inside
    the sphere without contact (n . X_r' > 0). In catching the latched approach velocity then
@@ -280,17 +280,9 @@ def make_online_learner(
         # F_o = M_o dX_o'' + B_o dX_o' + K_o dX_o inside the sphere (Eq. 47), so
         # dE/dO[axis, kind] = (dE/dF_act)_axis * (dX_o, dX_o', dX_o'')[kind] (Eq. 53, F_act = F_o)
         terms = jnp.stack([geometry.dx_o, geometry.dxd_o, geometry.dxdd_o], axis=-1)  # K, B, M
-        dtype = state.params["output"]["bias"].dtype
-        g_scale = jnp.where(learning, de_df_act[:, None] * terms, 0.0).astype(dtype)
+        g_scale = jnp.where(learning, de_df_act[:, None] * terms, 0.0)
         o, params = network_step(
-            state.params,
-            net_in.astype(dtype),
-            g_scale,
-            learning,
-            eta,
-            u.astype(dtype),
-            config.net.theta,
-            config.kernel,
+            state.params, net_in, g_scale, learning, eta, u, config.net.theta, config.kernel
         )  # Eq. 52 where learning (the weights held exactly otherwise)
         f_o = jnp.where(inside, jnp.sum(o * terms.astype(o.dtype), axis=-1), 0.0)  # Eq. 47
         _, f_d = desired_force(config, x_r, inputs.in_contact)
