@@ -533,7 +533,7 @@ def learner_from_args(args, task: str, f_desired: float) -> LearnerConfig:
         contact_stiffness=args.contact_stiffness,
         contact_damping=args.contact_damping,
         velocity_after_contact=args.vel_after_contact,
-        kernel=getattr(args, "kernel", "xla"),
+        kernel=args.kernel,
     )
 
 

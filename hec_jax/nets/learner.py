@@ -30,8 +30,8 @@ Per sample (readings from paper-notes Sec. 3):
    dE/dF_act = dE/dX_e dt^2 + dE/dX_e' dt (Eq. 54's second factor read as dX_e'/dF_act; Eq. 56's
    "(k)" is debris).
 5. dw = -eta (dE/dF_act)^T (dF_act/dO)(dO/dw) (Eqs. 52-53) with F_act = F_o: dE/dO formed from
-   Eq. 47, then backpropagation through the networks (``network_step``). A separate learning rate per network
-   kind (VSN, VVN, VIN).
+   Eq. 47, then backpropagation through the networks (``network_step``). A separate learning rate
+   per network kind (VSN, VVN, VIN).
 6. Gate (found in a 1-D prototype, not in the paper): no learning while the object recedes inside
    the sphere without contact (n . X_r' > 0). In catching the latched approach velocity then
    becomes a wrong target and the hand unlearns the catch; in hitting, beta X_o' of a receding

@@ -20,10 +20,10 @@ under ``vmap``, the reference runs). Each kernel program keeps ``NETS_PER_PROGRA
 weights in registers through the forward pass, the backward pass and the update: the weights are
 read once per sample and written only by runs that learn that sample (the outputs alias the input
 parameters, so runs that do not learn keep their buffers untouched). The 20 x 20 blocks are loaded
-as masked 32 x 32 tiles (Triton needs power-of-2 shapes). Derivatives of the step itself (e.g. for
-backpropagation through time) go through the reference (``jax.custom_jvp``), so ``grad``, ``jvp``
-and ``vmap`` compose with either implementation. For finite values the two agree to rounding: the
-kernel sums in its own order and computes in the parameters' dtype (``tests/test_nets.py``
+as masked 32 x 32 tiles (Triton needs power-of-2 shapes). Where the step itself is
+differentiated (e.g. backpropagation through time) the reference runs, primal included
+(``jax.custom_jvp``), so ``grad``, ``jvp`` and ``vmap`` compose with either implementation.
+For finite values the two agree to rounding: the kernel sums in its own order and computes in the parameters' dtype (``tests/test_nets.py``
 compares them in float32 and float64 through Pallas' interpreter on the CPU; on an H200 a
 reviewer's check gave 2.6e-7 relative in float32, 6e-16 in float64). Where a value overflows, the
 kernel may give +-inf where the reference gives NaN. Weights are written only by learning runs
@@ -163,7 +163,8 @@ def _kernel_body(
 
 
 def _triton_batched(params, net_in, g_scale, learning, eta, u, theta, interpret=False):
-    """The kernel over a batch: every argument with a leading batch axis (B, ...)."""
+    """The kernel over a batch: every argument with a leading batch axis (B, ...) except ``eta``
+    (3,) and ``u`` (n_axes, 3), all in the parameters' dtype."""
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plt
 
@@ -187,10 +188,10 @@ def _triton_batched(params, net_in, g_scale, learning, eta, u, theta, interpret=
         flat(params["output"]["bias"], ()),
     )
     x = flat(jnp.broadcast_to(net_in[:, :, None, :], (batch, n_axes, 3, n_in)), (n_in,))
-    g = flat(g_scale.astype(dtype), ())
-    rate = jnp.where(learning[:, None, None], eta.astype(dtype)[None, None, :], 0.0)
+    g = flat(g_scale, ())
+    rate = jnp.where(learning[:, None, None], eta[None, None, :], 0.0)
     rate = flat(jnp.broadcast_to(rate, (batch, n_axes, 3)), ())
-    u_n = flat(jnp.broadcast_to(u.astype(dtype), (batch, n_axes, 3)), ())
+    u_n = flat(jnp.broadcast_to(u, (batch, n_axes, 3)), ())
     out_shape = (jax.ShapeDtypeStruct((n_pad,), dtype),) + tuple(
         jax.ShapeDtypeStruct(leaf.shape, dtype) for leaf in leaves
     )
@@ -250,9 +251,8 @@ def _fused(theta: float, interpret: bool):
 
     @fused.defjvp
     def _jvp(primals, tangents):
-        out = fused(*primals)
-        _, out_dot = jax.jvp(reference, primals, tangents)
-        return out, out_dot
+        # differentiated, the step is the reference's, primal included (one forward pass)
+        return jax.jvp(reference, primals, tangents)
 
     return fused
 
