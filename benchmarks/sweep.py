@@ -2,7 +2,7 @@
 
     python benchmarks/sweep.py [--batch 4096] [--steps 500] [--float32] [--per-device]
         [--solver-iterations 4 8] [--solver cg] [--jacobian sparse] [--warp]
-        [--kernel xla triton]
+        [--kernel xla triton triton-inside]
 
 One run prints a table: steps/s of the catching loop with online learning (``experiments/sweep.py``'s
 vmapped function: MJX physics + impedance control + learner), its run axis laid out over the first
@@ -28,7 +28,10 @@ cannot make the baseline look slower. ``--kernel xla triton`` times the loop wit
 implementation of the learner's network step (``hec_jax.nets.network_step``; "triton" is a Pallas
 Triton kernel on CUDA GPUs and the XLA reference elsewhere) and prints how far their runs' peak
 contact forces differ, and the share of run-steps in which the learner updated its weights (the
-kernel writes only those runs' weights).
+kernel writes only those runs' weights). A "-inside" variant (``triton-inside``, ``xla-inside``)
+evaluates the networks only inside the virtual sphere (``LearnerConfig(nets_outside=False)``:
+outside it Eq. 47 gives F_o = 0, so forces and learning are the same; the kernel then reads no
+weights of runs outside the sphere); the share of run-steps inside the sphere is printed too.
 """
 
 from __future__ import annotations
@@ -66,6 +69,14 @@ from hec_jax.mjx_scene import (  # noqa: E402
 )
 from hec_jax.nets import LearnerConfig  # noqa: E402
 
+# network-step variants: kernel, and "-inside" for LearnerConfig(nets_outside=False)
+VARIANTS = ("xla", "triton", "xla-inside", "triton-inside")
+
+
+def learner_variant(learner: LearnerConfig, variant: str) -> LearnerConfig:
+    kernel, _, where = variant.partition("-")
+    return replace(learner, kernel=kernel, nets_outside=where != "inside")
+
 
 def best_of(fn, repeat=3):
     best = np.inf
@@ -96,9 +107,11 @@ def main(argv=None):
     p.add_argument(
         "--kernel",
         nargs="+",
-        choices=("xla", "triton"),
+        choices=VARIANTS,
         default=["xla"],
-        help="learner network step(s) to time (hec_jax.nets.network_step); triton: CUDA only",
+        help="learner network step(s) to time (hec_jax.nets.network_step; triton: a Pallas "
+        "Triton kernel on CUDA GPUs); '-inside': the networks evaluated only inside the virtual "
+        "sphere (LearnerConfig.nets_outside=False: the same forces and learning)",
     )
     args = p.parse_args(argv)
     if args.warp and importlib.util.find_spec("warp") is None:  # fail before the long rows
@@ -128,17 +141,18 @@ def main(argv=None):
     counts = [n for n in (1, 2, 4, 8, 16) if n <= n_dev and (args.per_device or B % n == 0)]
     rates = {}  # (kernel, devices) -> steps/s
     peaks = {}  # kernel -> each run's peak contact force on 1 device [N]
-    learning_fraction = None
+    learning_fraction = inside_fraction = None
     for kernel in args.kernel:
-        sweep = tl.make_sweep(replace(config, learner=replace(config.learner, kernel=kernel)))
+        sweep = tl.make_sweep(replace(config, learner=learner_variant(config.learner, kernel)))
 
         def measured(k, c, sweep=sweep):
             logs = sweep(k, sw, c)
-            return jnp.max(jnp.abs(logs["f_contact"]), axis=(-2, -1)), jnp.mean(logs["learning"])
+            peak = jnp.max(jnp.abs(logs["f_contact"]), axis=(-2, -1))
+            return peak, jnp.mean(logs["learning"]), jnp.mean(logs["inside"])
 
         fn = jax.jit(measured)
         for n in counts:
-            if n > 1 and kernel == "triton" and jax.default_backend() == "gpu":
+            if n > 1 and kernel.startswith("triton") and jax.default_backend() == "gpu":
                 continue  # one GPU per process (see experiments/sweep.py)
             size = B * n if args.per_device else B
             keys, conditions, _ = batch_of(size)
@@ -147,11 +161,11 @@ def main(argv=None):
             k_n = put(keys)
             c_n = jax.tree_util.tree_map(put, conditions)
             t0 = time.perf_counter()
-            peak, fraction = jax.block_until_ready(fn(k_n, c_n))
+            peak, fraction, inside = jax.block_until_ready(fn(k_n, c_n))
             compile_s = time.perf_counter() - t0
             if n == counts[0]:
                 peaks[kernel] = np.asarray(peak)
-                learning_fraction = float(fraction)
+                learning_fraction, inside_fraction = float(fraction), float(inside)
             wall = best_of(lambda fn=fn, k_n=k_n, c_n=c_n: jax.block_until_ready(fn(k_n, c_n)))
             rates[kernel, n] = size * T / wall
             rows.append(
@@ -314,7 +328,8 @@ def main(argv=None):
     )
     print(
         f"  the learner updated its weights in {100 * learning_fraction:.1f}% of the run-steps "
-        f"(the catching task learns only while the cube is inside the virtual sphere)"
+        f"(the catching task learns only while the cube is inside the virtual sphere, "
+        f"{100 * inside_fraction:.1f}% of the run-steps)"
     )
     for kernel in args.kernel[1:]:
         diff = np.abs(peaks[kernel] - peaks[first])

@@ -516,6 +516,13 @@ def add_common_args(parser, out_default: str) -> None:
         help="learner's network step: XLA reference, or one Pallas Triton kernel per sample "
         "(CUDA GPUs; the reference elsewhere; same results to rounding)",
     )
+    parser.add_argument(
+        "--nets-inside-only",
+        action="store_true",
+        help="evaluate the networks only inside the virtual sphere, where F_o uses them (the same "
+        "forces and learning; K_o, B_o, M_o logged as 0 outside; with --kernel triton the "
+        "kernel then skips those runs' weights)",
+    )
 
 
 def learner_from_args(args, task: str, f_desired: float) -> LearnerConfig:
@@ -534,6 +541,7 @@ def learner_from_args(args, task: str, f_desired: float) -> LearnerConfig:
         contact_damping=args.contact_damping,
         velocity_after_contact=args.vel_after_contact,
         kernel=args.kernel,
+        nets_outside=not args.nets_inside_only,
     )
 
 

@@ -292,37 +292,63 @@ def _batch_of_steps(dtype, batch=5, n_axes=2, hidden=(20, 20)):
     return params, net_in, g_scale, learning, eta, u
 
 
-def _vmapped_step(kernel, eta, u):
-    return jax.jit(
-        jax.vmap(
-            lambda p, x, g, lrn: nets.network_step(p, x, g, lrn, eta, u, 0.1, kernel),
+def _vmapped_step(kernel, eta, u, active=False):
+    """jit(vmap(network_step)) over (params, net_in, g_scale, learning[, active])."""
+    if active:
+        step = lambda p, x, g, lrn, act: nets.network_step(  # noqa: E731
+            p, x, g, lrn, eta, u, 0.1, kernel, active=act
         )
-    )
+    else:
+        step = lambda p, x, g, lrn: nets.network_step(  # noqa: E731
+            p, x, g, lrn, eta, u, 0.1, kernel
+        )
+    return jax.jit(jax.vmap(step))
 
 
 @pytest.mark.parametrize(
-    ("dtype", "hidden"),
-    [(jnp.float32, (20, 20)), (jnp.float64, (20, 20)), (jnp.float64, (12, 24))],
+    ("dtype", "hidden", "with_active"),
+    [
+        (jnp.float32, (20, 20), False),
+        (jnp.float64, (20, 20), False),
+        (jnp.float64, (12, 24), False),
+        (jnp.float32, (20, 20), True),
+        (jnp.float64, (20, 20), True),
+    ],
 )
-def test_network_step_kernel_matches_the_reference(dtype, hidden):
+def test_network_step_kernel_matches_the_reference(dtype, hidden, with_active):
     """The Pallas Triton kernel (through Pallas' interpreter) gives the reference's O and updated
     weights to rounding, keeps the weights of runs that do not learn bitwise (also with a NaN
-    dE/dO), and changes the others by more than the tolerance."""
+    dE/dO), and changes the others by more than the tolerance. With ``active``, inactive runs
+    (one of them flagged learning) give O = 0 and keep their weights bitwise in both."""
     params, net_in, g, learning, eta, u = _batch_of_steps(dtype, hidden=hidden)
-    o_ref, p_ref = _vmapped_step("xla", eta, u)(params, net_in, g, learning)
-    o_ker, p_ker = _vmapped_step("interpret", eta, u)(params, net_in, g, learning)
+    args = (params, net_in, g, learning)
+    updated = learning
+    if with_active:
+        active = jnp.arange(learning.shape[0]) < 3  # runs 3 (learning) and 4 (not) inactive
+        assert bool(learning[3]) and not bool(learning[4])
+        args += (active,)
+        updated = learning & active
+    o_ref, p_ref = _vmapped_step("xla", eta, u, with_active)(*args)
+    o_ker, p_ker = _vmapped_step("interpret", eta, u, with_active)(*args)
+    if with_active:  # the reference itself: O = 0 and weights held where inactive, else as before
+        o_all, p_all = _vmapped_step("xla", eta, u)(params, net_in, g, updated)
+        np.testing.assert_array_equal(o_ref[~active], 0.0)
+        np.testing.assert_array_equal(o_ref[active], o_all[active])
+        _assert_same_params((o_ref[active], p_ref), (o_all[active], p_all))
     rtol = 1e-13 if dtype == jnp.float64 else 1e-6  # of each leaf's largest entry
     scale = lambda a: float(jnp.max(jnp.abs(a)))  # noqa: E731
     assert o_ker.dtype == dtype
     np.testing.assert_allclose(o_ker, o_ref, rtol=0, atol=rtol * scale(o_ref))
+    if with_active:
+        np.testing.assert_array_equal(o_ker[~active], 0.0)
     moved = 0.0
     for a, b, w in zip(
         *(jax.tree_util.tree_leaves(t) for t in (p_ker, p_ref, params)), strict=True
     ):
         assert a.dtype == dtype and a.shape == w.shape
         np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale(b))
-        np.testing.assert_array_equal(a[~learning], w[~learning])  # held exactly
-        moved = max(moved, scale(a[learning] - w[learning]) / scale(b))
+        np.testing.assert_array_equal(a[~updated], w[~updated])  # held exactly
+        moved = max(moved, scale(a[updated] - w[updated]) / scale(b))
     assert moved > 1e3 * rtol
 
 
@@ -371,18 +397,31 @@ def test_network_step_triton_off_the_gpu_and_unbatched_is_the_reference():
 def test_learning_with_the_kernel_follows_the_reference_world():
     """Two 1.2 s episodes of the 1-D world for three network seeds (vmapped) with the learner's
     kernel (through Pallas' interpreter) and with the reference: the same contact forces,
-    impedances and final weights to float64 rounding."""
+    impedances and final weights to float64 rounding; also with the networks evaluated inside the
+    virtual sphere only (``nets_outside=False``), O then 0 outside it."""
     cfg_kernel = LearnerConfig(**{**CFG_1D.__dict__, "kernel": "interpret"})
+    cfg_inside = LearnerConfig(**{**cfg_kernel.__dict__, "nets_outside": False})
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
     runs = {}
-    for name, cfg in (("xla", CFG_1D), ("interpret", cfg_kernel)):
+    for name, cfg in (("xla", CFG_1D), ("interpret", cfg_kernel), ("inside", cfg_inside)):
         run = make_episodes(cfg, steps=1200, learn=True)
         runs[name] = jax.vmap(lambda k, run=run: run(k, 2))(keys)
-    (ls_ref, logs_ref), (ls_ker, logs_ker) = runs["xla"], runs["interpret"]
+    ls_ref, logs_ref = runs["xla"]
     assert np.mean(logs_ref["learning"]) > 0.05  # the comparison covers learning samples
+    inside = np.asarray(logs_ref["inside"])
+    assert 0.05 < np.mean(inside) < 0.95  # and samples outside the sphere
     peak = float(np.max(np.abs(logs_ref["f_int"])))
     assert peak > 1.0  # and contact
-    np.testing.assert_allclose(logs_ker["f_int"], logs_ref["f_int"], rtol=0, atol=1e-9 * peak)
-    np.testing.assert_allclose(logs_ker["impedance"], logs_ref["impedance"], rtol=1e-9, atol=1e-9)
-    for a, b in zip(*(jax.tree_util.tree_leaves(s.params) for s in (ls_ker, ls_ref)), strict=True):
-        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+    for name in ("interpret", "inside"):  # the kernel; the kernel with the networks inside only
+        ls_ker, logs_ker = runs[name]
+        np.testing.assert_array_equal(logs_ker["inside"], inside)
+        np.testing.assert_allclose(logs_ker["f_int"], logs_ref["f_int"], rtol=0, atol=1e-9 * peak)
+        imp_ref = np.asarray(logs_ref["impedance"])
+        if name == "inside":  # O = 0 outside the sphere, where F_o does not use it (Eq. 47)
+            np.testing.assert_array_equal(np.asarray(logs_ker["impedance"])[~inside], 0.0)
+            imp_ref = np.where(inside[..., None], imp_ref, 0.0)
+        np.testing.assert_allclose(logs_ker["impedance"], imp_ref, rtol=1e-9, atol=1e-9)
+        for a, b in zip(
+            *(jax.tree_util.tree_leaves(s.params) for s in (ls_ker, ls_ref)), strict=True
+        ):
+            np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)

@@ -106,3 +106,30 @@ def test_plain_runs_are_shared_across_seeds(sharded_by_process):
     np.testing.assert_array_equal(table["rod_length"][inverse], [0.6, 0.6, 0.65, 0.6])
     with pytest.raises(ValueError, match="do not fit"):
         sweep.unique_conditions({k: np.arange(3.0) for k in conditions}, 2)
+
+
+def test_networks_inside_the_sphere_only_give_the_same_sweep(sharded_by_process):
+    """``--nets-inside-only`` (O = 0 outside the virtual sphere, where Eq. 47 gives F_o = 0): the
+    same learned peaks and settle forces as the sweep's default runs, in both swings."""
+    sys.path.insert(0, str(ROOT))
+    import jax
+
+    from experiments import sweep
+    from experiments import task_loop as tl
+    from hec_jax.mjx_scene import PendulumConditions
+
+    args = sweep.parse(["--out", str(sharded_by_process), *TINY, "--nets-inside-only"])
+    learner = tl.learner_from_args(args, "catching", args.f_cd)
+    assert not learner.nets_outside
+    config = tl.config_from_args(args, learner, 0.7, 2)
+    run = sweep.make_summary(config, tl.make_sweep(config))
+    conditions, seed_index = sweep.grid(args)
+    keys = jax.random.split(jax.random.PRNGKey(args.seed), args.seeds)[seed_index]
+    cond = PendulumConditions(**{k: np.asarray(conditions[k]) for k in conditions})
+    out = run(keys, tl.switches("learned"), cond)
+    first = _load(sharded_by_process)
+    assert np.max(first["peak_learned_per_swing"]) > 1.0  # the runs make contact
+    np.testing.assert_allclose(
+        out["peak_per_swing"], first["peak_learned_per_swing"], rtol=1e-9, atol=1e-9
+    )
+    np.testing.assert_allclose(out["settle_force"], first["settle_force"], rtol=1e-9, atol=1e-9)

@@ -86,6 +86,11 @@ class LearnerConfig:
             CUDA GPUs, the reference elsewhere; ``hec_jax.nets.network_step``) or "interpret" (that
             kernel through Pallas' interpreter: slow, for tests on the CPU). Same results to
             rounding; gradients through the learner go through the reference either way.
+        nets_outside: evaluate the networks outside the virtual sphere too (O logged there,
+            unused: Eq. 47 gives F_o = 0 outside). False: O = 0 outside the sphere (also in the
+            logs and the Eq. 49 margins), the same forces, torques and learning, and the "triton"
+            kernel reads no weights of runs outside the sphere that sample (a sweep's or
+            benchmark's choice).
     """
 
     task: str = "catching"
@@ -104,6 +109,7 @@ class LearnerConfig:
     contact_damping: float = 0.0
     net: nets.NetConfig = field(default_factory=nets.NetConfig)
     kernel: str = "xla"
+    nets_outside: bool = True
 
     def __post_init__(self):
         if self.kernel not in KERNELS:
@@ -282,8 +288,16 @@ def make_online_learner(
         terms = jnp.stack([geometry.dx_o, geometry.dxd_o, geometry.dxdd_o], axis=-1)  # K, B, M
         g_scale = jnp.where(learning, de_df_act[:, None] * terms, 0.0)
         o, params = network_step(
-            state.params, net_in, g_scale, learning, eta, u, config.net.theta, config.kernel
-        )  # Eq. 52 where learning (the weights held exactly otherwise)
+            state.params,
+            net_in,
+            g_scale,
+            learning,
+            eta,
+            u,
+            config.net.theta,
+            config.kernel,
+            active=None if config.nets_outside else inside,
+        )  # Eq. 52 where learning (the weights held exactly otherwise); O = 0 where not active
         f_o = jnp.where(inside, jnp.sum(o * terms.astype(o.dtype), axis=-1), 0.0)  # Eq. 47
         _, f_d = desired_force(config, x_r, inputs.in_contact)
         energy_f = state.energy_f + 0.5 * jnp.sum((f_d - inputs.f_int) ** 2) * config.dt
