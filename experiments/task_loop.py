@@ -520,8 +520,8 @@ def add_common_args(parser, out_default: str) -> None:
         "--nets-inside-only",
         action="store_true",
         help="evaluate the networks only inside the virtual sphere, where F_o uses them (the same "
-        "forces and learning; K_o, B_o, M_o logged as 0 outside; with --kernel triton the "
-        "kernel then skips those runs' weights)",
+        "forces and learning; K_o, B_o, M_o logged as 0 outside, so the Eq. 49 margins there are "
+        "the target impedance's; with --kernel triton the kernel then skips those runs' weights)",
     )
 
 

@@ -8,6 +8,7 @@ from point_mass_world import B_E, K_C, K_E, M_E, make_episodes, sphere_1d
 
 from hec_jax import nets
 from hec_jax.nets import LearnerConfig, LearnerInputs, NetConfig
+from hec_jax.nets.learner import NETS_SHELL
 
 CFG_1D = LearnerConfig(
     net=NetConfig(n_axes=1),
@@ -306,26 +307,29 @@ def _vmapped_step(kernel, eta, u, active=False):
 
 
 @pytest.mark.parametrize(
-    ("dtype", "hidden", "with_active"),
+    ("dtype", "hidden", "with_active", "n_axes"),
     [
-        (jnp.float32, (20, 20), False),
-        (jnp.float64, (20, 20), False),
-        (jnp.float64, (12, 24), False),
-        (jnp.float32, (20, 20), True),
-        (jnp.float64, (20, 20), True),
+        (jnp.float32, (20, 20), False, 2),
+        (jnp.float64, (20, 20), False, 2),
+        (jnp.float64, (12, 24), False, 2),
+        (jnp.float32, (20, 20), True, 2),
+        # 3 networks per run: kernel programs (2 networks each) straddle runs
+        (jnp.float64, (20, 20), True, 1),
     ],
 )
-def test_network_step_kernel_matches_the_reference(dtype, hidden, with_active):
+def test_network_step_kernel_matches_the_reference(dtype, hidden, with_active, n_axes):
     """The Pallas Triton kernel (through Pallas' interpreter) gives the reference's O and updated
     weights to rounding, keeps the weights of runs that do not learn bitwise (also with a NaN
     dE/dO), and changes the others by more than the tolerance. With ``active``, inactive runs
     (one of them flagged learning) give O = 0 and keep their weights bitwise in both."""
-    params, net_in, g, learning, eta, u = _batch_of_steps(dtype, hidden=hidden)
+    params, net_in, g, learning, eta, u = _batch_of_steps(dtype, n_axes=n_axes, hidden=hidden)
     args = (params, net_in, g, learning)
     updated = learning
     if with_active:
-        active = jnp.arange(learning.shape[0]) < 3  # runs 3 (learning) and 4 (not) inactive
-        assert bool(learning[3]) and not bool(learning[4])
+        # runs 0 and 2 (both flagged learning) inactive; with 3 networks per run, kernel
+        # programs hold (inactive, active) and (active, inactive) pairs of networks
+        active = jnp.asarray([False, True, False, True, True])
+        assert bool(learning[0]) and bool(learning[2])
         args += (active,)
         updated = learning & active
     o_ref, p_ref = _vmapped_step("xla", eta, u, with_active)(*args)
@@ -410,6 +414,8 @@ def test_learning_with_the_kernel_follows_the_reference_world():
     assert np.mean(logs_ref["learning"]) > 0.05  # the comparison covers learning samples
     inside = np.asarray(logs_ref["inside"])
     assert 0.05 < np.mean(inside) < 0.95  # and samples outside the sphere
+    rho = np.abs(np.asarray(logs_ref["x_o"]) - np.asarray(logs_ref["x_e"]))
+    active = rho <= CFG_1D.radius * (1.0 + NETS_SHELL)  # the networks' shell past the sphere
     peak = float(np.max(np.abs(logs_ref["f_int"])))
     assert peak > 1.0  # and contact
     for name in ("interpret", "inside"):  # the kernel; the kernel with the networks inside only
@@ -418,8 +424,8 @@ def test_learning_with_the_kernel_follows_the_reference_world():
         np.testing.assert_allclose(logs_ker["f_int"], logs_ref["f_int"], rtol=0, atol=1e-9 * peak)
         imp_ref = np.asarray(logs_ref["impedance"])
         if name == "inside":  # O = 0 outside the sphere, where F_o does not use it (Eq. 47)
-            np.testing.assert_array_equal(np.asarray(logs_ker["impedance"])[~inside], 0.0)
-            imp_ref = np.where(inside[..., None], imp_ref, 0.0)
+            np.testing.assert_array_equal(np.asarray(logs_ker["impedance"])[~active], 0.0)
+            imp_ref = np.where(active[..., None], imp_ref, 0.0)
         np.testing.assert_allclose(logs_ker["impedance"], imp_ref, rtol=1e-9, atol=1e-9)
         for a, b in zip(
             *(jax.tree_util.tree_leaves(s.params) for s in (ls_ker, ls_ref)), strict=True

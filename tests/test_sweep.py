@@ -117,16 +117,25 @@ def test_networks_inside_the_sphere_only_give_the_same_sweep(sharded_by_process)
     from experiments import sweep
     from experiments import task_loop as tl
     from hec_jax.mjx_scene import PendulumConditions
+    from hec_jax.nets.learner import NETS_SHELL
 
     args = sweep.parse(["--out", str(sharded_by_process), *TINY, "--nets-inside-only"])
     learner = tl.learner_from_args(args, "catching", args.f_cd)
     assert not learner.nets_outside
     config = tl.config_from_args(args, learner, 0.7, 2)
-    run = sweep.make_summary(config, tl.make_sweep(config))
+    summary = sweep.make_summary(config, lambda *a: logs)  # the sweep's reduction of ``logs``
     conditions, seed_index = sweep.grid(args)
     keys = jax.random.split(jax.random.PRNGKey(args.seed), args.seeds)[seed_index]
     cond = PendulumConditions(**{k: np.asarray(conditions[k]) for k in conditions})
-    out = run(keys, tl.switches("learned"), cond)
+    logs = jax.jit(tl.make_sweep(config))(keys, tl.switches("learned"), cond)
+    out = summary(None, None, None)
+    # the learner's wiring: K_o is 0 beyond the networks' shell past the sphere, not 0 inside it
+    k_o, inside = np.asarray(logs["k_o"]), np.asarray(logs["inside"])  # (B, S, T, 2), (B, S, T)
+    rho = np.linalg.norm(np.asarray(logs["x_o"]) - np.asarray(logs["x_e"]), axis=-1)
+    active = rho <= learner.radius * (1.0 + NETS_SHELL)
+    assert 0.05 < inside.mean() < 0.95
+    np.testing.assert_array_equal(k_o[~active], 0.0)
+    assert np.all(np.any(k_o[inside] != 0.0, axis=-1))
     first = _load(sharded_by_process)
     assert np.max(first["peak_learned_per_swing"]) > 1.0  # the runs make contact
     np.testing.assert_allclose(

@@ -6,7 +6,7 @@ virtual impedance O (n_axes, 3) and the updated parameters:
 
 * O = (U/2) tanh((x - theta)/2), x the pre-activation of Eq. 51 (``impedance_nets.apply``), where
   ``active`` (default True), 0 where not (a run whose O is not used this sample, e.g. outside the
-  virtual sphere, where Eq. 47 gives F_o = 0: the kernel then reads none of its weights),
+  virtual sphere, where Eq. 47 gives F_o = 0: the Triton kernel then reads none of its weights),
 * every weight w -> w - eta_kind dE/dw where ``learning & active``, unchanged (bitwise)
   otherwise, with dE/dw = sum_(axis, kind) g_scale[axis, kind] dO[axis, kind]/dw: ``g_scale``
   is dE/dO, which the learner forms as (dE/dF_act)_axis dF_o,axis/dO[axis, kind] (Eqs. 47, 53).
@@ -316,13 +316,15 @@ def network_step(
     """
     if kernel not in KERNELS:
         raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+    learning = jnp.asarray(learning, bool)
+    active = None if active is None else jnp.asarray(active, bool)
     if kernel == "xla":
         return _reference(params, net_in, g_scale, learning, eta, u, theta, active)
     _check_params(params)
     # the kernel computes in the parameters' dtype
     dtype = params["hidden_1"]["weight"].dtype
     net_in, g_scale, eta, u = (jnp.asarray(a).astype(dtype) for a in (net_in, g_scale, eta, u))
-    active = jnp.ones((), bool) if active is None else jnp.asarray(active, bool)
+    active = jnp.ones((), bool) if active is None else active
     return _fused(float(theta), kernel == "interpret")(
         params, net_in, g_scale, learning, active, eta, u
     )
