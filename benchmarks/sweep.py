@@ -5,8 +5,10 @@
         [--kernel xla triton triton-inside]
 
 One run prints a table: steps/s of the catching loop with online learning (``experiments/sweep.py``'s
-vmapped function: MJX physics + impedance control + learner), its run axis laid out over the first
-n devices with ``NamedSharding`` for n = 1, 2, 4, ... up to all devices, against MuJoCo C's
+vmapped function: MJX physics + impedance control + learner), its run axis split over the first
+n devices for n = 1, 2, 4, ... up to all devices (each device runs its slice with its own
+executable, called from its own thread: ``experiments.devices.OnDevices``, as in
+``experiments/sweep.py``), against MuJoCo C's
 ``mujoco.rollout`` (physics only, zero torques, all host cores) on the same scene and batch, measured
 in the same run. A third row, MJX physics alone (``mjx.step`` in a ``lax.scan``, zero torques, the
 same solver settings and batch, one device), bounds what the learning loop can reach on that
@@ -54,13 +56,12 @@ if "--float32" not in sys.argv:
 import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
-from jax.sharding import Mesh, NamedSharding  # noqa: E402
-from jax.sharding import PartitionSpec as P  # noqa: E402
 from mujoco import mjx  # noqa: E402
 from mujoco import rollout as mj_rollout  # noqa: E402
 
 from benchmarks.gradients import _compiled, _timed, catching_case  # noqa: E402
 from experiments import task_loop as tl  # noqa: E402
+from experiments.devices import OnDevices  # noqa: E402
 from hec_jax.mjx_scene import (  # noqa: E402
     PendulumConditions,
     default_conditions,
@@ -137,6 +138,12 @@ def main(argv=None):
         return jax.random.split(jax.random.PRNGKey(0), size), conditions, release
 
     rows = []
+
+    def add_row(row):
+        """Keeps a table row and prints it at once (progress of a long run)."""
+        rows.append(row)
+        print(" | ".join(row), flush=True)
+
     n_dev = jax.device_count()
     counts = [n for n in (1, 2, 4, 8, 16) if n <= n_dev and (args.per_device or B % n == 0)]
     rates = {}  # (kernel, devices) -> steps/s
@@ -145,34 +152,38 @@ def main(argv=None):
     for kernel in args.kernel:
         sweep = tl.make_sweep(replace(config, learner=learner_variant(config.learner, kernel)))
 
-        def measured(k, c, sweep=sweep):
+        def per_run(k, c, sweep=sweep):
+            """Each run's peak contact force [N] and shares of steps learning / inside."""
             logs = sweep(k, sw, c)
-            peak = jnp.max(jnp.abs(logs["f_contact"]), axis=(-2, -1))
-            return peak, jnp.mean(logs["learning"]), jnp.mean(logs["inside"])
+            f = jnp.abs(logs["f_contact"])
+            peak = jnp.max(f, axis=tuple(range(1, f.ndim)))
+            flat = lambda x: x.reshape(x.shape[0], -1).astype(peak.dtype)  # noqa: E731
+            return peak, flat(logs["learning"]).mean(1), flat(logs["inside"]).mean(1)
 
-        fn = jax.jit(measured)
         for n in counts:
-            if n > 1 and kernel.startswith("triton") and jax.default_backend() == "gpu":
-                continue  # one GPU per process (see experiments/sweep.py)
+            # every device runs its slice of the runs with its own executable, called from its
+            # own thread (experiments.devices.OnDevices, as experiments/sweep.py)
+            fn = OnDevices(per_run, jax.devices()[:n], (0, 0))
             size = B * n if args.per_device else B
             keys, conditions, _ = batch_of(size)
-            sharding = NamedSharding(Mesh(np.array(jax.devices()[:n]), ("runs",)), P("runs"))
-            put = lambda x, s=sharding: jax.device_put(x, s)  # noqa: E731
-            k_n = put(keys)
-            c_n = jax.tree_util.tree_map(put, conditions)
+            placed = fn.place(keys, conditions)
             t0 = time.perf_counter()
-            peak, fraction, inside = jax.block_until_ready(fn(k_n, c_n))
+            peak, learning, inside = fn.run(placed)
             compile_s = time.perf_counter() - t0
             if n == counts[0]:
-                peaks[kernel] = np.asarray(peak)
-                learning_fraction, inside_fraction = float(fraction), float(inside)
-            wall = best_of(lambda fn=fn, k_n=k_n, c_n=c_n: jax.block_until_ready(fn(k_n, c_n)))
+                peaks[kernel] = peak
+                learning_fraction, inside_fraction = float(learning.mean()), float(inside.mean())
+            wall = best_of(lambda fn=fn, placed=placed: fn.run(placed))
             rates[kernel, n] = size * T / wall
-            rows.append(
+            same = ""
+            if n > counts[0] and not args.per_device:  # the same runs as on one device
+                diff = float(np.max(np.abs(peak - peaks[kernel])))
+                same = f"; peaks differ from 1 device's by at most {diff:.2g} N"
+            add_row(
                 (
                     f"MJX learning loop ({kernel} network step), {n} device(s), batch {size}",
                     f"{rates[kernel, n]:.3g}",
-                    f"compile {compile_s:.0f} s, best of 3: {wall:.2f} s",
+                    f"compile {compile_s:.0f} s, best of 3: {wall:.2f} s{same}",
                 )
             )
     first = args.kernel[0]
@@ -224,14 +235,14 @@ def main(argv=None):
         return rate, row, result
 
     phys_rate, row, jax_result = physics_row("jax")
-    rows.append(row)
+    add_row(row)
     warp_rate = None
     if args.warp:
         warp_rate, row, warp_result = physics_row("warp")
         hinge_diff, qpos_diff = (
             float(np.max(np.abs(w - j))) for w, j in zip(warp_result, jax_result, strict=True)
         )
-        rows.append(
+        add_row(
             (
                 row[0],
                 row[1],
@@ -255,7 +266,7 @@ def main(argv=None):
         with mj_rollout.Rollout(nthread=threads) as r:
             r.rollout([m_c] * B, datas, states, ctrl)
             wall = best_of(lambda: r.rollout([m_c] * B, datas, states, ctrl), args.c_repeats)
-        rows.append(
+        add_row(
             (
                 f"MuJoCo C mujoco.rollout, physics only, {threads} threads, batch {B}",
                 f"{B * T / wall:.3g}",
@@ -303,7 +314,7 @@ def main(argv=None):
             ("forward", "catching loop forward (rollout), scene.xml's solver"),
             ("gradient", "value_and_grad, all weights (implicit+remat), scene.xml's"),
         ):
-            rows.append(
+            add_row(
                 (
                     f"{what}, batch {args.grad_batch} x {args.grad_steps} steps",
                     f"{args.grad_batch * args.grad_steps / times[name]:.3g}",

@@ -12,8 +12,9 @@ impedance baseline (F_o = 0) under the same condition. Runs are processed in chu
 restarted sweep skips the chunks already there, so an interrupted sweep loses at most one chunk; it
 must be restarted with the same arguments (checked against ``chunks/sweep_settings.json``).
 With several devices (GPUs of one host, or CPU devices forced with
-``XLA_FLAGS=--xla_force_host_platform_device_count=N``) the run axis of a chunk is sharded across
-them with ``NamedSharding``; across hosts, ``--shard-index/--num-shards`` take every n-th chunk and
+``XLA_FLAGS=--xla_force_host_platform_device_count=N``) each device runs its slice of every chunk
+with its own executable, called from its own thread (``experiments.devices.OnDevices``; ``--chunk``
+must divide by the device count); across hosts, ``--shard-index/--num-shards`` take every n-th chunk and
 ``--merge-only`` merges the chunk files afterwards. Writes ``config.json``, ``metrics.json``
 (success rate, peak force ratio learned/plain) and ``peak_ratio_map.png``.
 """
@@ -37,10 +38,9 @@ if "--float32" not in sys.argv:  # float64 unless asked (before any array is mad
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from jax.sharding import Mesh, NamedSharding  # noqa: E402
-from jax.sharding import PartitionSpec as P  # noqa: E402
 
 from experiments import task_loop as tl  # noqa: E402
+from experiments.devices import OnDevices  # noqa: E402
 from hec_jax.mjx_scene import PendulumConditions  # noqa: E402
 from hec_jax.runs import (  # noqa: E402
     enable_compile_cache,
@@ -132,7 +132,7 @@ def make_summary(config, sweep):
             settle_force=force[:, -1, -settle:].mean(-1),
         )
 
-    return jax.jit(run)
+    return run
 
 
 def unique_conditions(conditions: dict[str, np.ndarray], size: int):
@@ -154,16 +154,14 @@ def plain_rows(chunk: int, seeds: int, n_dev: int) -> int:
     return -(-rows // n_dev) * n_dev
 
 
-def chunk_inputs(keys, conditions, n_plain, sharding):
+def chunk_inputs(keys, conditions, n_plain):
     """One batch for a chunk: its learned runs, then its distinct conditions under plain impedance
     (the first key; plain ignores the networks), so both share one compiled function. Returns the
-    jit's arguments and, for every run, the row of its plain result."""
+    arguments of ``make_summary``'s function and, for every run, the row of its plain result."""
     plain_cond, inverse = unique_conditions(conditions, n_plain)
     n = len(keys)
 
-    def put(x):
-        x = jnp.asarray(x)
-        return jax.device_put(x, sharding) if sharding is not None else x
+    put = np.asarray
 
     learned, plain = tl.switches("learned"), tl.switches("plain")
     sw = learned._replace(
@@ -177,9 +175,9 @@ def chunk_inputs(keys, conditions, n_plain, sharding):
     return (put(all_keys), sw, both), n + inverse
 
 
-def run_chunk(run, inputs, rows_plain):
-    """Per-run metrics of one chunk from ``run`` on ``chunk_inputs``."""
-    out = jax.tree_util.tree_map(np.asarray, run(*inputs))
+def run_chunk(run, placed, rows_plain):
+    """Per-run metrics of one chunk from ``run`` (``OnDevices``) on its placed ``chunk_inputs``."""
+    out = run.run(placed)
     n = len(rows_plain)
     plain = {k: v[rows_plain] for k, v in out.items()}
     learned = {k: v[:n] for k, v in out.items()}
@@ -249,18 +247,20 @@ def main(argv=None):
             )
         config = dataclasses.replace(config, solver=args.solver, jacobian=args.jacobian)
         n_dev = jax.device_count()
-        sharding = None
-        if n_dev > 1 and args.kernel == "triton" and jax.default_backend() == "gpu":
-            # the kernel is a custom call with no partitioning rule for GSPMD, which may then
-            # gather every run's weights onto each device (not tried: no multi-GPU machine lent)
-            raise SystemExit(
-                "--kernel triton runs on one GPU per process: set CUDA_VISIBLE_DEVICES to one "
-                "device and split the grid with --shard-index/--num-shards, or use --kernel xla"
+        devices = jax.devices()[:1]
+        if n_dev > 1 and args.chunk % n_dev == 0:  # each device runs its slice of every chunk
+            devices = jax.devices()
+        elif n_dev > 1:
+            print(
+                f"--chunk {args.chunk} does not divide by the {n_dev} devices: one device runs it",
+                flush=True,
             )
-        if n_dev > 1 and args.chunk % n_dev == 0:
-            sharding = NamedSharding(Mesh(np.array(jax.devices()), ("runs",)), P("runs"))
-        n_plain = plain_rows(args.chunk, args.seeds, n_dev if sharding is not None else 1)
-        run = make_summary(config, tl.make_sweep(config, per_run_switches=True))
+        n_plain = plain_rows(args.chunk, args.seeds, len(devices))
+        run = OnDevices(
+            make_summary(config, tl.make_sweep(config, per_run_switches=True)),
+            devices,
+            tl.sweep_in_axes(per_run_switches=True),
+        )
         all_keys = jax.random.split(jax.random.PRNGKey(args.seed), args.seeds)
         mine = [c for c in range(n_chunks) if c % args.num_shards == args.shard_index]
         t_start = time.perf_counter()
@@ -277,12 +277,12 @@ def main(argv=None):
                 all_keys[seed_index[padded]],
                 {k: v[padded] for k, v in conditions.items()},
                 n_plain,
-                sharding,
             )
+            placed = run.place(*inputs)
             if not done:  # compile ahead of time (every chunk has the same shapes), timed apart
-                run = run.lower(*inputs).compile()
+                run.compile(placed)
                 compile_s = time.perf_counter() - t0
-            res = run_chunk(run, inputs, rows_plain)
+            res = run_chunk(run, placed, rows_plain)
             res = {k: v[: len(index)] for k, v in res.items()}
             write_npz(
                 path,

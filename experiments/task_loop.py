@@ -456,8 +456,13 @@ def make_sweep(config: TaskConfig, per_run_switches: bool = False):
     from hec_jax.mjx_scene import default_conditions
 
     run_one_seed = _make_seed_run(config, build_loop(config, default_conditions()))
+    return jax.vmap(run_one_seed, in_axes=sweep_in_axes(per_run_switches))
+
+
+def sweep_in_axes(per_run_switches: bool = False) -> tuple:
+    """``make_sweep``'s ``vmap`` axes of (keys, switches, conditions) (``experiments.devices``)."""
     sw_axes = Switches(use_virtual=0, learn=0, eye=None) if per_run_switches else None
-    return jax.vmap(run_one_seed, in_axes=(0, sw_axes, 0))
+    return (0, sw_axes, 0)
 
 
 def run_conditions(config: TaskConfig, pendulum: PendulumConditions, seed: int, n_seeds: int):

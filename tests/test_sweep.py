@@ -88,7 +88,7 @@ def test_plain_runs_are_shared_across_seeds(sharded_by_process):
 
     args = sweep.parse(["--out", str(sharded_by_process), *TINY])
     config = tl.config_from_args(args, tl.learner_from_args(args, "catching", args.f_cd), 0.7, 2)
-    run = sweep.make_summary(config, tl.make_sweep(config))
+    run = jax.jit(sweep.make_summary(config, tl.make_sweep(config)))
     conditions, _ = sweep.grid(args)
     first = _load(sharded_by_process)
     cond = PendulumConditions(**{k: np.repeat(conditions[k][1:2], 2) for k in conditions})
@@ -123,12 +123,11 @@ def test_networks_inside_the_sphere_only_give_the_same_sweep(sharded_by_process)
     learner = tl.learner_from_args(args, "catching", args.f_cd)
     assert not learner.nets_outside
     config = tl.config_from_args(args, learner, 0.7, 2)
-    summary = sweep.make_summary(config, lambda *a: logs)  # the sweep's reduction of ``logs``
     conditions, seed_index = sweep.grid(args)
     keys = jax.random.split(jax.random.PRNGKey(args.seed), args.seeds)[seed_index]
     cond = PendulumConditions(**{k: np.asarray(conditions[k]) for k in conditions})
     logs = jax.jit(tl.make_sweep(config))(keys, tl.switches("learned"), cond)
-    out = summary(None, None, None)
+    out = sweep.make_summary(config, lambda *a: logs)(None, None, None)  # the sweep's reduction
     # the learner's wiring: K_o is 0 beyond the networks' shell past the sphere, not 0 inside it
     k_o, inside = np.asarray(logs["k_o"]), np.asarray(logs["inside"])  # (B, S, T, 2), (B, S, T)
     rho = np.linalg.norm(np.asarray(logs["x_o"]) - np.asarray(logs["x_e"]), axis=-1)

@@ -36,8 +36,9 @@ copies the buffer first.
 
 Limits: two hidden layers of at most 32 units; under ``vmap`` with a batched ``eta`` or ``u`` the
 reference runs; a learning rate of 0 stores nothing (w - 0 g = w also where g is not finite, unlike
-the reference); the kernel has no partitioning rule, so a run axis sharded over several GPUs by
-GSPMD is not supported (``experiments/sweep.py`` refuses it: one GPU per process).
+the reference); the kernel has no partitioning rule for GSPMD, so a run axis split over several
+GPUs goes through ``jax.shard_map`` (each GPU calls the kernel on its own runs;
+``experiments/task_loop.shard_over_runs``, used by ``experiments/sweep.py``).
 """
 
 from __future__ import annotations
