@@ -36,9 +36,10 @@ copies the buffer first.
 
 Limits: two hidden layers of at most 32 units; under ``vmap`` with a batched ``eta`` or ``u`` the
 reference runs; a learning rate of 0 stores nothing (w - 0 g = w also where g is not finite, unlike
-the reference); the kernel has no partitioning rule for GSPMD, so a run axis split over several
-GPUs goes through ``jax.shard_map`` (each GPU calls the kernel on its own runs;
-``experiments/task_loop.shard_over_runs``, used by ``experiments/sweep.py``).
+the reference); the kernel has no partitioning rule for GSPMD: to split a run axis over several
+GPUs, give each GPU its own executable on its own runs (``experiments/devices.py``, used by
+``experiments/sweep.py``); under ``jax.shard_map`` the kernel alone runs, but XLA's GPU compiler
+crashed on the whole catching loop there.
 """
 
 from __future__ import annotations
