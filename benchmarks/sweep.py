@@ -1,6 +1,6 @@
 """Sweep throughput: closed-loop learning rollouts over 1, 2, 4, ... devices vs MuJoCo C.
 
-    python benchmarks/sweep.py [--batch 4096] [--steps 500] [--float32] [--per-device]
+    python benchmarks/sweep.py [--batch 4096] [--steps 500] [--float32] [--per-device] [--spmd]
         [--solver-iterations 4 8] [--solver cg] [--jacobian sparse] [--warp]
         [--kernel xla triton triton-inside]
 
@@ -61,7 +61,7 @@ from mujoco import rollout as mj_rollout  # noqa: E402
 
 from benchmarks.gradients import _compiled, _timed, catching_case  # noqa: E402
 from experiments import task_loop as tl  # noqa: E402
-from experiments.devices import OnDevices  # noqa: E402
+from experiments.devices import OnDevices, Sharded  # noqa: E402
 from hec_jax.mjx_scene import (  # noqa: E402
     PendulumConditions,
     default_conditions,
@@ -94,6 +94,12 @@ def main(argv=None):
     p.add_argument("--steps", type=int, default=500)
     p.add_argument("--float32", action="store_true")
     p.add_argument("--per-device", action="store_true", help="--batch runs on every device")
+    p.add_argument(
+        "--spmd",
+        action="store_true",
+        help="also time n > 1 devices as one GSPMD program (experiments.devices.Sharded; not "
+        "for the Triton kernel on GPUs)",
+    )
     p.add_argument("--solver-iterations", type=int, nargs=2, default=None, metavar=("IT", "LS"))
     p.add_argument("--solver", choices=("newton", "cg"), default=None, help="opt.solver")
     p.add_argument("--jacobian", choices=("dense", "sparse"), default=None, help="opt.jacobian")
@@ -160,10 +166,14 @@ def main(argv=None):
             flat = lambda x: x.reshape(x.shape[0], -1).astype(peak.dtype)  # noqa: E731
             return peak, flat(logs["learning"]).mean(1), flat(logs["inside"]).mean(1)
 
-        for n in counts:
-            # every device runs its slice of the runs with its own executable, called from its
-            # own thread (experiments.devices.OnDevices, as experiments/sweep.py)
-            fn = OnDevices(per_run, jax.devices()[:n], (0, 0))
+        triton_gpu = kernel.startswith("triton") and jax.default_backend() == "gpu"
+        ways = [(n, OnDevices) for n in counts]
+        if args.spmd and not triton_gpu:  # GSPMD cannot split the Triton kernel
+            ways += [(n, Sharded) for n in counts if n > 1]
+        for n, strategy in ways:
+            # OnDevices: every device runs its slice of the runs with its own executable, called
+            # from its own thread (as experiments/sweep.py); Sharded: one GSPMD program
+            fn = strategy(per_run, jax.devices()[:n], (0, 0))
             size = B * n if args.per_device else B
             keys, conditions, _ = batch_of(size)
             placed = fn.place(keys, conditions)
@@ -174,11 +184,21 @@ def main(argv=None):
                 peaks[kernel] = peak
                 learning_fraction, inside_fraction = float(learning.mean()), float(inside.mean())
             wall = best_of(lambda fn=fn, placed=placed: fn.run(placed))
-            rates[kernel, n] = size * T / wall
             same = ""
             if n > counts[0] and not args.per_device:  # the same runs as on one device
                 diff = float(np.max(np.abs(peak - peaks[kernel])))
                 same = f"; peaks differ from 1 device's by at most {diff:.2g} N"
+            if strategy is Sharded:
+                add_row(
+                    (
+                        f"  the same as one GSPMD program (--spmd), {n} device(s), batch {size}",
+                        f"{size * T / wall:.3g}",
+                        f"compile {compile_s:.0f} s, best of 3: {wall:.2f} s, "
+                        f"{size * T / wall / rates[kernel, counts[0]]:.2f}x 1 device{same}",
+                    )
+                )
+                continue
+            rates[kernel, n] = size * T / wall
             add_row(
                 (
                     f"MJX learning loop ({kernel} network step), {n} device(s), batch {size}",

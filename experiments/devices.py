@@ -28,6 +28,37 @@ def _is_none(x) -> bool:
     return x is None
 
 
+def _checked(devices, in_axes) -> tuple[list, tuple]:
+    """The devices as a list and ``in_axes`` as a tuple, refused where unusable."""
+    leaves = jax.tree_util.tree_leaves(in_axes, is_leaf=_is_none)
+    if any(a not in (0, None) for a in leaves):
+        raise ValueError(f"in_axes entries must be 0 or None, got {in_axes}")
+    devices = list(devices)
+    if not devices:
+        raise ValueError("no devices given")
+    return devices, tuple(in_axes)
+
+
+def _run_axis_length(in_axes: tuple, args: tuple, n: int) -> int:
+    """The run-axis length of ``args``, checked to be one length that divides over ``n``."""
+    if len(args) != len(in_axes):
+        raise ValueError(f"{len(args)} arguments for {len(in_axes)} in_axes")
+    batched = []  # the leaves with the run axis
+
+    def collect(ax, sub):
+        if ax is not None:
+            batched.extend(jax.tree_util.tree_leaves(sub))
+
+    jax.tree_util.tree_map(collect, in_axes, args, is_leaf=_is_none)
+    sizes = {np.shape(x)[0] if np.ndim(x) else None for x in batched}
+    if len(sizes) != 1:
+        raise ValueError(f"the batched arguments' run axes differ or are missing: {sizes}")
+    (size,) = sizes
+    if size % n:
+        raise ValueError(f"{size} runs do not divide over {n} devices")
+    return size
+
+
 class OnDevices:
     """``fn(*args)`` with its runs split over ``devices``; outputs gathered as NumPy arrays.
 
@@ -44,36 +75,15 @@ class OnDevices:
     """
 
     def __init__(self, fn, devices, in_axes: tuple):
-        leaves = jax.tree_util.tree_leaves(in_axes, is_leaf=_is_none)
-        if any(a not in (0, None) for a in leaves):
-            raise ValueError(f"in_axes entries must be 0 or None, got {in_axes}")
-        self.devices = list(devices)
-        if not self.devices:
-            raise ValueError("no devices given")
-        self.in_axes = tuple(in_axes)
+        self.devices, self.in_axes = _checked(devices, in_axes)
         self._jitted = jax.jit(fn)
         self._compiled = None
         self._pool = ThreadPoolExecutor(max_workers=len(self.devices))
 
     def place(self, *args) -> list[tuple]:
         """Each device's slice of ``args`` (a tuple of arguments per device), on that device."""
-        if len(args) != len(self.in_axes):
-            raise ValueError(f"{len(args)} arguments for {len(self.in_axes)} in_axes")
         n = len(self.devices)
-        batched = []  # the leaves with the run axis
-
-        def collect(ax, sub):
-            if ax is not None:
-                batched.extend(jax.tree_util.tree_leaves(sub))
-
-        jax.tree_util.tree_map(collect, self.in_axes, args, is_leaf=_is_none)
-        sizes = {np.shape(x)[0] if np.ndim(x) else None for x in batched}
-        if len(sizes) != 1:
-            raise ValueError(f"the batched arguments' run axes differ or are missing: {sizes}")
-        (size,) = sizes
-        if size % n:
-            raise ValueError(f"{size} runs do not divide over {n} devices")
-        per = size // n
+        per = _run_axis_length(self.in_axes, args, n) // n
 
         def part(i):
             def cut(ax, arg):
@@ -104,6 +114,48 @@ class OnDevices:
 
         outs = list(self._pool.map(one, range(len(placed))))
         return jax.tree_util.tree_map(lambda *x: np.concatenate(x), *outs)
+
+    def __call__(self, *args):
+        return self.run(self.place(*args))
+
+
+class Sharded:
+    """The same interface as ``OnDevices``, as one SPMD program: ``jax.jit(fn)`` with the run
+    axis laid over ``devices`` by ``NamedSharding`` (GSPMD), the unbatched arguments replicated.
+
+    The standard JAX way: one program, placed by XLA. On two H100s it ran 1.88x one device
+    against ``OnDevices``' 2.00x (XLA network step, 65536 runs per device; docs/benchmarks_gpu.md,
+    ``benchmarks/sweep.py --spmd``). A custom call without a
+    partitioning rule, such as the learner's Pallas Triton kernel, cannot be split by GSPMD
+    (``experiments/sweep.py --spmd`` refuses ``--kernel triton`` on GPUs)."""
+
+    def __init__(self, fn, devices, in_axes: tuple):
+        from jax.sharding import Mesh, NamedSharding
+        from jax.sharding import PartitionSpec as P
+
+        self.devices, self.in_axes = _checked(devices, in_axes)
+        mesh = Mesh(np.asarray(self.devices), ("runs",))
+        self._runs, self._copy = NamedSharding(mesh, P("runs")), NamedSharding(mesh, P())
+        self._jitted = jax.jit(fn)
+        self._compiled = None
+
+    def place(self, *args) -> tuple:
+        """``args`` on the devices: the run axis split, the rest on every device."""
+        _run_axis_length(self.in_axes, args, len(self.devices))
+
+        def put(ax, sub):
+            return jax.device_put(sub, self._copy if ax is None else self._runs)
+
+        return tuple(jax.tree_util.tree_map(put, self.in_axes, args, is_leaf=_is_none))
+
+    def compile(self, placed: tuple) -> Sharded:
+        self._compiled = self._jitted.lower(*placed).compile()
+        return self
+
+    def run(self, placed: tuple):
+        if self._compiled is None:
+            self.compile(placed)
+        return jax.tree_util.tree_map(np.asarray, self._compiled(*placed))
 
     def __call__(self, *args):
         return self.run(self.place(*args))

@@ -14,7 +14,7 @@ must be restarted with the same arguments (checked against ``chunks/sweep_settin
 With several devices (GPUs of one host, or CPU devices forced with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) each device runs its slice of every chunk
 with its own executable, called from its own thread (``experiments.devices.OnDevices``; ``--chunk``
-must divide by the device count); across hosts, ``--shard-index/--num-shards`` take every n-th chunk and
+must divide by the device count; ``--spmd``: one GSPMD program instead); across hosts, ``--shard-index/--num-shards`` take every n-th chunk and
 ``--merge-only`` merges the chunk files afterwards. Writes ``config.json``, ``metrics.json``
 (success rate, peak force ratio learned/plain) and ``peak_ratio_map.png``.
 """
@@ -40,7 +40,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from experiments import task_loop as tl  # noqa: E402
-from experiments.devices import OnDevices  # noqa: E402
+from experiments.devices import OnDevices, Sharded  # noqa: E402
 from hec_jax.mjx_scene import PendulumConditions  # noqa: E402
 from hec_jax.runs import (  # noqa: E402
     enable_compile_cache,
@@ -93,6 +93,12 @@ def parse(argv=None):
     p.add_argument("--shard-index", type=int, default=0)
     p.add_argument("--num-shards", type=int, default=1)
     p.add_argument("--merge-only", action="store_true")
+    p.add_argument(
+        "--spmd",
+        action="store_true",
+        help="several devices as one SPMD program (NamedSharding under jit, GSPMD) instead of one "
+        "executable per device (experiments/devices.py); not with --kernel triton on GPUs",
+    )
     args = p.parse_args(argv)
     if not 0 <= args.shard_index < args.num_shards:
         raise SystemExit("need 0 <= --shard-index < --num-shards")
@@ -192,7 +198,7 @@ def run_chunk(run, placed, rows_plain):
 
 
 # arguments that do not change a chunk's results (where it is computed, and how it is merged)
-PLACEMENT_ARGS = ("out", "shard_index", "num_shards", "merge_only")
+PLACEMENT_ARGS = ("out", "shard_index", "num_shards", "merge_only", "spmd")
 
 
 def check_same_sweep(chunk_dir: Path, args, n_runs: int, n_chunks: int) -> None:
@@ -255,8 +261,16 @@ def main(argv=None):
                 f"--chunk {args.chunk} does not divide by the {n_dev} devices: one device runs it",
                 flush=True,
             )
+        strategy = OnDevices
+        if args.spmd and len(devices) > 1:
+            if args.kernel == "triton" and jax.default_backend() == "gpu":
+                raise SystemExit(
+                    "--spmd with --kernel triton: GSPMD cannot split the Triton kernel (a custom "
+                    "call without a partitioning rule); leave out --spmd"
+                )
+            strategy = Sharded
         n_plain = plain_rows(args.chunk, args.seeds, len(devices))
-        run = OnDevices(
+        run = strategy(
             make_summary(config, tl.make_sweep(config, per_run_switches=True)),
             devices,
             tl.sweep_in_axes(per_run_switches=True),

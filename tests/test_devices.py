@@ -10,7 +10,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from experiments.devices import OnDevices  # noqa: E402
+from experiments.devices import OnDevices, Sharded  # noqa: E402
 
 
 def _fn(x, scale, pair):
@@ -33,6 +33,18 @@ def test_runs_come_back_in_order_with_shared_arguments_copied():
         np.testing.assert_array_equal(out[k], want[k], err_msg=k)
     again = on(x + 1.0, scale, pair)  # the compiled executables serve new values
     np.testing.assert_array_equal(again["z"], np.asarray(_fn(x + 1.0, scale, pair)["z"]))
+
+
+def test_one_gspmd_program_has_the_same_interface():
+    x = np.arange(12.0).reshape(6, 2)
+    scale, pair = 3.0, (np.arange(6.0), np.array([1.0, -1.0]))
+    on = Sharded(_fn, jax.devices()[:1], in_axes=(0, None, (0, None)))
+    out = on(x, scale, pair)
+    want = jax.tree_util.tree_map(np.asarray, _fn(x, scale, pair))
+    for k in want:
+        np.testing.assert_array_equal(out[k], want[k], err_msg=k)
+    with pytest.raises(ValueError, match="differ"):
+        on.place(np.zeros((4, 2)), 1.0, (np.zeros(6), np.zeros(2)))
 
 
 def test_bad_splits_are_refused():

@@ -69,8 +69,11 @@ def test_shards_merge_and_resume(sharded_by_process):
     assert chunk0.stat().st_mtime_ns == mtime0
 
 
-def test_sharding_over_two_devices_matches(sharded_by_process, tmp_path):
-    _sweep(tmp_path, "--chunk", "2", devices=2)
+@pytest.mark.parametrize("spmd", [False, True], ids=["executable-per-device", "gspmd"])
+def test_sharding_over_two_devices_matches(sharded_by_process, tmp_path, spmd):
+    """Two forced CPU devices, one chunk of both runs split over them (one executable per device,
+    or one GSPMD program with --spmd): the one-device results."""
+    _sweep(tmp_path, "--chunk", "2", *(["--spmd"] if spmd else []), devices=2)
     sharded, single = _load(tmp_path), _load(sharded_by_process)
     for k in ("peak_plain", "peak_learned", "min_margin", "settle_force"):
         np.testing.assert_allclose(sharded[k], single[k], rtol=1e-9, atol=1e-9, err_msg=k)
