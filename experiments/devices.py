@@ -5,15 +5,17 @@ run axis with the program one device runs. ``OnDevices`` does that: it compiles 
 once per device (in parallel threads), places each device's slice there, and calls every device's
 executable from its own host thread, so that no device waits for another.
 
-Why not one SPMD program (``jax.shard_map``, or ``NamedSharding`` under ``jit``), measured on two
-H100s (JAX 0.10.2, MJX 3.17, 2026-11-25): XLA's GPU compiler crashed (segmentation fault) on the
-catching loop under ``shard_map``, with either network step (a network step alone compiled and
-ran); the learner's Pallas Triton kernel has no partitioning rule for GSPMD; and with one host thread
-calling the two devices' executables in turn, 65536 runs split over two devices ran at 0.89x of one
-device running them all. With a thread per device, two devices ran 2.00x the steps/s of one (65536
-runs per device). Our reading: a call returns only when its executable has finished (XLA's GPU
-runtime reads the solver ``while_loop``'s condition back on the host), so a single thread runs the
-devices one after the other. See docs/benchmarks_gpu.md.
+Measured on two H100s (JAX 0.10.2, MJX 3.17, 2026-11-25; docs/benchmarks_gpu.md):
+
+- a thread per device: two devices ran 2.00x the steps/s of one (65536 runs per device);
+- one host thread calling the two executables in turn: 65536 runs split over two devices ran at
+  0.89x of one device running them all. Our reading: a call returns only when its executable has
+  finished (XLA's GPU runtime reads the solver ``while_loop``'s condition back on the host), so a
+  single thread runs the devices one after the other;
+- one SPMD program instead: ``jax.shard_map`` of the catching loop crashed XLA's GPU compiler
+  (segmentation fault; a network step alone compiled and ran); GSPMD (``NamedSharding`` under
+  ``jit``, ``Sharded`` below) ran 1.88x with the XLA network step, and cannot split the learner's
+  Pallas Triton kernel (a custom call without a partitioning rule).
 """
 
 from __future__ import annotations
@@ -30,8 +32,10 @@ def _is_none(x) -> bool:
 
 def _checked(devices, in_axes) -> tuple[list, tuple]:
     """The devices as a list and ``in_axes`` as a tuple, refused where unusable."""
+    if not isinstance(in_axes, tuple | list):
+        raise ValueError(f"in_axes must be a tuple with an entry per argument, got {in_axes!r}")
     leaves = jax.tree_util.tree_leaves(in_axes, is_leaf=_is_none)
-    if any(a not in (0, None) for a in leaves):
+    if any(not (a is None or (type(a) is int and a == 0)) for a in leaves):
         raise ValueError(f"in_axes entries must be 0 or None, got {in_axes}")
     devices = list(devices)
     if not devices:
@@ -71,7 +75,9 @@ class OnDevices:
 
     ``place(*args)`` puts each device's slice on it (do it once, outside a timed region);
     ``compile(placed)`` compiles ahead of time (optional); ``run(placed)`` returns the outputs of
-    all runs in order, as on one device; calling the object does all three.
+    all runs in order, as on one device; calling the object does all three. The executables are
+    compiled once, for the shapes and dtypes of the first placed arguments (a sweep's chunks all
+    have the same); other shapes later raise a TypeError.
     """
 
     def __init__(self, fn, devices, in_axes: tuple):
@@ -97,9 +103,10 @@ class OnDevices:
         return [part(i) for i in range(n)]
 
     def compile(self, placed: list[tuple]) -> OnDevices:
-        """Compiles every device's executable, in parallel threads."""
-        lowered = list(self._pool.map(lambda a: self._jitted.lower(*a).compile(), placed))
-        self._compiled = lowered
+        """Compiles every device's executable, in parallel threads (traced and lowered in the
+        calling thread, under its JAX settings)."""
+        lowered = [self._jitted.lower(*a) for a in placed]
+        self._compiled = list(self._pool.map(lambda low: low.compile(), lowered))
         return self
 
     def run(self, placed: list[tuple]):
@@ -113,6 +120,14 @@ class OnDevices:
             return jax.tree_util.tree_map(np.asarray, out)  # waits for this device only
 
         outs = list(self._pool.map(one, range(len(placed))))
+        sizes = [_run_axis_length(self.in_axes, p, 1) for p in placed]
+        for size, out in zip(sizes, outs, strict=True):  # every output must be per run
+            for path, leaf in jax.tree_util.tree_leaves_with_path(out):
+                if leaf.ndim == 0 or leaf.shape[0] != size:
+                    raise ValueError(
+                        f"output {jax.tree_util.keystr(path)} of shape {leaf.shape} has no run "
+                        f"axis of {size} first: OnDevices gathers per-run outputs only"
+                    )
         return jax.tree_util.tree_map(lambda *x: np.concatenate(x), *outs)
 
     def __call__(self, *args):

@@ -13,9 +13,11 @@ restarted sweep skips the chunks already there, so an interrupted sweep loses at
 must be restarted with the same arguments (checked against ``chunks/sweep_settings.json``).
 With several devices (GPUs of one host, or CPU devices forced with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) each device runs its slice of every chunk
-with its own executable, called from its own thread (``experiments.devices.OnDevices``; ``--chunk``
-must divide by the device count; ``--spmd``: one GSPMD program instead); across hosts, ``--shard-index/--num-shards`` take every n-th chunk and
-``--merge-only`` merges the chunk files afterwards. Writes ``config.json``, ``metrics.json``
+with its own executable, called from its own thread (``experiments.devices.OnDevices``;
+``--spmd``: one GSPMD program instead) where ``--chunk`` divides by the device count (otherwise
+one device runs, with a message; ``shard_*/timing.json`` records the count used); across hosts,
+``--shard-index/--num-shards`` take every n-th chunk and ``--merge-only`` merges the chunk files
+afterwards. Writes ``config.json``, ``metrics.json``
 (success rate, peak force ratio learned/plain) and ``peak_ratio_map.png``.
 """
 
@@ -124,7 +126,7 @@ def grid(args) -> tuple[dict[str, np.ndarray], np.ndarray]:
 
 
 def make_summary(config, sweep):
-    """``run(keys, switches, conditions) -> per-run metrics`` (jitted): the swing logs are reduced
+    """``run(keys, switches, conditions) -> per-run metrics`` (not jitted): the swing logs are reduced
     on the device (peak |F_int| per swing [N], smallest Eq. 49 margins, settle force [N]), so only
     a few numbers per run leave it."""
     settle = int(round(0.3 / config.controller.dt))  # last 0.3 s of the last swing
@@ -167,18 +169,14 @@ def chunk_inputs(keys, conditions, n_plain):
     plain_cond, inverse = unique_conditions(conditions, n_plain)
     n = len(keys)
 
-    put = np.asarray
-
     learned, plain = tl.switches("learned"), tl.switches("plain")
     sw = learned._replace(
-        use_virtual=put(
-            np.r_[np.full(n, learned.use_virtual), np.full(n_plain, plain.use_virtual)]
-        ),
-        learn=put(np.r_[np.full(n, learned.learn), np.full(n_plain, plain.learn)]),
+        use_virtual=np.r_[np.full(n, learned.use_virtual), np.full(n_plain, plain.use_virtual)],
+        learn=np.r_[np.full(n, learned.learn), np.full(n_plain, plain.learn)],
     )
     all_keys = np.concatenate([np.asarray(keys), np.repeat(np.asarray(keys[:1]), n_plain, 0)])
-    both = PendulumConditions(**{k: put(np.r_[conditions[k], plain_cond[k]]) for k in conditions})
-    return (put(all_keys), sw, both), n + inverse
+    both = PendulumConditions(**{k: np.r_[conditions[k], plain_cond[k]] for k in conditions})
+    return (all_keys, sw, both), n + inverse
 
 
 def run_chunk(run, placed, rows_plain):
@@ -326,6 +324,8 @@ def main(argv=None):
                     "wall_s": wall,
                     "compile_s": compile_s,
                     "runs_per_chunk": args.chunk,
+                    "devices_used": [str(d) for d in devices],
+                    "multi_device": "gspmd" if strategy is Sharded else "executable per device",
                     "plain_rows_per_chunk": n_plain,
                 },
             )

@@ -452,7 +452,7 @@ def make_sweep(config: TaskConfig, per_run_switches: bool = False):
     leaf of ``conditions`` (B,), one pendulum condition and network seed per run (``vmap``).
     With ``per_run_switches`` the ``use_virtual``/``learn`` leaves of ``switches`` are (B,) too, so
     plain and learned runs share one batch (and one compile). Not jitted here, so the caller can
-    choose shardings."""
+    choose devices (``experiments/devices.py``)."""
     from hec_jax.mjx_scene import default_conditions
 
     run_one_seed = _make_seed_run(config, build_loop(config, default_conditions()))

@@ -1,5 +1,6 @@
 """The sweep: chunks written atomically, resume, shards across processes and devices."""
 
+import json
 import os
 import subprocess
 import sys
@@ -19,7 +20,8 @@ def _sweep(out, *extra, devices=1):
     env = dict(os.environ)
     env.setdefault("HEC_JAX_CACHE", str(ROOT / ".jax_cache"))
     if devices > 1:
-        env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
+        flags = env.get("XLA_FLAGS", "")
+        env["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={devices}".strip()
     proc = subprocess.run(
         [sys.executable, "experiments/sweep.py", "--out", str(out), *TINY, *extra],
         cwd=ROOT, env=env, capture_output=True, text=True, timeout=600,
@@ -73,10 +75,25 @@ def test_shards_merge_and_resume(sharded_by_process):
 def test_sharding_over_two_devices_matches(sharded_by_process, tmp_path, spmd):
     """Two forced CPU devices, one chunk of both runs split over them (one executable per device,
     or one GSPMD program with --spmd): the one-device results."""
-    _sweep(tmp_path, "--chunk", "2", *(["--spmd"] if spmd else []), devices=2)
+    log = _sweep(tmp_path, "--chunk", "2", *(["--spmd"] if spmd else []), devices=2)
+    assert "does not divide" not in log
+    timing = json.loads((tmp_path / "shard_0" / "timing.json").read_text())
+    assert len(timing["devices_used"]) == 2
+    assert timing["multi_device"] == ("gspmd" if spmd else "executable per device")
     sharded, single = _load(tmp_path), _load(sharded_by_process)
     for k in ("peak_plain", "peak_learned", "min_margin", "settle_force"):
         np.testing.assert_allclose(sharded[k], single[k], rtol=1e-9, atol=1e-9, err_msg=k)
+
+
+def test_a_chunk_with_its_plain_rows_divides_over_the_devices():
+    sys.path.insert(0, str(ROOT))
+    from experiments.sweep import plain_rows
+
+    for chunk, seeds, n_dev in [(4, 2, 2), (6, 2, 2), (2, 1, 2), (12, 5, 4), (16, 3, 8)]:
+        rows = plain_rows(chunk, seeds, n_dev)
+        assert (chunk + rows) % n_dev == 0 if chunk % n_dev == 0 else rows % n_dev == 0
+        assert rows >= min(chunk, -(-chunk // seeds) + 1)  # room for every distinct condition
+    assert plain_rows(4, 2, 2) == 4 and plain_rows(6, 2, 1) == 4
 
 
 def test_plain_runs_are_shared_across_seeds(sharded_by_process):
