@@ -140,9 +140,10 @@ class Sharded:
 
     The standard JAX way: one program, placed by XLA. On two H100s it ran 1.88x one device
     against ``OnDevices``' 2.00x (XLA network step, 65536 runs per device; docs/benchmarks_gpu.md,
-    ``benchmarks/sweep.py --spmd``). A custom call without a
-    partitioning rule, such as the learner's Pallas Triton kernel, cannot be split by GSPMD
-    (``experiments/sweep.py --spmd`` refuses ``--kernel triton`` on GPUs)."""
+    ``benchmarks/sweep.py --spmd``). A custom call without a partitioning rule, such as the
+    learner's Pallas Triton kernel, cannot be split by GSPMD (``experiments/sweep.py --spmd``
+    refuses ``--kernel triton`` on GPUs). Outputs come back as NumPy arrays, as from ``OnDevices``.
+    """
 
     def __init__(self, fn, devices, in_axes: tuple):
         from jax.sharding import Mesh, NamedSharding

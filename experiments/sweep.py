@@ -17,8 +17,8 @@ with its own executable, called from its own thread (``experiments.devices.OnDev
 ``--spmd``: one GSPMD program instead) where ``--chunk`` divides by the device count (otherwise
 one device runs, with a message; ``shard_*/timing.json`` records the count used); across hosts,
 ``--shard-index/--num-shards`` take every n-th chunk and ``--merge-only`` merges the chunk files
-afterwards. Writes ``config.json``, ``metrics.json``
-(success rate, peak force ratio learned/plain) and ``peak_ratio_map.png``.
+afterwards. Writes ``config.json``, ``metrics.json`` (success rate, peak force ratio
+learned/plain) and ``peak_ratio_map.png``.
 """
 
 from __future__ import annotations
