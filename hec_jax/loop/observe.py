@@ -1,18 +1,18 @@
-"""Task-space kinematics and dynamics of the planar arm (Eq. 39 with m = 3 joints, l = 2).
+"""Simulator data -> the task-space observation the hand reads (``hec_jax.control.TaskObs``).
 
 Task space: the vertical plane, X = (x, z) [m] in the world frame (``TASK_AXES``). The arm and the
 pendulum are separate kinematic trees, so the joint-space inertia is block diagonal and the 3x3 arm
-block is the arm's M(theta) exactly.
+block is the arm's M(theta) exactly. Two sources with the same result (tested against each other):
+MJX data inside a jitted rollout (:func:`observe`) and MuJoCo C quantities (:func:`observe_c`).
 """
 
 from __future__ import annotations
-
-from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from hec_jax.control import TaskObs
 from hec_jax.mjx_scene import (
     TASK_AXES,
     CQuantities,
@@ -23,40 +23,6 @@ from hec_jax.mjx_scene import (
     site_jacobians,
     site_position,
 )
-
-
-class TaskObs(NamedTuple):
-    """Everything the controller reads at one step (task coordinates (x, z), world frame).
-
-    Attributes:
-        q: [rad] (3,) arm joint angles theta.
-        qd: [rad/s] (3,) joint velocities theta'.
-        M: [kg m^2] (3, 3) joint-space inertia M(theta) (armature included).
-        h: [N m] (3,) h(theta, theta') of Eq. 39: Coriolis, centrifugal, gravity and joint damping.
-        x_e: [m] (2,) end-effector position X_e.
-        xd_e: [m/s] (2,) end-effector velocity X_e' = J theta'.
-        J: [m/rad] (2, 3) Jacobian dX_e/dtheta.
-        jdot_qdot: [m/s^2] (2,) J' theta'.
-        f_int: [N] (2,) interaction force exerted ON the end-effector by the environment (Eq. 39).
-        x_o: [m] (2,) object position X_o (cube centre).
-        xd_o: [m/s] (2,) object velocity X_o'.
-        xdd_o: [m/s^2] (2,) object acceleration X_o'' when an estimator provides one (e.g. the
-            eye's filter); ``None`` (default): the controller differentiates ``xd_o`` over one sample.
-    """
-
-    q: jax.Array
-    qd: jax.Array
-    M: jax.Array
-    h: jax.Array
-    x_e: jax.Array
-    xd_e: jax.Array
-    J: jax.Array
-    jdot_qdot: jax.Array
-    f_int: jax.Array
-    x_o: jax.Array
-    xd_o: jax.Array
-    xdd_o: jax.Array | None = None
-
 
 _AX = np.array(TASK_AXES)
 

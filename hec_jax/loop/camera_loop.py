@@ -1,0 +1,459 @@
+"""The closed hand-eye loop: the object's state comes only from rendered camera frames.
+
+Wires the world (``hec_jax.mjx_scene``: MJX physics, C rendering), the eye (``hec_jax.geometry``:
+the online :class:`~hec_jax.geometry.BoxTracker`) and the hand with its learner
+(:mod:`hec_jax.loop.policy`) together at the NumPy boundary:
+
+* The camera takes a frame every 1/fps [s] (30 fps default), rounded to a whole number of 1 ms
+  control steps (33 ms, i.e. 30.3 fps, for 30 fps; the eye is told the rounded rate). A frame
+  shows the state at the middle of its exposure (``exposure_s``; motion blur is not modelled).
+* Each frame goes through the eye (LSD segments, box fit, constant-acceleration Kalman filter);
+  its estimate reaches the controller ``latency_s`` after the end of the exposure.
+* Between estimates the controller predicts the object's state from the last one with the filter's
+  constant-acceleration model (``object_state.eye_object_state``), every 1 ms, inside the jitted
+  ``lax.scan`` of one inter-frame segment; the learner runs in the same scan.
+* Frames where the estimator fails (hand occluding the cube, no fit, lost track) leave the filter
+  coasting on its prediction; they are counted. Before the first estimate of a swing the virtual
+  force and learning are off (nothing has been seen).
+
+Seeds (network initialisations) are ``vmap``-ed in the physics; each seed has its own world, camera
+frames and tracker. Successive swings restart the world at the release and carry the learner's
+weights over (as :mod:`hec_jax.loop.episodes`); the tracker is reset at each release (a new throw).
+"""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+
+from hec_jax.geometry import BoxTracker
+from hec_jax.loop.config import CameraConfig
+from hec_jax.loop.episodes import _float_dtype, run_conditions
+from hec_jax.loop.object_state import EyeInput
+from hec_jax.loop.policy import Loop, PolicyState, Switches, switches
+from hec_jax.mjx_scene import CUBE_EDGE, PendulumConditions, load_mj_model, rollout
+from hec_jax.mjx_scene.render import SceneCamera, render_model_like
+
+_AX = np.array([0, 2])  # task axes (x, z) of the world frame
+
+
+def steps_per_frame(cam: CameraConfig, dt: float) -> int:
+    """Control steps between frames: 1 / (fps dt) rounded (at least 1)."""
+    return max(int(round(1.0 / (cam.fps * dt))), 1)
+
+
+def frame_steps(cam: CameraConfig, dt: float, steps: int) -> np.ndarray:
+    """Simulation steps at which the frames' exposures end (state at the start of that step)."""
+    return np.arange(0, steps, steps_per_frame(cam, dt))
+
+
+class _Estimate:
+    """One frame's estimate in world task coordinates, and when the controller gets it
+    (``seen`` False: the eye has lost the object; the controller drops it)."""
+
+    __slots__ = ("t_avail", "t_stamp", "x", "xd", "xdd", "seen")
+
+    def __init__(self, t_avail, t_stamp, x, xd, xdd, seen=True):
+        self.t_avail, self.t_stamp, self.x, self.xd, self.xdd = t_avail, t_stamp, x, xd, xdd
+        self.seen = seen
+
+
+def _eye_input(
+    queue: list[_Estimate], t0: float, t1: float, touch_guard: float, touch_memory: float
+) -> EyeInput:
+    """The estimates in force during [t0, t1): the newest that arrived by t0 and the first that
+    arrives inside the segment (if any); ``touch_guard``, ``touch_memory`` [s] as in
+    :class:`~hec_jax.loop.object_state.EyeInput`."""
+    eps = 1e-9
+    old = [e for e in queue if e.t_avail <= t0 + eps]
+    new = [e for e in queue if t0 + eps < e.t_avail < t1 - eps]
+    if not old or not old[-1].seen:
+        # nothing seen yet or the track is lost (an estimate arriving mid-segment counts from
+        # the next segment on)
+        z = np.zeros((2, 2))
+        return EyeInput(1.0, 0.0, np.zeros(2), np.inf, z, z, z, touch_guard, touch_memory)
+    a = old[-1]
+    b = new[0] if new and new[0].seen else a  # a loss reported mid-segment: from the next one
+    return EyeInput(
+        use=1.0,
+        seen=1.0,
+        t_stamp=np.array([a.t_stamp, b.t_stamp]),
+        t_switch=b.t_avail if new else np.inf,
+        x=np.stack([a.x, b.x]),
+        xd=np.stack([a.xd, b.xd]),
+        xdd=np.stack([a.xdd, b.xdd]),
+        touch_guard=touch_guard,
+        touch_memory=touch_memory,
+    )
+
+
+def _stack_eye(inputs: list[EyeInput]) -> EyeInput:
+    return jax.tree_util.tree_map(lambda *x: jnp.asarray(np.stack(x), float), *inputs)
+
+
+def make_segment(loop: Loop):
+    """``segment(d, cs, ls, touch, f_prev, switches, active, conditions) -> (d, cs, ls, touch,
+    rows)`` for a
+    batch of seeds (``touch``: :class:`~hec_jax.loop.object_state.TouchMemory`):
+    ``len(active)`` control steps of the closed loop from ``d`` in one ``lax.scan``, of which the
+    ``active`` ones advance the state (so a shorter last segment shares the compiled function);
+    ``switches`` carries each seed's :class:`~hec_jax.loop.object_state.EyeInput` (leading seed axis)."""
+
+    def one(d, cs, ls, touch, f_prev, sw, active, conditions):
+        m = loop.model_for(conditions)
+        ps0 = PolicyState(cs, ls, sw, touch)
+        f_ext = jnp.zeros((active.shape[0], 3), f_prev.dtype)
+        (d, ps), traj = rollout(m, loop.ids, d, loop.policy, ps0, f_ext, conditions, f_prev, active)
+        rows = dict(traj.aux, f_contact=traj.f_contact, t=traj.t, qpos=traj.qpos, qvel=traj.qvel)
+        return d, ps.controller, ps.learner, ps.touch, rows
+
+    sw_axes = Switches(None, None, EyeInput(*(0,) * 9))
+    return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, 0, 0, sw_axes, None, None)))
+
+
+def make_start(loop: Loop):
+    """``start(ls, switches, conditions) -> (d0, cs0, touch0)`` at the release, for a batch of
+    seeds."""
+
+    def one(ls, sw, conditions):
+        m = loop.model_for(conditions)
+        d0 = loop.data_for(m, conditions)
+        ps0 = loop.initial_policy_state(m, d0, ls, sw)
+        return d0, ps0.controller, ps0.touch
+
+    return jax.jit(jax.vmap(one, in_axes=(0, None, None)))
+
+
+def robot_geoms(m, hand_body: int) -> np.ndarray:
+    """Geom ids of the robot: every geom in the body subtree that holds the hand."""
+    root = hand_body
+    while m.body_parentid[root] != 0:
+        root = m.body_parentid[root]
+    return np.flatnonzero(m.body_rootid[m.geom_bodyid] == root)
+
+
+def robot_mask(shape, camera: SceneCamera, geoms, margin: float) -> np.ndarray:
+    """(H, W) uint8, 255 on the robot's own image, from its forward kinematics (``camera.data``)
+    and the calibrated camera.
+
+    Each sphere, capsule or cylinder of ``geoms`` is drawn at its pose: a disc, or a thick line
+    between the axis end points with round ends, of the geom's radius + ``margin`` [m] at that
+    depth (+1 px; conservative for the perspective silhouette at this camera's angles). The
+    silhouette ignores occlusion: a geom behind another object covers that object's image too.
+    """
+    mask = np.zeros(shape[:2], np.uint8)
+    r_wc, t_wc = camera.world_from_camera
+    k = camera.intrinsics
+    m, d = camera.model, camera.data
+
+    def px(p_world):
+        p = r_wc.T @ (p_world - t_wc)
+        return (k @ (p / p[2]))[:2], p[2]
+
+    for g in geoms:
+        kind, size = int(m.geom_type[g]), m.geom_size[g]
+        centre = d.geom_xpos[g]
+        axis = d.geom_xmat[g].reshape(3, 3)[:, 2]
+        if kind == int(mujoco.mjtGeom.mjGEOM_SPHERE):
+            ends = (centre, centre)
+        elif kind in (int(mujoco.mjtGeom.mjGEOM_CAPSULE), int(mujoco.mjtGeom.mjGEOM_CYLINDER)):
+            ends = (centre - size[1] * axis, centre + size[1] * axis)
+        else:
+            continue
+        (u0, z0), (u1, z1) = px(ends[0]), px(ends[1])
+        if min(z0, z1) <= size[0]:
+            continue
+        r_px = k[0, 0] * (size[0] + margin) / min(z0, z1) + 1.0
+        a, b = tuple(int(round(v)) for v in u0), tuple(int(round(v)) for v in u1)
+        cv2.line(mask, a, b, 255, int(np.ceil(2 * r_px)))
+        cv2.circle(mask, a, int(np.ceil(r_px)), 255, -1)
+        cv2.circle(mask, b, int(np.ceil(r_px)), 255, -1)
+    return mask
+
+
+def mask_robot(
+    frame: np.ndarray, camera: SceneCamera, geoms, margin: float, inpaint_geoms=()
+) -> np.ndarray:
+    """``frame`` with the robot's own image (:func:`robot_mask`) painted black (the backdrop
+    colour), except ``inpaint_geoms``, whose image is filled from its surroundings (OpenCV Telea,
+    radius 3 px, in the bounding box of their mask + 8 px).
+
+    Inpainting is for the hand: its silhouette ignores occlusion, so next to a held cube it cuts
+    a notch into the cube's image (the cube's nearer front face covers part of the hand's disc),
+    and a black notch adds strong false edges across the cube's side (measured, short catching
+    run: the eye lost the held cube on up to 52% of a swing's frames; inpainted, on none). A
+    filled notch keeps the cube's colour inside and the backdrop's outside.
+    """
+    rest = [g for g in geoms if g not in set(inpaint_geoms)]
+    out = frame.copy()
+    out[robot_mask(frame.shape, camera, rest, margin) > 0] = 0
+    if len(inpaint_geoms):
+        hand = robot_mask(frame.shape, camera, inpaint_geoms, margin)
+        ys, xs = np.nonzero(hand)
+        if len(ys):
+            h, w = hand.shape
+            y0, y1 = max(ys.min() - 8, 0), min(ys.max() + 9, h)
+            x0, x1 = max(xs.min() - 8, 0), min(xs.max() + 9, w)
+            out[y0:y1, x0:x1] = cv2.inpaint(
+                out[y0:y1, x0:x1], hand[y0:y1, x0:x1], 3, cv2.INPAINT_TELEA
+            )
+    return out
+
+
+def _draw_overlay(frame: np.ndarray, step, k: np.ndarray, r_cam_world, t_cam_world, x_true_world):
+    """The frame with the detected edges (green), the estimated centre (red) and the true centre
+    (blue, for reference) drawn on it; BGR for OpenCV's writer."""
+    img = np.ascontiguousarray(frame[..., ::-1])
+    for seg in np.asarray(step.segments):
+        if np.all(np.isfinite(seg)):
+            p0, p1 = (tuple(int(round(v)) for v in pt) for pt in seg)
+            cv2.line(img, p0, p1, (0, 255, 0), 2, cv2.LINE_AA)
+
+    def dot(p_cam, colour):
+        if p_cam[2] > 1e-6:
+            u = k @ (p_cam / p_cam[2])
+            cv2.circle(img, (int(round(u[0])), int(round(u[1]))), 4, colour, -1, cv2.LINE_AA)
+
+    if bool(step.initialised):
+        dot(np.asarray(step.position), (0, 0, 255))
+    dot(r_cam_world @ (x_true_world - t_cam_world), (255, 0, 0))
+    return img
+
+
+def run_camera(
+    loop: Loop,
+    conditions: PendulumConditions,
+    keys: jax.Array,
+    condition: str,
+    cam: CameraConfig | None = None,
+    video_swing: int | str | None = None,
+    progress: bool = True,
+    corrupt=None,
+    compiled: tuple | None = None,
+):
+    """One condition with the object's state from the camera, for a batch of seeds.
+
+    Args:
+        loop: the task's loop (:func:`~hec_jax.loop.policy.build_loop`).
+        conditions: scalar :class:`~hec_jax.mjx_scene.PendulumConditions`.
+        keys: (n_seeds, 2) PRNG keys (network initialisations).
+        condition: "plain", "frozen" or "learned".
+        cam: camera timing and resolution.
+        video_swing: swing whose frames of seed 0 are kept with overlays ("final": the
+            continuous run; None: none).
+        progress: print one line per swing.
+        corrupt: optional ``(seed, swing, frame, image) -> image`` applied to each rendered frame
+            before the eye sees it (occluders, dropped frames, noise: robustness tests).
+        compiled: ``(make_start(loop), make_segment(loop))`` to reuse across calls (one compile).
+
+    Returns:
+        (logs, eye, video): ``logs`` as :func:`~hec_jax.loop.episodes.make_episodes` (arrays (n_seeds, swings,
+        steps, ...)); ``eye``: per-frame arrays (n_seeds, swings, frames): ``t_stamp`` [s],
+        ``valid``, ``initialised``, ``x_est``/``x_true`` [m] (..., 2) task-plane centre at the
+        frame's time, ``xd_est`` [m/s], and per-frame ``eye_ms``, ``render_ms`` plus
+        ``sim_ms`` per segment and the wall time; ``video``: BGR frames with overlays.
+    """
+    cam = CameraConfig() if cam is None else cam
+    config = loop.config
+    dt = loop.ids.timestep
+    period = steps_per_frame(cam, dt)
+    fps = 1.0 / (period * dt)  # the camera's rate on the control grid [1/s]
+    e_off = int(round(0.5 * cam.exposure_s / dt))
+    guard = cam.touch_guard_frames * period * dt  # [s]
+    memory = guard + cam.latency_s + cam.max_coast_frames * period * dt  # [s]
+    n_seeds = keys.shape[0]
+    m_c = load_mj_model()
+    m_render = render_model_like(m_c, loop.model_for(conditions))
+    dtype = _float_dtype()
+    sw0 = switches(condition)
+    start, segment = (make_start(loop), make_segment(loop)) if compiled is None else compiled
+    ls = jax.vmap(lambda k: loop.learner_init(k, dtype))(keys)
+    q0 = np.asarray(start(ls, sw0, conditions)[0].qpos[0])
+    with SceneCamera(
+        m_render, "eye", cam.width, cam.height, cam.fast_render, ("cube", "rod")
+    ) as bg:
+        background = bg.render(q0)  # the static scene without the pendulum (a calibration shot)
+    camera = SceneCamera(m_render, "eye", cam.width, cam.height, cam.fast_render)
+    r_wc, t_wc = camera.world_from_camera
+    robot = robot_geoms(m_render, loop.ids.hand_body)
+    hand = robot[m_render.geom_bodyid[robot] == loop.ids.hand_body]
+    trackers = [
+        BoxTracker(camera.intrinsics, CUBE_EDGE, fps, cam.track, background) for _ in range(n_seeds)
+    ]
+    t_wall = time.perf_counter()
+
+    def episode(ls, steps: int, index, keep_video: bool):
+        """One release: ``steps`` control steps, the tracker reset at the release."""
+        t_ep = time.perf_counter()
+        fs = frame_steps(cam, dt, steps)
+        bounds = np.append(fs, steps)
+        n_f = len(fs)
+        rec = {
+            "t_stamp": np.zeros((n_seeds, n_f)),
+            "valid": np.zeros((n_seeds, n_f), bool),
+            "initialised": np.zeros((n_seeds, n_f), bool),
+            "x_est": np.full((n_seeds, n_f, 2), np.nan),
+            "xd_est": np.full((n_seeds, n_f, 2), np.nan),
+            "x_true": np.zeros((n_seeds, n_f, 2)),
+            "eye_ms": np.zeros((n_seeds, n_f)),
+            "render_ms": np.zeros((n_seeds, n_f)),
+            "sim_ms": np.zeros(n_f),
+        }
+        frames_out = []
+        d, cs, touch = start(ls, sw0, conditions)
+        f_prev = jnp.zeros((n_seeds, 3), dtype)
+        for tr in trackers:
+            tr.reset()
+        queues: list[list[_Estimate]] = [[] for _ in range(n_seeds)]
+        misses = np.zeros(n_seeds, int)  # frames since the last valid fit
+        qpos_hist = np.zeros((n_seeds, steps, m_c.nq))
+        rows_all = []
+        d_qpos = np.asarray(d.qpos)
+        for j, s in enumerate(fs):
+            s_img = max(s - e_off, 0)  # mid-exposure
+            for i in range(n_seeds):
+                qpos = d_qpos[i] if s_img == s else qpos_hist[i, s_img]
+                t0 = time.perf_counter()
+                frame = camera.render(qpos)
+                x_true = camera.data.xpos[loop.ids.cube_body].copy()  # render ran kinematics
+                shown = frame  # the video shows the rendered frame
+                if cam.self_mask_margin_m is not None:
+                    frame = mask_robot(
+                        frame,
+                        camera,
+                        robot,
+                        cam.self_mask_margin_m,
+                        hand if cam.inpaint_hand else (),
+                    )
+                if corrupt is not None:
+                    frame = corrupt(i, index, j, frame)
+                t1 = time.perf_counter()
+                st = trackers[i].update(frame)
+                rec["render_ms"][i, j] = 1e3 * (t1 - t0)
+                rec["eye_ms"][i, j] = 1e3 * (time.perf_counter() - t1)
+                rec["t_stamp"][i, j] = s_img * dt
+                rec["valid"][i, j] = bool(st.valid)
+                rec["initialised"][i, j] = bool(st.initialised)
+                rec["x_true"][i, j] = x_true[_AX]
+                misses[i] = 0 if st.valid else misses[i] + 1
+                if st.initialised:
+                    p, v, a = camera.to_world(st.position, st.velocity, st.acceleration)
+                    rec["x_est"][i, j] = p[_AX]
+                    rec["xd_est"][i, j] = v[_AX]
+                    seen = misses[i] <= cam.max_coast_frames
+                    queues[i].append(
+                        _Estimate(
+                            s * dt + cam.latency_s,
+                            s_img * dt,
+                            p[_AX],
+                            v[_AX],
+                            a[_AX],
+                            seen,
+                        )
+                    )
+                elif queues[i]:  # lost after having been seen
+                    z = np.zeros(2)
+                    queues[i].append(_Estimate(s * dt + cam.latency_s, s_img * dt, z, z, z, False))
+                if i == 0 and keep_video:
+                    frames_out.append(
+                        _draw_overlay(shown, st, camera.intrinsics, r_wc.T, t_wc, x_true)
+                    )
+            eyes = _stack_eye(
+                [_eye_input(q, s * dt, bounds[j + 1] * dt, guard, memory) for q in queues]
+            )
+            sw = Switches(sw0.use_virtual, sw0.learn, eyes)
+            n = int(bounds[j + 1] - s)
+            t0 = time.perf_counter()
+            d, cs, ls, touch, rows = segment(
+                d, cs, ls, touch, f_prev, sw, np.arange(period) < n, conditions
+            )
+            rows = jax.tree_util.tree_map(lambda x, n=n: x[:, :n], jax.device_get(rows))
+            rec["sim_ms"][j] = 1e3 * (time.perf_counter() - t0)
+            f_prev = rows["f_contact"][:, -1]
+            qpos_hist[:, s : bounds[j + 1]] = rows["qpos"]
+            d_qpos = np.asarray(d.qpos)
+            rows_all.append(rows)
+        ls = ls._replace(was_inside=jnp.zeros_like(ls.was_inside))
+        logs = {k: np.concatenate([r[k] for r in rows_all], axis=1) for k in rows_all[0]}
+        rec["wall_s"] = time.perf_counter() - t_ep
+        if progress:
+            print(
+                f"  {condition:8s} {index!s:>5s}: {100 * rec['valid'].mean():5.1f}% frames valid,"
+                f" {time.perf_counter() - t_wall:6.1f} s",
+                flush=True,
+            )
+        return ls, logs, rec, frames_out
+
+    video: list[np.ndarray] = []
+    runs = []
+    try:
+        for swing in range(config.swings):
+            ls, lg, rec, frames = episode(ls, loop.swing_steps, swing, swing == video_swing)
+            runs.append((lg, rec))
+            video += frames
+        logs = {k: np.stack([lg[k] for lg, _ in runs], axis=1) for k in runs[0][0]}
+        eye = {
+            k: np.stack([rec[k] for _, rec in runs], axis=1)
+            for k in runs[0][1]
+            if k not in ("sim_ms", "wall_s")
+        }
+        eye["sim_ms"] = np.stack([rec["sim_ms"] for _, rec in runs])
+        eye["wall_s"] = np.array([rec["wall_s"] for _, rec in runs])
+        if loop.final_steps:
+            ls, lg, rec, frames = episode(ls, loop.final_steps, "final", video_swing == "final")
+            logs["final"] = {k: v[:, None] for k, v in lg.items()}
+            eye["final"] = {
+                k: v[:, None] if k not in ("sim_ms", "wall_s") else v for k, v in rec.items()
+            }
+            video += frames
+    finally:
+        camera.close()
+    eye["fps"] = fps
+    return logs, eye, video
+
+
+def run_conditions_camera(
+    loop: Loop,
+    conditions: PendulumConditions,
+    seed: int,
+    n_seeds: int,
+    cam: CameraConfig | None = None,
+    video_condition: str = "learned",
+    progress: bool = True,
+):
+    """The three conditions with the camera in the loop, and with ground truth for comparison.
+
+    ``plain`` (F_o = 0) does not use the object's state at all, so its camera run is the ground-
+    truth run; ``frozen`` and ``learned`` run :func:`run_camera` (one compile for both). Returns
+    ``(camera_logs, truth_logs, timing, eye_by_condition, video)``: logs per condition as
+    :func:`~hec_jax.loop.episodes.run_conditions`; ``video``: seed 0 of ``video_condition``, its
+    last swing (or the continuous run when the task has one).
+    """
+    truth, timing = run_conditions(loop, conditions, seed, n_seeds)
+    keys = jax.random.split(jax.random.PRNGKey(seed), n_seeds)
+    camera_logs, eyes, video = {"plain": truth["plain"]}, {}, []
+    shown = "final" if loop.final_steps else loop.config.swings - 1
+    compiled = (make_start(loop), make_segment(loop))
+    for condition in ("frozen", "learned"):
+        want = condition == video_condition
+        logs, eye, frames = run_camera(
+            loop,
+            conditions,
+            keys,
+            condition,
+            cam,
+            shown if want else None,
+            progress,
+            compiled=compiled,
+        )
+        camera_logs[condition], eyes[condition] = logs, eye
+        timing[f"{condition}_camera"] = float(
+            np.sum(eye["wall_s"]) + (np.sum(eye["final"]["wall_s"]) if "final" in eye else 0.0)
+        )
+        video = frames if want else video
+    return camera_logs, truth, timing, eyes, video
