@@ -9,91 +9,81 @@ batch; compile time reported apart):
 * C closed loop, Python loop: ``rollout_c`` with the same jitted ``apply`` on MuJoCo C quantities;
 * C open loop, ``mujoco.rollout``: physics only, replaying the torques of the MJX run (no
   controller in the loop; an upper bound for C physics throughput, multi-threaded over the batch).
+
+The controller holds the hand where it is at the release (target impedance ``--m-e --b-e --k-e``)
+with a fixed virtual impedance (``--virtual``); the pendulum is the nominal one, its release angle
+spread over [-0.6, -0.45] rad across the batch.
 """
 
 from __future__ import annotations
 
-import argparse
-import os
-import sys
-import time
+from dataclasses import dataclass, field
 
-import jax  # noqa: E402
+import jax
+import jax.numpy as jnp
+import numpy as np
 
-if "--float32" not in sys.argv:
-    jax.config.update("jax_enable_x64", True)
+from hec_jax import benchmarking as bench
+from hec_jax.cli import parse
+from hec_jax.control import ControllerConfig, impedance_params, virtual_params
+from hec_jax.loop import TargetImpedance
+from hec_jax.mjx_scene import (
+    X_HOME,
+    PendulumConfig,
+    load_mj_model,
+    load_mjx_model,
+    make_data_c,
+    scene_ids,
+    solve_posture,
+)
+from hec_jax.report import timed
 
-import jax.numpy as jnp  # noqa: E402
-import mujoco  # noqa: E402
-import numpy as np  # noqa: E402
-from mujoco import rollout as mj_rollout  # noqa: E402
 
-from hec_jax import control as C  # noqa: E402
-from hec_jax import mjx_scene as S  # noqa: E402
+@dataclass(frozen=True)
+class ControlBenchmark:
+    """What the control benchmark runs: the hand's settings, rollout length and batches."""
 
-
-def _time(fn, repeat=3):
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t0)
-    return best
+    impedance: TargetImpedance = field(default_factory=TargetImpedance)
+    controller: ControllerConfig = field(default_factory=ControllerConfig)
+    pendulum: PendulumConfig = field(default_factory=PendulumConfig)
+    # fixed virtual impedance: M_o [kg], B_o [N s/m], K_o [N/m], sphere radius r [m]
+    virtual: tuple[float, float, float, float] = (0.0, 20.0, 400.0, 0.25)
+    steps: int = 200  # control steps per rollout (the model's time step, 1 ms)
+    batches: tuple[int, ...] = (1, 64, 1024)  # vmapped environments, one row each
+    float32: bool = False  # MJX in float32 (default float64)
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--steps", type=int, default=200)
-    ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
-    ap.add_argument("--float32", action="store_true", help="MJX in float32 (default float64)")
-    args = ap.parse_args(argv)
-    T = args.steps
-
-    mm = S.load_mj_model()
-    ids = S.scene_ids(mm)
-    mx = S.load_mjx_model(mm)
-    q_home = S.solve_posture(mm, ids, S.X_HOME)
-    cond = S.default_conditions()
-    params = C.impedance_params(1.0, 40.0, 400.0)
-    vp = C.virtual_params(0.0, 20.0, 400.0, 0.25)
+    cfg = parse(ControlBenchmark(), argv, __doc__)
+    bench.float_dtype(cfg.float32)
+    T = cfg.steps
+    mm = load_mj_model()
+    ids = scene_ids(mm)
+    mx = load_mjx_model(mm)
+    q_home = solve_posture(mm, ids, X_HOME)
+    cond = cfg.pendulum.conditions()
+    imp = cfg.impedance
+    params = impedance_params(imp.m_e, imp.b_e, imp.k_e)
+    vp = virtual_params(*cfg.virtual)
     rows = []
 
-    # 1. latency of one jitted control step (TaskObs from MuJoCo C at home)
-    d = S.make_data_c(mm, ids, cond, q_home)
-    cq = S.c_quantities(mm, d, ids)
-    obs = C.observe_c(ids, d.qpos, d.qvel, cq, np.zeros(3))
-    init, apply = C.make_impedance_controller()
-    apply_j = jax.jit(apply)
-    st = init(obs)
-    tgt = C.Target(obs.x_e, jnp.zeros(2), jnp.zeros(2))
-    jax.block_until_ready(apply_j(params, vp, tgt, st, obs))
+    # 1. latency of one jitted control step (TaskObs from MuJoCo C at the release)
+    apply, (tgt, st, obs) = bench.control_step(mm, ids, cond, q_home, cfg.controller)
+    jax.block_until_ready(apply(params, vp, tgt, st, obs))
     n = 2000
-    dt_call = _time(
-        lambda: [jax.block_until_ready(apply_j(params, vp, tgt, st, obs)) for _ in range(n)]
+    t = bench.best_of(
+        lambda: [jax.block_until_ready(apply(params, vp, tgt, st, obs)) for _ in range(n)]
     )
-    lat_us = dt_call / n * 1e6
-    rows.append(("jitted control step (apply), latency", 1, f"{lat_us:.1f} us/call", ""))
+    rows.append(("jitted control step (apply), latency", 1, f"{t / n * 1e6:.1f} us/call", ""))
 
     # 2. MJX closed-loop rollout throughput, vmapped
-    pinit, policy = C.make_mjx_policy(ids)
-
-    def run_one(release):
-        c = cond._replace(release_angle=release)
-        d0 = S.make_data(mx, ids, c, jnp.asarray(q_home))
-        x_d = d0.site_xpos[ids.hand_site][jnp.array(S.TASK_AXES)]
-        ps0 = pinit(mx, d0, params, vp, C.Target(x_d, jnp.zeros(2), jnp.zeros(2)))
-        return S.rollout(mx, ids, d0, policy, ps0, jnp.zeros((T, 3)), c)[1]
-
-    mjx_sps = {}
-    ctrl_replay = None
-    for B in args.batches:
+    run_one = bench.control_rollout(mx, ids, q_home, cond, params, vp, T, cfg.controller)
+    mjx_sps, ctrl_replay = {}, None
+    for B in cfg.batches:
         rel = jnp.linspace(-0.6, -0.45, B)
-        t0 = time.perf_counter()
-        f = jax.jit(jax.vmap(run_one)).lower(rel).compile()
-        t_c = time.perf_counter() - t0
+        f, t_c = timed(lambda rel=rel: jax.jit(jax.vmap(run_one)).lower(rel).compile())
         out = jax.block_until_ready(f(rel))
-        wall = _time(lambda f=f, rel=rel: jax.block_until_ready(f(rel)))
-        mjx_sps[B] = B * T / wall
+        mjx_sps[B] = B * T / bench.best_of(lambda f=f, rel=rel: jax.block_until_ready(f(rel)))
         rows.append(
             ("MJX closed loop (vmap)", B, f"{mjx_sps[B]:.3g} steps/s", f"compile {t_c:.1f} s")
         )
@@ -101,57 +91,29 @@ def main(argv=None):
             ctrl_replay = np.asarray(out.ctrl[0])
 
     # 3. MuJoCo C closed loop, Python loop with the same jitted controller
-    cpinit, cpolicy = C.make_c_policy(ids)
-
-    def c_loop():
-        d = S.make_data_c(mm, ids, cond, q_home)
-        cq = S.c_quantities(mm, d, ids)
-        ps0 = cpinit(
-            d, cq, params, vp, C.Target(jnp.asarray(cq.x_hand[[0, 2]]), jnp.zeros(2), jnp.zeros(2))
-        )
-        S.rollout_c(mm, ids, d, cpolicy, ps0, np.zeros((T, 3)), cond)
-
+    c_loop = bench.c_control_rollout(mm, ids, q_home, cond, params, vp, T, cfg.controller)
     c_loop()
-    c_sps = T / _time(c_loop, repeat=2)
+    c_sps = T / bench.best_of(c_loop, repeat=2)
     rows.append(("C closed loop (Python loop + jitted apply)", 1, f"{c_sps:.3g} steps/s", ""))
 
     # 4. mujoco.rollout, open loop (torque replay), batches
     roll_sps = {}
-    for B in args.batches:
-        d = S.make_data_c(mm, ids, cond, q_home)
-        nstate = mujoco.mj_stateSize(mm, mujoco.mjtState.mjSTATE_FULLPHYSICS)
-        s0 = np.zeros(nstate)
-        mujoco.mj_getState(mm, d, s0, mujoco.mjtState.mjSTATE_FULLPHYSICS)
-        init_state = np.tile(s0, (B, 1))
-        ctrl = np.tile(ctrl_replay[None], (B, 1, 1))
-        datas = [mujoco.MjData(mm) for _ in range(min(B, os.cpu_count() or 1))]
-        with mj_rollout.Rollout(nthread=len(datas)) as r:
-            r.rollout([mm] * B, datas, init_state, ctrl)
-            wall = _time(
-                lambda r=r, init_state=init_state, ctrl=ctrl, B=B, datas=datas: r.rollout(
-                    [mm] * B, datas, init_state, ctrl
-                )
-            )
-        roll_sps[B] = B * T / wall
-        rows.append(
-            (
-                "C open loop (mujoco.rollout, torque replay)",
-                B,
-                f"{roll_sps[B]:.3g} steps/s",
-                f"{len(datas)} threads",
-            )
-        )
+    state = bench.full_state(mm, make_data_c(mm, ids, cond, q_home))
+    for B in cfg.batches:
+        threads = min(B, bench.host_threads())
+        states, ctrl = np.tile(state, (B, 1)), np.tile(ctrl_replay[None], (B, 1, 1))
+        roll_sps[B] = B * T / bench.c_rollout_seconds(mm, states, ctrl, threads)
+        what = "C open loop (mujoco.rollout, torque replay)"
+        rows.append((what, B, f"{roll_sps[B]:.3g} steps/s", f"{threads} threads"))
 
-    dtype = "float32" if args.float32 else "float64"
+    dtype = "float32" if cfg.float32 else "float64"
     print(
-        f"\nJAX device: {jax.devices()[0].device_kind} ({jax.default_backend()}), MJX {dtype}; "
-        f"MuJoCo C on {os.cpu_count()} CPU cores; {T} steps per rollout (dt = 1 ms)\n"
+        f"\nJAX device: {bench.device_name()}, MJX {dtype}; MuJoCo C on {bench.host_threads()} "
+        f"CPU cores; {T} steps per rollout (dt = {ids.timestep * 1e3:g} ms)\n"
     )
-    print(f"{'what':46s} {'batch':>6s} {'result':>18s}  notes")
-    for what, b, res, note in rows:
-        print(f"{what:46s} {b:6d} {res:>18s}  {note}")
+    print("\n".join(bench.text_table(("what", "batch", "result", "notes"), (46, 6, 18), rows)))
     print("\nratios (MJX closed loop / C):")
-    for B in args.batches:
+    for B in cfg.batches:
         print(
             f"  B={B:5d}: MJX/C-python-loop = {mjx_sps[B] / c_sps:7.2f}, "
             f"MJX/mujoco.rollout = {mjx_sps[B] / roll_sps[B]:7.3f}"

@@ -2,18 +2,15 @@
 
 Scenes: a 0.1 m cube 0.5-2 m from a 640x480, f = 600 px camera, random small and large motions
 (``hec_jax.geometry.make_cube_scenes``), Gaussian pixel noise on every corner. Methods, all on the
-same noisy corners:
-
-* ``paper``: ``estimate_motion`` (Eqs. 7-38) on one pair of parallel cube edges, metric via |AB|.
-* ``pnp_ippe_square``: ``cv2.solvePnP(SOLVEPNP_IPPE_SQUARE)`` on the most frontal face (chosen by
-  ground truth) in each frame; Phi = R2 R1^T, Gamma = t2 - Phi t1.
-* ``homography``: ``cv2.findHomography`` on the same face between the frames,
-  ``cv2.decomposeHomographyMat``, the candidate closest to the truth (oracle choice); rotation only.
-* ``essential``: ``cv2.findEssentialMat`` (LMedS) on all 8 corners + ``cv2.recoverPose``; rotation only.
+same noisy corners (``hec_jax.geometry.accuracy.motion_errors``): ``paper`` (``estimate_motion``,
+Eqs. 7-38, one pair of parallel cube edges, metric via |AB|) and the OpenCV baselines of
+``hec_jax.geometry.baselines``: ``pnp_ippe_square`` (IPPE_SQUARE on the most frontal face in
+each frame), ``homography`` (one face, oracle choice of the decomposition; rotation only) and
+``essential`` (all 8 corners, LMedS + recoverPose; rotation only).
 
 Rotation error: angle of R_est^T R_true [deg]. Translation error: |Gamma_est - Gamma_true| [mm]
-(Gamma of Eq. 1, camera frame). Failure: the method reports no valid solution (``valid == False``
-for the paper's method, no solution from OpenCV). Errors are over the non-failed problems.
+(Gamma of Eq. 1, camera frame). Failure: the method reports no valid solution. Errors are over
+the non-failed problems.
 
 Timing (CPU, same run): single-problem latency of the jitted JAX estimate against the OpenCV PnP
 two-frame call, and batched throughput of the jitted estimate against the OpenCV per-problem loop,
@@ -22,153 +19,55 @@ as ratios. Writes ``config.json``, ``metrics.json``, ``table.md`` and a plot to 
 
 from __future__ import annotations
 
-import argparse
-import time
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
-import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hec_jax.geometry import SceneConfig, estimate_motion, make_cube_scenes, rotation_error_deg
+from hec_jax.cli import parse
+from hec_jax.geometry import SceneConfig, make_cube_scenes
+from hec_jax.geometry.accuracy import METHODS, motion_errors
+from hec_jax.geometry.baselines import frontal_face, opencv_pnp
 from hec_jax.geometry.parallel_motion import estimate_motion_core
-from hec_jax.geometry.synthetic import CUBE_FACES
+from hec_jax.report import call_times, error_table, fmt, markdown_table, tile_batch
 from hec_jax.runs import save_figure, start_run, write_json, write_text
 
 NOISE_PX = (0.0, 0.25, 0.5, 1.0, 2.0)
-METHODS = ("paper", "pnp_ippe_square", "homography", "essential")
 
 
-def _frontal_face(corners_before: np.ndarray) -> tuple[int, ...]:
-    """Corner indices (cyclic) of the face whose outward normal points most towards the camera."""
-    centre = corners_before.mean(0)
-    best, best_score = None, -np.inf
-    for idx, _ in CUBE_FACES:
-        face_centre = corners_before[list(idx)].mean(0)
-        normal = face_centre - centre
-        score = -normal @ face_centre / (np.linalg.norm(normal) * np.linalg.norm(face_centre))
-        if score > best_score:
-            best, best_score = idx, score
-    return best
+@dataclass(frozen=True)
+class EyeBenchmark:
+    out: Path = Path("runs/eye_benchmark")  # run folder
+    seed: int = 0  # draws the scenes
+    scenes: int = 2000  # scenes per noise level
+    batch: int = 10000  # batch size for throughput
+    repeats: int = 500  # calls for the latency timing
+    docs: Path | None = None  # also write the table here
 
-
-def _square_object_points(edge: float) -> np.ndarray:
-    h = edge / 2.0
-    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
-
-
-def opencv_pnp(pix_b, pix_a, face, k, edge):
-    """Two-frame IPPE_SQUARE on one face -> (rotation, translation) or None."""
-    obj = _square_object_points(edge)
-    poses = []
-    for pix in (pix_b, pix_a):
-        ok, rvec, tvec = cv2.solvePnP(
-            obj, pix[list(face)].astype(np.float64), k, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
-        )
-        if not ok:
-            return None
-        poses.append((cv2.Rodrigues(rvec)[0], tvec.ravel()))
-    (r1, t1), (r2, t2) = poses
-    rot = r2 @ r1.T
-    return rot, t2 - rot @ t1
-
-
-def opencv_homography(pix_b, pix_a, face, k, true_rot):
-    """Homography between the frames on one face, decomposed; oracle choice of the candidate."""
-    h, _ = cv2.findHomography(pix_b[list(face)], pix_a[list(face)], 0)
-    if h is None:
-        return None
-    n, rots, _, _ = cv2.decomposeHomographyMat(h, k)
-    if n == 0:
-        return None
-    errs = [rotation_error_deg(np.asarray(r), true_rot) for r in rots]
-    return np.asarray(rots[int(np.argmin(errs))]), None
-
-
-def opencv_essential(pix_b, pix_a, k):
-    """Essential matrix on all 8 corners (LMedS) and recoverPose; rotation only."""
-    e, _ = cv2.findEssentialMat(pix_b, pix_a, k, method=cv2.LMEDS)
-    if e is None or e.shape != (3, 3):
-        return None
-    _, rot, _, _ = cv2.recoverPose(e, pix_b, pix_a, k)
-    return rot, None
-
-
-def evaluate(scenes, config: SceneConfig) -> dict:
-    """Errors and failure rates of every method on one batch of scenes."""
-    n = len(scenes.pair)
-    k = config.intrinsics
-    est = estimate_motion(scenes.points_before, scenes.points_after, config.edge)
-    valid = np.asarray(est.valid)
-    rot_err = {"paper": rotation_error_deg(np.asarray(est.rotation), scenes.rotation)}
-    tr_err = {"paper": np.linalg.norm(np.asarray(est.translation) - scenes.translation, axis=-1)}
-    ok = {"paper": valid}
-    for name in METHODS[1:]:
-        rot_err[name], tr_err[name], ok[name] = (
-            np.full(n, np.nan),
-            np.full(n, np.nan),
-            np.zeros(n, bool),
-        )
-    for i in range(n):
-        pb, pa = scenes.pixels_before[i], scenes.pixels_after[i]
-        face = _frontal_face(scenes.corners_before[i])
-        results = {
-            "pnp_ippe_square": opencv_pnp(pb, pa, face, k, config.edge),
-            "homography": opencv_homography(pb, pa, face, k, scenes.rotation[i]),
-            "essential": opencv_essential(pb, pa, k),
-        }
-        for name, res in results.items():
-            if res is None:
-                continue
-            ok[name][i] = True
-            rot_err[name][i] = rotation_error_deg(res[0], scenes.rotation[i])
-            if res[1] is not None:
-                tr_err[name][i] = np.linalg.norm(res[1] - scenes.translation[i])
-    out = {}
-    for name in METHODS:
-        r, t, good = rot_err[name][ok[name]], tr_err[name][ok[name]], ok[name]
-        has_t = np.any(np.isfinite(t))
-        out[name] = {
-            "rotation_median_deg": float(np.median(r)) if r.size else None,
-            "rotation_p90_deg": float(np.percentile(r, 90)) if r.size else None,
-            "translation_median_mm": float(np.median(t) * 1e3) if has_t else None,
-            "translation_p90_mm": float(np.percentile(t, 90) * 1e3) if has_t else None,
-            "failure_rate": float(1.0 - good.mean()),
-        }
-    return out
+    def __post_init__(self):
+        if min(self.scenes, self.batch, self.repeats) < 1:
+            raise ValueError("--scenes, --batch and --repeats must be at least 1")
 
 
 def timing(scenes, config: SceneConfig, batch: int, repeats: int) -> dict:
     """Latency and throughput of the jitted JAX estimate vs the OpenCV per-problem loop."""
-    k = config.intrinsics
     core = jax.jit(estimate_motion_core)
-    one_b, one_a = jnp.asarray(scenes.points_before[0]), jnp.asarray(scenes.points_after[0])
-    one_len = jnp.asarray(config.edge)
-    core(one_b, one_a, one_len).rotation.block_until_ready()
-    t0 = time.perf_counter()
-    for _ in range(repeats):
-        core(one_b, one_a, one_len).rotation.block_until_ready()
-    jax_latency = (time.perf_counter() - t0) / repeats
-
-    reps = -(-batch // len(scenes.pair))
-    bb = jnp.asarray(np.tile(scenes.points_before, (reps, 1, 1))[:batch])
-    ba = jnp.asarray(np.tile(scenes.points_after, (reps, 1, 1))[:batch])
-    bl = jnp.full((batch,), config.edge)
-    t_compile = time.perf_counter()
-    core(bb, ba, bl).rotation.block_until_ready()
-    compile_s = time.perf_counter() - t_compile
-    t0 = time.perf_counter()
-    for _ in range(3):
-        core(bb, ba, bl).rotation.block_until_ready()
-    jax_batched = 3 * batch / (time.perf_counter() - t0)
-
-    faces = [_frontal_face(c) for c in scenes.corners_before]
+    one = (scenes.points_before[0], scenes.points_after[0], config.edge)
+    many = (tile_batch(scenes.points_before, batch), tile_batch(scenes.points_after, batch))
+    one = [jnp.asarray(x) for x in one]
+    many = [*map(jnp.asarray, many), jnp.full(batch, config.edge)]
+    run = lambda args: core(*args).rotation.block_until_ready()  # noqa: E731
+    run(one)
+    jax_latency = call_times(lambda: run(one), repeats).mean()
+    compile_s = call_times(lambda: run(many), 1)[0]
+    jax_batched = batch / call_times(lambda: run(many), 3).mean()
+    faces = [frontal_face(c) for c in scenes.corners_before]
     n_cv = min(len(scenes.pair), repeats)
-    t0 = time.perf_counter()
-    for i in range(n_cv):
-        opencv_pnp(scenes.pixels_before[i], scenes.pixels_after[i], faces[i], k, config.edge)
-    cv_latency = (time.perf_counter() - t0) / n_cv
+    k, pb, pa = config.intrinsics, scenes.pixels_before, scenes.pixels_after
+    loop = lambda: [opencv_pnp(pb[i], pa[i], faces[i], k, config.edge) for i in range(n_cv)]  # noqa: E731
+    cv_latency = call_times(loop, 1)[0] / n_cv
     return {
         "jax_single_latency_us": jax_latency * 1e6,
         "opencv_pnp_two_frame_latency_us": cv_latency * 1e6,
@@ -181,34 +80,23 @@ def timing(scenes, config: SceneConfig, batch: int, repeats: int) -> dict:
     }
 
 
-def table(metrics: dict, timings: dict, n: int) -> str:
-    fmt = lambda x, f="{:.3g}": "-" if x is None else f.format(x)  # noqa: E731
+def table(metrics: dict, t: dict, n: int) -> str:
+    timings = [
+        ("JAX jitted, one problem", f"{t['jax_single_latency_us']:.1f} us"),
+        ("OpenCV IPPE_SQUARE, two frames, one problem", f"{t['opencv_pnp_two_frame_latency_us']:.1f} us"),
+        ("latency ratio JAX / OpenCV", f"{t['latency_ratio_jax_over_opencv']:.2f}"),
+        (f"JAX jitted, batch {t['batch']}", f"{t['jax_batched_problems_per_s']:.3g} problems/s"),
+        ("OpenCV per-problem loop", f"{t['opencv_loop_problems_per_s']:.3g} problems/s"),
+        ("throughput ratio JAX batched / OpenCV loop", f"{t['throughput_ratio_jax_batched_over_opencv_loop']:.1f}"),
+    ]  # fmt: skip
     lines = [
         f"Rotation error [deg], translation error [mm] (Gamma of Eq. 1) and failure rate over {n}"
         " scenes per noise level (0.1 m cube, 0.5-2 m, 640x480, f = 600 px, half small, half large"
         " motions).",
         "",
-        "| noise [px] | method | rot median | rot p90 | trans median | trans p90 | failures |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for noise, per_method in metrics.items():
-        for name, m in per_method.items():
-            lines.append(
-                f"| {noise} | {name} | {fmt(m['rotation_median_deg'])} | {fmt(m['rotation_p90_deg'])}"
-                f" | {fmt(m['translation_median_mm'])} | {fmt(m['translation_p90_mm'])}"
-                f" | {m['failure_rate']:.1%} |"
-            )
-    t = timings
-    lines += [
+        *error_table(metrics, "noise [px]"),
         "",
-        "| timing (CPU, same run) | value |",
-        "|---|---|",
-        f"| JAX jitted, one problem | {t['jax_single_latency_us']:.1f} us |",
-        f"| OpenCV IPPE_SQUARE, two frames, one problem | {t['opencv_pnp_two_frame_latency_us']:.1f} us |",
-        f"| latency ratio JAX / OpenCV | {t['latency_ratio_jax_over_opencv']:.2f} |",
-        f"| JAX jitted, batch {t['batch']} | {t['jax_batched_problems_per_s']:.3g} problems/s |",
-        f"| OpenCV per-problem loop | {t['opencv_loop_problems_per_s']:.3g} problems/s |",
-        f"| throughput ratio JAX batched / OpenCV loop | {t['throughput_ratio_jax_batched_over_opencv_loop']:.1f} |",
+        *markdown_table(["timing (CPU, same run)", "value"], timings),
     ]
     return "\n".join(lines) + "\n"
 
@@ -220,10 +108,10 @@ def plot(metrics: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4))
-    noises = [float(x) for x in metrics]
     for name in METHODS:
-        med = [metrics[k][name]["rotation_median_deg"] for k in metrics]
-        ax.plot(noises, [np.nan if m is None else m for m in med], "o-", label=name)
+        med = [per_method[name]["rotation_median_deg"] for per_method in metrics.values()]
+        med = [np.nan if m is None else m for m in med]
+        ax.plot([float(x) for x in metrics], med, "o-", label=name)
     ax.set_xlabel("pixel noise sigma [px]")
     ax.set_ylabel("median rotation error [deg]")
     ax.set_yscale("symlog", linthresh=1e-3)
@@ -234,42 +122,22 @@ def plot(metrics: dict, path: Path) -> None:
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("runs/eye_benchmark"))
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--scenes", type=int, default=2000, help="scenes per noise level")
-    parser.add_argument("--batch", type=int, default=10000, help="batch size for throughput")
-    parser.add_argument("--repeats", type=int, default=500, help="calls for the latency timing")
-    parser.add_argument("--docs", type=Path, default=None, help="also write the table here")
-    args = parser.parse_args(argv)
+    args = parse(EyeBenchmark(), argv, __doc__)
     jax.config.update("jax_enable_x64", True)
     config = SceneConfig()
-    folder = start_run(
-        args.out,
-        args.seed,
-        {
-            "scenes_per_noise": args.scenes,
-            "noise_px": NOISE_PX,
-            "batch": args.batch,
-            "repeats": args.repeats,
-            "scene_config": config.__dict__,
-            "dtype": "float64",
-        },
-    )
+    settings = {"scenes_per_noise": args.scenes, "noise_px": NOISE_PX, "batch": args.batch}
+    settings |= {"repeats": args.repeats, "scene_config": asdict(config), "dtype": "float64"}
+    folder = start_run(args.out, args.seed, settings)
     rng = np.random.default_rng(args.seed)
     metrics = {}
     for noise in NOISE_PX:
         scenes = make_cube_scenes(rng, args.scenes, config, motion="mixed", noise_px=noise)
-        metrics[str(noise)] = evaluate(scenes, config)
-        print(
-            f"noise {noise} px: "
-            + ", ".join(
-                f"{m} {v['rotation_median_deg']:.3g} deg ({v['failure_rate']:.0%} failed)"
-                for m, v in metrics[str(noise)].items()
-                if v["rotation_median_deg"] is not None
-            ),
-            flush=True,
+        metrics[str(noise)] = motion_errors(scenes, config)
+        summary = ", ".join(
+            f"{m} {fmt(v['rotation_median_deg'])} deg ({v['failure_rate']:.0%} failed)"
+            for m, v in metrics[str(noise)].items()
         )
+        print(f"noise {noise} px: {summary}", flush=True)
     scenes = make_cube_scenes(rng, args.scenes, config, motion="mixed", noise_px=0.5)
     timings = timing(scenes, config, args.batch, args.repeats)
     text = table(metrics, timings, args.scenes)
@@ -277,11 +145,8 @@ def main(argv=None) -> dict:
     write_text(folder / "table.md", text)
     plot(metrics, folder / "rotation_error.png")
     if args.docs is not None:
-        write_text(
-            args.docs,
-            "# Eye benchmark\n\nCommand: `python benchmarks/eye.py "
-            f"--out {args.out} --seed {args.seed}`\n\n" + text,
-        )
+        command = f"python benchmarks/eye.py --out {args.out} --seed {args.seed}"
+        write_text(args.docs, f"# Eye benchmark\n\nCommand: `{command}`\n\n" + text)
     print(text)
     return {"accuracy": metrics, "timing": timings}
 

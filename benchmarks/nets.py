@@ -14,26 +14,34 @@ This times exactly that step inside a ``lax.scan`` over ``--steps`` samples, ``v
 Inputs, the coefficients of Eq. 47 and the cotangent dE/dF_act vary with the run and the sample,
 so nothing can be hoisted out of the batch. Prints steps/s of both and their ratio, and the largest
 difference between the two after ``--steps`` updates (same arithmetic, summation order aside).
+The networks' bound U (Eq. 51) is taken against the target impedance ``--m-e --b-e --k-e``.
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
-import time
-from pathlib import Path
+from dataclasses import dataclass, field
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import jax
+import jax.numpy as jnp
 
-import jax  # noqa: E402
+from hec_jax import benchmarking as bench
+from hec_jax import nets
+from hec_jax.cli import parse
+from hec_jax.loop import TargetImpedance
 
-if "--float64" in sys.argv:
-    jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
+@dataclass(frozen=True)
+class NetsBenchmark:
+    """The network-step benchmark: the networks, their learning rates, batch and samples."""
 
-from hec_jax import nets  # noqa: E402
+    net: nets.NetConfig = field(default_factory=nets.NetConfig)
+    impedance: TargetImpedance = field(default_factory=TargetImpedance)
+    eta: tuple[float, float, float] = (0.3, 0.3, 0.3)  # learning rates of the VSN, VVN, VIN
+    batch: int = 4096  # runs, each with its own weights (vmap)
+    steps: int = 200  # samples per run (lax.scan)
+    float64: bool = False  # float64 (default float32)
+    repeats: int = 3  # timed calls (the best counts)
+    seed: int = 0  # PRNG seed of the weights
 
 
 def _synthetic_sample(t, run, n_axes, dtype):
@@ -63,21 +71,14 @@ def make_rollout(forward, n_axes, eta, steps, dtype):
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--batch", type=int, default=4096)
-    p.add_argument("--steps", type=int, default=200)
-    p.add_argument("--float64", action="store_true")
-    p.add_argument("--repeats", type=int, default=3)
-    p.add_argument("--seed", type=int, default=0)
-    args = p.parse_args(argv)
-    dtype = jnp.float64 if args.float64 else jnp.float32
-    config = nets.NetConfig()
+    cfg = parse(NetsBenchmark(), argv, __doc__)
+    dtype = bench.float_dtype(not cfg.float64)
+    config, imp = cfg.net, cfg.impedance
     n_hidden = len(config.hidden)
-    u = nets.u_max(config, jnp.ones(2), 40.0 * jnp.ones(2), 400.0 * jnp.ones(2)).astype(dtype)
-    eta = jnp.asarray([0.3, 0.3, 0.3], dtype)
-    keys = jax.random.split(jax.random.PRNGKey(args.seed), args.batch)
+    u = nets.u_max(config, *(jnp.asarray(v) for v in (imp.m_e, imp.b_e, imp.k_e))).astype(dtype)
+    eta = jnp.asarray(cfg.eta, dtype)
+    keys = jax.random.split(jax.random.PRNGKey(cfg.seed), cfg.batch)
     params = jax.vmap(lambda k: nets.init_params(k, config, dtype))(keys)
-    flax_params = nets.to_flax(params, n_hidden)
     model = nets.FlaxMlp(config.hidden, config.init_output_std)
 
     def forward_flax(fp, x):
@@ -88,47 +89,40 @@ def main(argv=None):
     def forward_apply(q, x):
         return nets.apply(q, config, x, u)
 
-    runs = jnp.arange(args.batch, dtype=dtype)
-    rows = []
-    results = {}
+    runs = jnp.arange(cfg.batch, dtype=dtype)
+    rows, rates, results = [], [], {}
     for name, forward, start in (
         ("nets.apply, weights (out, in)", forward_apply, params),
-        ("Flax nn.Dense reference, kernels (in, out)", forward_flax, flax_params),
+        (
+            "Flax nn.Dense reference, kernels (in, out)",
+            forward_flax,
+            nets.to_flax(params, n_hidden),
+        ),
     ):
-        fn = make_rollout(forward, config.n_axes, eta, args.steps, dtype)
-        t0 = time.perf_counter()
-        results[name] = jax.block_until_ready(fn(start, runs))
-        compile_s = time.perf_counter() - t0
-        best = np.inf
-        for _ in range(args.repeats):
-            t0 = time.perf_counter()
-            jax.block_until_ready(fn(start, runs))
-            best = min(best, time.perf_counter() - t0)
-        rows.append((name, args.batch * args.steps / best, compile_s, best))
+        fn = make_rollout(forward, config.n_axes, eta, cfg.steps, dtype)
+        results[name], compile_s = bench.first_call(fn, start, runs)
+        best = bench.best_of(lambda fn=fn, s=start: jax.block_until_ready(fn(s, runs)), cfg.repeats)
+        note = f"compile {compile_s:.0f} s, best of {cfg.repeats}: {best:.3f} s"
+        rates.append(cfg.batch * cfg.steps / best)
+        rows.append((name, f"{rates[-1]:.3g}", note))
 
     (p_apply, f_apply), (p_flax, f_flax) = results.values()
-    weight_diff = max(
-        float(jnp.max(jnp.abs(a - b)))
-        for a, b in zip(
-            jax.tree_util.tree_leaves(nets.to_flax(p_apply, n_hidden)),
-            jax.tree_util.tree_leaves(p_flax),
-            strict=True,
-        )
+    leaves = zip(
+        *(jax.tree_util.tree_leaves(p) for p in (nets.to_flax(p_apply, n_hidden), p_flax)),
+        strict=True,
     )
+    weight_diff = max(float(jnp.max(jnp.abs(a - b))) for a, b in leaves)
     device = jax.devices()[0]
     print(
         f"\n{device.device_kind} ({device.platform}), jax {jax.__version__}, "
-        f"{jnp.dtype(dtype).name}, batch {args.batch}, {args.steps} samples per run, "
+        f"{jnp.dtype(dtype).name}, batch {cfg.batch}, {cfg.steps} samples per run, "
         f"six {'-'.join(map(str, (4, *config.hidden, 1)))} networks per run\n"
     )
-    print(f"{'network step (forward + VJP + Eq. 52 update)':50s} {'steps/s':>10s}  notes")
-    for name, rate, compile_s, best in rows:
-        print(
-            f"{name:50s} {rate:10.3g}  compile {compile_s:.0f} s, best of {args.repeats}: {best:.3f} s"
-        )
-    print(f"\nratio apply / Flax reference = {rows[0][1] / rows[1][1]:.2f}")
+    header = ("network step (forward + VJP + Eq. 52 update)", "steps/s", "notes")
+    print("\n".join(bench.text_table(header, (50, 10), rows)))
+    print(f"\nratio apply / Flax reference = {rates[0] / rates[1]:.2f}")
     print(
-        f"largest difference after {args.steps} updates: weights {weight_diff:.2e}, "
+        f"largest difference after {cfg.steps} updates: weights {weight_diff:.2e}, "
         f"F_o {float(jnp.max(jnp.abs(f_apply - f_flax))):.2e}"
     )
 

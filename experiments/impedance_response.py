@@ -2,144 +2,118 @@
 
     python experiments/impedance_response.py --out runs/impedance_response --seed 0
 
-The force is applied on the hand body (``xfrc_applied``) and the controller uses exactly that force
-as F_int. The run folder holds ``config.json`` (m_e, b_e, k_e diagonals, seed, versions, device),
-``trajectory.npz`` (t, x_e, xd_e, x_d, f_ext, f_int, x_target) and ``response.png``. The reference
+The force (``--force`` [N] from ``--t-step`` [s], in a direction of the task plane drawn from
+``--seed``) is applied on the hand body (``xfrc_applied``) and the controller uses exactly that
+force as F_int; the pendulum hangs at rest 0.3 m away. The target impedance and the controller
+are the task presets' (``hec_jax.loop.config``); every field is a flag (``--help``). The reference
 ``x_target`` is the exact solution of Eq. 40 under the simulator's zero-order hold (matrix
-exponential), computed here independently of the controller.
+exponential, ``hec_jax.loop.plain.zoh_reference``), independent of the controller. Writes
+``config.json``, ``metrics.json`` (relative RMS error per axis, saturation, timing),
+``trajectory.npz`` (t, x_e, xd_e, x_d, f_ext, f_int, x_target, tau) and ``response.png``.
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
-import time
+import dataclasses
+from dataclasses import dataclass, field
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import _common  # noqa: E402
-
-_common.enable_x64()
-
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import matplotlib  # noqa: E402
-import numpy as np  # noqa: E402
-from scipy.linalg import expm  # noqa: E402
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from hec_jax import control as C  # noqa: E402
-from hec_jax import mjx_scene as S  # noqa: E402
+from hec_jax.cli import parse
+from hec_jax.control import ControllerConfig
+from hec_jax.loop import TargetImpedance, catching
+from hec_jax.mjx_scene import PendulumConfig
 
 
-def zoh_reference(m, b, k, f, dt):
-    A = np.array([[0.0, 1.0], [-k / m, -b / m]])
-    E = expm(np.block([[A, np.array([[0.0], [1.0 / m]])], [np.zeros((1, 3))]]) * dt)
-    x = np.zeros(2)
-    out = np.empty((len(f), 2))
-    for i, fk in enumerate(f):
-        out[i] = x
-        x = E[:2, :2] @ x + E[:2, 2] * fk
-    return out
+@dataclass(frozen=True)
+class ResponseRun:
+    """A step force on the hand, the impedance it should realise, and the run folder."""
+
+    impedance: TargetImpedance = field(default_factory=lambda: catching().task.impedance)
+    controller: ControllerConfig = field(default_factory=lambda: catching().task.controller)
+    # the pendulum hangs at rest (release angle 0), 0.3 m from the hand: no contact
+    pendulum: PendulumConfig = field(default_factory=lambda: PendulumConfig(release_angle=0.0))
+    force: float = 10.0  # [N] step magnitude
+    t_step: float = 0.1  # [s] time of the step
+    duration: float = 1.5  # [s]
+    out: Path = Path("runs/impedance_response")  # run folder
+    seed: int = 0  # draws the step's direction in the task plane (x, z)
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
-    ap.add_argument("--out", required=True, help="run folder")
-    ap.add_argument("--seed", type=int, default=0, help="seed (draws the step force direction)")
-    ap.add_argument("--m-e", type=float, nargs=2, default=[1.0, 1.0], help="[kg] M_e diagonal")
-    ap.add_argument("--b-e", type=float, nargs=2, default=[40.0, 40.0], help="[N s/m] B_e diagonal")
-    ap.add_argument("--k-e", type=float, nargs=2, default=[400.0, 400.0], help="[N/m] K_e diagonal")
-    ap.add_argument("--force", type=float, default=10.0, help="[N] step magnitude")
-    ap.add_argument("--t-step", type=float, default=0.1, help="[s] time of the step")
-    ap.add_argument("--duration", type=float, default=1.5, help="[s]")
-    args = ap.parse_args(argv)
+def main(argv=None) -> dict:
+    """Runs the step response, writes the run folder; returns the metrics."""
+    run = parse(ResponseRun(), argv, __doc__)
+    import jax
 
-    rng = np.random.default_rng(args.seed)
-    angle = rng.uniform(0, 2 * np.pi)
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    from hec_jax.control import impedance_params, virtual_params
+    from hec_jax.loop.plain import make_plain_run, plain_scene, zoh_reference
+    from hec_jax.mjx_scene import TASK_AXES
+    from hec_jax.report import timed
+    from hec_jax.runs import save_figure, start_run, write_json, write_npz
+
+    settings = {k: v for k, v in dataclasses.asdict(run).items() if k != "seed"}
+    folder = start_run(run.out, run.seed, dict(settings, experiment="impedance_response"))
+    angle = np.random.default_rng(run.seed).uniform(0, 2 * np.pi)
     direction = np.array([np.cos(angle), np.sin(angle)])  # in the task plane (x, z)
-    mm = S.load_mj_model()
-    ids = S.scene_ids(mm)
-    mx = S.load_mjx_model(mm)
-    dt = float(mm.opt.timestep)
-    n = int(round(args.duration / dt))
+    scene = plain_scene()
+    dt = scene.ids.timestep
+    n = int(round(run.duration / dt))
     t = np.arange(n) * dt
     f_ext = np.zeros((n, 3))
-    on = t >= args.t_step
-    f_ext[on, 0] = args.force * direction[0]
-    f_ext[on, 2] = args.force * direction[1]
-
-    params = C.impedance_params(args.m_e, args.b_e, args.k_e)
-    vparams = C.virtual_params(0.0, 0.0, 0.0, 0.25)  # F_o = 0: plain impedance control
-    cond = S.default_conditions(release_angle=0.0)  # pendulum at rest, 0.3 m away
-    q_home = S.solve_posture(mm, ids, S.X_HOME)
-    pinit, policy = C.make_mjx_policy(ids)
-
-    @jax.jit
-    def run(params, f_ext):
-        d0 = S.make_data(mx, ids, cond, jnp.asarray(q_home))
-        x_d = d0.site_xpos[ids.hand_site][jnp.array(S.TASK_AXES)]
-        ps0 = pinit(mx, d0, params, vparams, C.Target(x_d, jnp.zeros(2), jnp.zeros(2)))
-        return S.rollout(mx, ids, d0, policy, ps0, f_ext, cond)[1], x_d
-
-    t0 = time.perf_counter()
-    compiled = run.lower(params, jnp.asarray(f_ext)).compile()
-    t_compile = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    traj, x_d = jax.block_until_ready(compiled(params, jnp.asarray(f_ext)))
-    t_run = time.perf_counter() - t0
+    on = t >= run.t_step
+    f_ext[on, 0], f_ext[on, 2] = run.force * direction[0], run.force * direction[1]
+    imp = run.impedance
+    params = impedance_params(imp.m_e, imp.b_e, imp.k_e)
+    vparams = virtual_params(0.0, 0.0, 0.0, 0.25)  # F_o = 0: plain impedance control
+    cond = run.pendulum.conditions()
+    fn = jax.jit(make_plain_run(scene, run.controller))
+    compiled, t_compile = timed(
+        lambda: fn.lower(params, vparams, cond, jnp.asarray(f_ext)).compile()
+    )
+    (traj, x_d), t_run = timed(
+        lambda: jax.block_until_ready(compiled(params, vparams, cond, jnp.asarray(f_ext)))
+    )
     print(f"compile {t_compile:.1f} s, run {t_run:.3f} s ({n} steps)")
 
-    x_e = np.asarray(traj.aux["x_e"])
-    xd_e = np.asarray(traj.aux["xd_e"])
-    x_d = np.asarray(x_d)
-    f_task = f_ext[:, list(S.TASK_AXES)]
+    traj, x_d = jax.tree.map(np.asarray, traj), np.asarray(x_d)
+    x_e = traj.aux["x_e"]
+    f_task = f_ext[:, list(TASK_AXES)]
     ref = np.stack(
-        [
-            zoh_reference(args.m_e[a], args.b_e[a], args.k_e[a], f_task[:, a], dt)[:, 0]
-            for a in range(2)
-        ],
+        [zoh_reference(imp.m_e[a], imp.b_e[a], imp.k_e[a], f_task[:, a], dt)[:, 0] for a in (0, 1)],
         axis=1,
     )
     dx = x_e - x_d[None, :]
     rel_rms = np.sqrt(np.mean((dx - ref) ** 2, axis=0)) / np.sqrt(np.mean(ref**2, axis=0))
     print("relative RMS error per axis (x, z):", rel_rms)
-
-    out = Path(args.out)
-    _common.write_config(
-        out,
-        args.seed,
-        dict(
-            experiment="impedance_response",
-            m_e=list(args.m_e),
-            b_e=list(args.b_e),
-            k_e=list(args.k_e),
-            force=args.force,
-            force_direction_xz=direction.tolist(),
-            t_step=args.t_step,
-            duration=args.duration,
-            dt=dt,
-            task_axes="(x, z) of the world frame",
-            relative_rms_error_xz=rel_rms.tolist(),
-            saturated=bool(np.asarray(traj.aux["saturated"]).any()),
-            compile_s=t_compile,
-            run_s=t_run,
-        ),
+    metrics = dict(
+        force_direction_xz=direction.tolist(),
+        dt=dt,
+        task_axes="(x, z) of the world frame",
+        relative_rms_error_xz=rel_rms.tolist(),
+        saturated=bool(traj.aux["saturated"].any()),
+        compile_s=t_compile,
+        run_s=t_run,
     )
-    _common.save_npz(
-        out / "trajectory.npz",
+    write_json(folder / "metrics.json", metrics)
+    write_npz(
+        folder / "trajectory.npz",
         t=t,
         x_e=x_e,
-        xd_e=xd_e,
+        xd_e=traj.aux["xd_e"],
         x_d=x_d,
         f_ext=f_task,
-        f_int=np.asarray(traj.f_int)[:, list(S.TASK_AXES)],
+        f_int=traj.f_int[:, list(TASK_AXES)],
         x_target=ref + x_d[None, :],
-        tau=np.asarray(traj.ctrl),
+        tau=traj.ctrl,
     )
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
     fig, axes = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
     for a, name in enumerate("xz"):
         axes[a].plot(t, dx[:, a] * 1e3, label="simulated (MJX)")
@@ -148,12 +122,13 @@ def main(argv=None):
         axes[a].legend(loc="lower right")
     axes[2].plot(t, f_task[:, 0], label="F_x")
     axes[2].plot(t, f_task[:, 1], label="F_z")
-    axes[2].set_ylabel("F_ext [N]")
-    axes[2].set_xlabel("t [s]")
+    axes[2].set(ylabel="F_ext [N]", xlabel="t [s]")
     axes[2].legend()
-    fig.suptitle(f"M_e={args.m_e}, B_e={args.b_e}, K_e={args.k_e}; rel. RMS err {rel_rms.round(4)}")
-    _common.save_figure(fig, out / "response.png")
-    print(f"wrote {out}")
+    fig.suptitle(f"M_e={imp.m_e}, B_e={imp.b_e}, K_e={imp.k_e}; rel. RMS err {rel_rms.round(4)}")
+    save_figure(fig, folder / "response.png")
+    plt.close(fig)
+    print(f"wrote {folder}")
+    return metrics
 
 
 if __name__ == "__main__":

@@ -1,17 +1,20 @@
 """Run folders: one folder per experiment or benchmark run, written atomically.
 
 Every run writes ``config.json`` (seed, command line, package versions, device, its own settings),
-then its metrics and plots, into the folder given by ``--out``. Files are written to a temporary
-name and moved into place, so an interrupted run never leaves a half-written file.
+then its metrics, plots (PNG) and videos (MP4), into the folder given by ``--out``. Files are
+written to a temporary name and moved into place, so an interrupted run never leaves a
+half-written file.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import platform
 import sys
 import tempfile
+import warnings
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -27,6 +30,7 @@ _PACKAGES = (
     "flax",
     "optax",
     "opencv-python-headless",
+    "imageio-ffmpeg",
 )
 
 
@@ -108,6 +112,107 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 120) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight")
     atomic_write_bytes(path, buf.getvalue())
+
+
+def _even_frames(frames, shape):
+    """Checks each RGB uint8 frame against ``shape`` and pads it to even height and width by
+    repeating its last row/column (H.264 with 4:2:0 chroma needs even sizes)."""
+    for frame in frames:
+        f = np.asarray(frame)
+        if f.dtype != np.uint8 or f.shape != shape:
+            raise ValueError(f"frames must be {shape} uint8 RGB, got {f.shape} {f.dtype}")
+        if shape[0] % 2 or shape[1] % 2:
+            f = np.pad(f, ((0, shape[0] % 2), (0, shape[1] % 2), (0, 0)), mode="edge")
+        yield np.ascontiguousarray(f)
+
+
+def _write_h264(path: str, frames, size: tuple[int, int], fps: float) -> None:
+    import imageio_ffmpeg
+
+    writer = imageio_ffmpeg.write_frames(
+        path,
+        size,
+        fps=fps,
+        macro_block_size=1,  # sizes are even already; no rescaling
+        ffmpeg_log_level="error",
+        output_params=["-movflags", "+faststart"],  # index first: plays while loading
+    )
+    with warnings.catch_warnings():
+        # JAX warns at any fork; the ffmpeg process is started by fork + exec at once (Popen)
+        warnings.filterwarnings("ignore", "os.fork()", RuntimeWarning)
+        writer.send(None)
+    try:
+        for f in frames:
+            writer.send(f)
+    finally:
+        writer.close()
+
+
+def _write_mp4v(path: str, frames, size: tuple[int, int], fps: float) -> None:
+    import cv2
+
+    writer = cv2.VideoWriter(path, cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+    try:
+        if not writer.isOpened():
+            raise RuntimeError(f"OpenCV cannot write an mp4v video to {path}")
+        for f in frames:
+            writer.write(np.ascontiguousarray(f[..., ::-1]))  # OpenCV takes BGR
+    finally:
+        writer.release()
+
+
+def write_video(path: str | os.PathLike, frames, fps: float) -> str:
+    """MP4 of ``frames`` at ``fps``, written next to its final name and renamed (atomic).
+
+    H.264 (yuv420p, index first: plays in a browser) through the ffmpeg binary that the
+    ``imageio-ffmpeg`` package ships, when it is installed; otherwise OpenCV's MPEG-4 Part 2
+    (``mp4v``), which most browsers do not play. Frames of odd height or width are padded by one
+    row or column (a copy of the last one).
+
+    Args:
+        path: the ``.mp4`` file.
+        frames: an iterable (a list, an array (T, H, W, 3), a generator) of RGB uint8 frames
+            (H, W, 3), all of one shape; streamed, not stacked.
+        fps: frames per second.
+
+    Returns:
+        The codec used: ``"h264"`` or ``"mp4v"``.
+
+    Raises:
+        ValueError: no frames, a frame that is not (H, W, 3) uint8 or not of the first one's
+            shape, or ``fps`` not positive.
+        RuntimeError: the writer could not open the file.
+    """
+    if not fps > 0:
+        raise ValueError(f"fps must be positive, got {fps}")
+    frames = iter(frames)
+    head = next(frames, None)
+    if head is None:
+        raise ValueError("no frames to write")
+    shape = np.shape(head)
+    if len(shape) != 3 or shape[2] != 3:
+        raise ValueError(f"frames must be (H, W, 3) uint8 RGB, got {shape}")
+    size = (shape[1] + shape[1] % 2, shape[0] + shape[0] % 2)  # (width, height), even
+    try:
+        import imageio_ffmpeg  # noqa: F401
+
+        write, codec = _write_h264, "h264"
+    except ImportError:
+        write, codec = _write_mp4v, "mp4v"
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp.mp4")
+    os.close(fd)
+    try:
+        write(tmp, _even_frames(itertools.chain([head], frames), shape), size, float(fps))
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return codec
 
 
 def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Path:

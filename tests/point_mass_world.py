@@ -21,10 +21,13 @@ def sphere_1d(x_r, xd_r, xdd_r, radius):
     return SphereGeometry(x_r - radius * jnp.sign(x_r), xd_r, xdd_r)
 
 
+DT = 1e-3  # [s] sampling interval of the world and the learner
+
+
 def make_episodes(config, steps, learn=True, use_fo=True):
     """(key, n_episodes) -> per-sample logs (episodes, steps) of the hand-object world."""
-    init, update = make_online_learner(config, sphere_1d)
-    dt = config.dt
+    init, update = make_online_learner(config, DT, (M_E,), (B_E,), (K_E,))
+    dt = DT
 
     def step(carry, _):
         ls, xe, ve, ae, xo, vo, ao = carry
@@ -32,9 +35,9 @@ def make_episodes(config, steps, learn=True, use_fo=True):
         in_contact = pen > 0
         f_contact = jnp.where(in_contact, K_C * pen, 0.0)
         f_int = -f_contact  # force on the hand (Eq. 39), pushing it away from the object
-        inputs = LearnerInputs(
-            *(jnp.reshape(v, (1,)) for v in (xe, ve, ae, xo, vo, ao, f_int)), in_contact
-        )
+        x = [jnp.reshape(v, (1,)) for v in (xe, ve, ae, xo, vo, ao, f_int)]
+        sphere = sphere_1d(x[3] - x[0], x[4] - x[1], x[5] - x[2], config.radius)
+        inputs = LearnerInputs(*x, in_contact, sphere)
         ls_new, out = update(ls, inputs)
         if not learn:
             ls_new = ls_new._replace(params=ls.params)

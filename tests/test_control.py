@@ -11,6 +11,9 @@ from hypothesis import strategies as st
 
 from hec_jax import control as C
 
+DT = 1e-3  # [s] control period of the tests' controller (the scene's time step)
+TORQUE_LIMIT = (100.0, 60.0, 20.0)  # [N m] the scene's motor ctrlrange
+
 
 def _random_obs(rng, f_int=None):
     A = rng.normal(size=(3, 3))
@@ -269,11 +272,15 @@ def test_validation_errors():
         C.virtual_params(0.0, 0.0, 100.0, 0.0)
     with pytest.raises(ValueError):
         C.virtual_params(np.nan, 0.0, 100.0, 0.25)
-    with pytest.raises(ValueError):
-        C.ControllerConfig(dt=0.0)
+    with pytest.raises(ValueError, match="mx_damping"):
+        C.ControllerConfig(mx_damping=-1.0)
+    with pytest.raises(ValueError, match="dt"):
+        C.make_impedance_controller(0.0, TORQUE_LIMIT)
+    with pytest.raises(ValueError, match="torque_limit"):
+        C.make_impedance_controller(DT, (100.0, 60.0))
     with pytest.raises(ValueError):
         C.fixed_target([0.1, 0.2, 0.3])
-    init, apply = C.make_impedance_controller()
+    init, apply = C.make_impedance_controller(DT, TORQUE_LIMIT)
     obs = _random_obs(np.random.default_rng(4))
     with pytest.raises(ValueError):
         init(obs._replace(J=jnp.zeros((3, 3))))
@@ -286,7 +293,7 @@ def test_validation_errors():
 
 def test_controller_jit_vmap_grad():
     """apply works under jit, vmap (over parameters) and grad (w.r.t. K_e), with finite values."""
-    init, apply = C.make_impedance_controller()
+    init, apply = C.make_impedance_controller(DT, TORQUE_LIMIT)
     obs = _random_obs(np.random.default_rng(5))
     st0 = init(obs)
     vp = C.virtual_params(0.5, 5.0, 300.0, 5.0)  # object inside a large sphere

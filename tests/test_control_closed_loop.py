@@ -14,6 +14,7 @@ import pytest
 from scipy.linalg import expm
 
 from hec_jax import control as C
+from hec_jax import loop as L
 from hec_jax import mjx_scene as S
 
 T = 1000
@@ -28,7 +29,7 @@ def setup():
     ids = S.scene_ids(mm)
     mx = S.load_mjx_model(mm)
     q_home = S.solve_posture(mm, ids, S.X_HOME)
-    pinit, policy = C.make_mjx_policy(ids)
+    pinit, policy = L.make_mjx_policy(ids)
 
     def run_one(c, params, vparams, f_ext):
         m = S.apply_conditions(mx, ids, c)
@@ -152,7 +153,7 @@ def test_virtual_sphere_avoidance(avoidance_runs):
 
 def _c_rollout(setup, mj_model, c, params, vparams, f_ext):
     ids = setup["ids"]
-    pinit, policy = C.make_c_policy(ids)
+    pinit, policy = L.make_c_policy(ids)
     d = S.make_data_c(mj_model, ids, c, setup["q_home"])
     cq = S.c_quantities(mj_model, d, ids)
     target = C.Target(jnp.asarray(cq.x_hand[[0, 2]]), jnp.zeros(2), jnp.zeros(2))

@@ -1,4 +1,4 @@
-"""experiments.devices.OnDevices: runs split over devices, gathered back in order."""
+"""hec_jax.loop.devices.OnDevices: runs split over devices, gathered back in order."""
 
 import os
 import subprocess
@@ -11,9 +11,8 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from experiments.devices import OnDevices, Sharded  # noqa: E402
+from hec_jax.loop.devices import OnDevices, Sharded  # noqa: E402
 
 
 def _fn(x, scale, pair):
@@ -70,8 +69,7 @@ from typing import NamedTuple
 import jax
 import numpy as np
 
-sys.path.insert(0, sys.argv[1])
-from experiments.devices import OnDevices
+from hec_jax.loop.devices import OnDevices
 
 
 class Switch(NamedTuple):  # as the sweep's switches: batched leaves and an unbatched field

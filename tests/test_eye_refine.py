@@ -108,29 +108,11 @@ def test_two_frame_exact_without_noise():
 
 def test_two_frame_beats_ippe_by_half(noisy):
     """Issue 5 target: median rotation error <= 0.5 x OpenCV IPPE_SQUARE on the most frontal face."""
-    cv2 = pytest.importorskip("cv2")
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-    from eye import _frontal_face, opencv_pnp
+    from hec_jax.geometry.baselines import pnp_rotation_errors
 
     out = _run(noisy)
     ours = rotation_error_deg(np.asarray(out.rotation), noisy.rotation)
-    ippe = [
-        rotation_error_deg(
-            opencv_pnp(
-                noisy.pixels_before[i],
-                noisy.pixels_after[i],
-                _frontal_face(noisy.corners_before[i]),
-                CFG.intrinsics,
-                CFG.edge,
-            )[0],
-            noisy.rotation[i],
-        )
-        for i in range(len(noisy.pair))
-    ]
-    assert cv2 is not None
+    ippe = pnp_rotation_errors(noisy, CFG.intrinsics, CFG.edge)
     assert np.median(ours) <= 0.5 * np.median(ippe), (np.median(ours), np.median(ippe))
 
 

@@ -1,32 +1,19 @@
 """Tracking on rendered frames of the swinging cube (rendered once per module, 24 frames)."""
 
-import mujoco
 import numpy as np
 import pytest
 
 from hec_jax.geometry import rotation_error_deg
-from hec_jax.geometry.render import render_rollout
 from hec_jax.geometry.track import track_box
-from hec_jax.mjx_scene import SCENE_XML
+from hec_jax.mjx_scene.render import render_swing
 
 FPS = 30.0
 EDGE = 0.1
 
 
-def render_swing(angle: float, n_frames: int):
-    m = mujoco.MjModel.from_xml_path(str(SCENE_XML))
-    d = mujoco.MjData(m)
-    d.qpos[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "hinge")]] = angle
-    arm = [
-        m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j)]
-        for j in ("shoulder", "elbow", "wrist")
-    ]
-    return render_rollout(m, d, n_frames, FPS, "eye", "cube", hold_dofs=arm)
-
-
 @pytest.fixture(scope="module")
 def seq():
-    return render_swing(0.5, 24)
+    return render_swing(0.5, 24, FPS)
 
 
 @pytest.fixture(scope="module")
@@ -39,7 +26,7 @@ def swing_5s():
     """The issue's sequence length (5 s at 30 fps). The fixed-axis model's acceptance is decided
     by a median residual over the frames: on 24-48 frames of this swing it came out 0.39-0.61 on
     one machine (threshold 0.5), on 150 frames 0.26, so the targets are checked at full length."""
-    seq = render_swing(0.5, 150)
+    seq = render_swing(0.5, 150, FPS)
     return seq, track_box(seq.frames, seq.intrinsics, EDGE, FPS)
 
 

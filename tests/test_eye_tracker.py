@@ -2,15 +2,18 @@
 
 import numpy as np
 import pytest
-from test_eye_track import EDGE, FPS, render_swing
 
 from hec_jax.geometry import BoxTracker, TrackStep, track_box
 from hec_jax.geometry.detect import background_model
+from hec_jax.mjx_scene.render import render_swing
+
+FPS = 30.0
+EDGE = 0.1
 
 
 @pytest.fixture(scope="module")
 def seq():
-    return render_swing(0.5, 24)
+    return render_swing(0.5, 24, FPS)
 
 
 @pytest.fixture(scope="module")

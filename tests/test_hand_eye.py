@@ -7,25 +7,26 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from experiments import catching
-from experiments import hand_eye as he
-from experiments import task_loop as tl
+from hec_jax import loop as tl
+from hec_jax.loop import camera_loop as he
+from hec_jax.loop import metrics as mt
 from hec_jax.mjx_scene import default_conditions, load_mj_model, load_mjx_model, scene_ids
-from hec_jax.mjx_scene.frames import SceneCamera, render_model_like
+from hec_jax.mjx_scene.render import SceneCamera, render_model_like
+from hec_jax.runs import write_video
 
-# The catching experiment's set-up (hold point, hinge at 0.55 m, F_cd = 2 N): 3 swings of 1 s
+# The catching preset's set-up (hold point, hinge at 0.55 m, F_cd = 2 N): 3 swings of 1 s
 # (the cube is released 0.23 m from the hand and strikes it at ~0.2 s), 2 seeds.
-ARGS = catching.parse(["--swings", "3", "--swing-s", "1.0", "--seeds", "2"])
-CONFIG = tl.config_from_args(
-    ARGS, tl.learner_from_args(ARGS, "catching", ARGS.f_cd), ARGS.swing_s, ARGS.swings
-)
-PENDULUM = default_conditions(release_angle=ARGS.release_angle)
 SEEDS = 2
+CONFIG = tl.replace(tl.catching().task, swings=3, swing_s=1.0)
+LOOP = tl.build_loop(CONFIG)
+PENDULUM = CONFIG.pendulum.conditions()
 
 
 @pytest.fixture(scope="module")
 def camera_run():
-    camera, truth, _, eyes, video = he.run_conditions_camera(CONFIG, PENDULUM, 0, SEEDS)
+    camera, truth, _, eyes, video = he.run_conditions_camera(
+        LOOP, PENDULUM, 0, SEEDS, progress=False
+    )
     return camera, truth, eyes, video
 
 
@@ -165,22 +166,22 @@ def test_eye_input_respects_latency():
 
 
 def test_frames_fall_on_the_control_grid():
-    cam = he.CameraConfig(fps=30.0)
+    cam = tl.CameraConfig(fps=30.0)
     assert he.steps_per_frame(cam, 1e-3) == 33
     np.testing.assert_array_equal(he.frame_steps(cam, 1e-3, 100), [0, 33, 66, 99])
     with pytest.raises(ValueError, match="latency"):
-        he.CameraConfig(latency_s=-1.0)
+        tl.CameraConfig(latency_s=-1.0)
 
 
 def test_render_model_follows_the_mjx_geometry():
     """The C model used for rendering puts the cube where MJX does (moved hinge, longer rod)."""
     m_c = load_mj_model()
     ids = scene_ids(m_c)
-    loop = tl.build_loop(
-        tl.TaskConfig(learner=CONFIG.learner, hinge_x=0.5), default_conditions(rod_length=0.7)
-    )
-    d = jax.device_get(loop.initial_data())
-    with SceneCamera(render_model_like(m_c, loop.mx)) as cam:
+    loop = tl.build_loop(CONFIG)
+    conditions = default_conditions(rod_length=0.7, hinge_x=0.5)
+    mx = loop.model_for(conditions)
+    d = jax.device_get(loop.data_for(mx, conditions))
+    with SceneCamera(render_model_like(m_c, mx)) as cam:
         frame = cam.render(np.asarray(d.qpos))
         np.testing.assert_allclose(cam.data.xpos[ids.cube_body], d.xpos[ids.cube_body], atol=1e-9)
         # the camera pose maps the camera frame back to the world
@@ -196,18 +197,18 @@ def test_camera_loop_matches_ground_truth(camera_run):
     """Issue-7 target on a short run: the learned peak force with the camera within 20% of the
     ground-truth-state result (per seed, last swing); the eye followed the cube."""
     camera, truth, eyes, _ = camera_run
-    peak_cam = tl.force_norm(camera["learned"])[:, -1].max(-1)
-    peak_truth = tl.force_norm(truth["learned"])[:, -1].max(-1)
+    peak_cam = mt.force_norm(camera["learned"])[:, -1].max(-1)
+    peak_truth = mt.force_norm(truth["learned"])[:, -1].max(-1)
     np.testing.assert_allclose(peak_cam, peak_truth, rtol=0.2)
     # plain does not use the object's state, so camera and truth share its run
     assert camera["plain"] is truth["plain"]
     for condition in ("frozen", "learned"):
         eye, logs = eyes[condition], camera[condition]
-        m = he.eye_metrics(eye, logs, 1e-3)
+        m = mt.eye_metrics(eye, logs, 1e-3)
         assert m["frames_valid"] + m["frames_failed"] == m["frames"]
         # every frame before the first contact (the approach, where the virtual force acts on
         # the eye's estimate) has a valid fit; after impacts failures are allowed and counted
-        f = tl.force_norm(logs)
+        f = mt.force_norm(logs)
         for seed in range(SEEDS):
             for swing in range(CONFIG.swings):
                 t_contact = np.argmax(f[seed, swing] > CONFIG.contact_threshold) * 1e-3
@@ -215,16 +216,16 @@ def test_camera_loop_matches_ground_truth(camera_run):
                 assert before.sum() >= 5 and eye["valid"][seed, swing][before].all()
         assert m["position_rms_valid_frames_m"] < 0.01
         assert np.all(np.isfinite(camera[condition]["x_e"]))
-    assert tl.stability_summary(camera["learned"])["all_strictly_stable"]
+    assert mt.stability_summary(camera["learned"])["all_strictly_stable"]
 
 
 def test_camera_loop_overlay_video(camera_run, tmp_path):
     *_, video = camera_run
-    assert len(video) == len(he.frame_steps(he.CameraConfig(), 1e-3, CONFIG.swing_steps))
+    assert len(video) == len(he.frame_steps(tl.CameraConfig(), 1e-3, LOOP.swing_steps))
     # detected edges are drawn in pure green on some frames
     green = [np.any((f[..., 1] == 255) & (f[..., 0] == 0) & (f[..., 2] == 0)) for f in video]
     assert np.mean(green) > 0.8
-    he.write_video(tmp_path / "loop.mp4", video, 30.0)
+    write_video(tmp_path / "loop.mp4", (f[..., ::-1] for f in video), 30.0)
     assert (tmp_path / "loop.mp4").stat().st_size > 1000
 
 
@@ -232,20 +233,20 @@ def test_camera_loop_survives_blind_frames():
     """Frames where the cube cannot be seen (here: blacked out for 0.2 s while it is held, as an
     occluder would) degrade to the filter's prediction, are counted, and the run neither crashes
     nor diverges."""
-    config = dataclasses.replace(CONFIG, swings=1)
+    loop = tl.build_loop(dataclasses.replace(CONFIG, swings=1))
     keys = jax.random.split(jax.random.PRNGKey(0), 1)
 
     def blind(seed, swing, frame, image):
         return np.zeros_like(image) if 8 <= frame < 14 else image
 
-    logs, eye, _ = he.run_camera(config, PENDULUM, keys, "learned", progress=False, corrupt=blind)
-    m = he.eye_metrics(eye, logs, 1e-3)
+    logs, eye, _ = he.run_camera(loop, PENDULUM, keys, "learned", progress=False, corrupt=blind)
+    m = mt.eye_metrics(eye, logs, 1e-3)
     assert m["frames_failed"] >= 6
     assert not np.any(eye["valid"][0, 0, 8:14])
     assert np.any(eye["valid"][0, 0, 14:])  # found again
     assert np.all(np.isfinite(logs["x_e"])) and np.all(np.isfinite(logs["f_o"]))
     # no blow-up: nothing harder than the plain condition's impact (~260 N) after the blind spell
-    assert tl.force_norm(logs)[0, 0, 14 * 33 :].max() < 100.0
+    assert mt.force_norm(logs)[0, 0, 14 * 33 :].max() < 100.0
 
 
 @pytest.mark.slow
@@ -253,21 +254,14 @@ def test_camera_hitting_keeps_striking():
     """Issue-7 hitting target on a shorter run (``-m slow``, a few minutes on 2 cores): with the
     camera in the loop, 3 training swings of 2 s and then 8 s of continuous swinging give at least
     5 periodic hits with bounded pulses, every sample strictly stable."""
-    from experiments import hitting
-
-    args = hitting.parse(
-        ["--seeds", "1", "--train-swings", "3", "--train-swing-s", "2.0", "--duration", "8.0"]
-    )
-    learner = tl.learner_from_args(args, "hitting", args.f_hd)
-    config = tl.config_from_args(
-        args, learner, args.train_swing_s, args.train_swings, final_s=args.duration
-    )
-    pendulum = default_conditions(release_angle=args.release_angle)
+    config = tl.replace(tl.hitting().task, swings=3, swing_s=2.0, final_s=8.0)
     keys = jax.random.split(jax.random.PRNGKey(0), 1)
-    logs, eye, _ = he.run_camera(config, pendulum, keys, "learned", progress=False)
+    logs, eye, _ = he.run_camera(
+        tl.build_loop(config), config.pendulum.conditions(), keys, "learned", progress=False
+    )
     final = logs["final"]
-    series = tl.hit_series(tl.force_norm(final)[0, 0], 1e-3, config.contact_threshold)
+    series = mt.hit_series(mt.force_norm(final)[0, 0], 1e-3, config.contact_threshold)
     assert series["periodic_hits"] >= 5, series
     assert series["pulses_bounded"], series
-    assert tl.stability_summary(final)["all_strictly_stable"]
-    assert he.eye_metrics(eye["final"], final, 1e-3)["tracks_lost"] == 0
+    assert mt.stability_summary(final)["all_strictly_stable"]
+    assert mt.eye_metrics(eye["final"], final, 1e-3)["tracks_lost"] == 0

@@ -4,20 +4,26 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from point_mass_world import B_E, K_C, K_E, M_E, make_episodes, sphere_1d
+from point_mass_world import B_E, DT, K_C, K_E, M_E, make_episodes, sphere_1d
 
 from hec_jax import nets
 from hec_jax.nets import LearnerConfig, LearnerInputs, NetConfig
 from hec_jax.nets.learner import NETS_SHELL
 
-CFG_1D = LearnerConfig(
-    net=NetConfig(n_axes=1),
-    m_e=(M_E,),
-    b_e=(B_E,),
-    k_e=(K_E,),
-    contact_stiffness=K_C,
-    eta=(0.1, 0.1, 0.1),
-)
+CFG_1D = LearnerConfig(net=NetConfig(n_axes=1), contact_stiffness=K_C, eta=(0.1, 0.1, 0.1))
+
+
+def _learner_1d(cfg=CFG_1D):
+    """The learner of the 1-D world (target impedance M_E, B_E, K_E; sampling DT)."""
+    return nets.make_online_learner(cfg, DT, (M_E,), (B_E,), (K_E,))
+
+
+def _inputs_1d(values, contact, radius=CFG_1D.radius):
+    """LearnerInputs of one 1-D sample (x_e, xd_e, xdd_e, x_o, xd_o, xdd_o, f_int) with the
+    sphere geometry of Eqs. 45-46 in 1-D."""
+    x = [jnp.array([v]) for v in values]
+    sphere = sphere_1d(x[3] - x[0], x[4] - x[1], x[5] - x[2], radius)
+    return LearnerInputs(*x, jnp.asarray(contact), sphere)
 
 
 def test_output_unit_is_eq51_and_its_derivative():
@@ -108,6 +114,7 @@ def _inputs_2d(contact, f_int):
         xdd_o=jnp.array([0.0, -9.8]),
         f_int=jnp.asarray(f_int),
         in_contact=jnp.asarray(contact),
+        sphere=nets.SphereGeometry(*(jnp.zeros(2),) * 3),  # not used by the energy
     )
 
 
@@ -148,17 +155,15 @@ def test_update_equals_hand_computed_update_1d():
     """1-D point mass, object approaching inside the sphere, no contact: the learner's weight change
     equals Eqs. 52-58 worked out by hand in NumPy (forward pass, dE/dF_act, backprop); with
     ``allow=False`` the same sample changes no weight."""
-    init, update = nets.make_online_learner(CFG_1D, sphere_1d)
+    init, update = _learner_1d()
     state = init(jax.random.PRNGKey(3), jnp.float64)
     x_e, v_e, a_e, x_o, v_o, a_o = 0.01, 0.05, 0.3, 0.2, -0.9, 1.5
     v_tc = -1.1
     state = state._replace(xd_r_tc=jnp.array([v_tc]), was_inside=jnp.asarray(True))
-    inputs = LearnerInputs(
-        *(jnp.array([v]) for v in (x_e, v_e, a_e, x_o, v_o, a_o, 0.0)), jnp.asarray(False)
-    )
+    inputs = _inputs_1d((x_e, v_e, a_e, x_o, v_o, a_o, 0.0), False)
     new_state, out = update(state, inputs)
     # --- by hand ---
-    cfg, r, r_b, dt = CFG_1D, CFG_1D.radius, CFG_1D.r_b, CFG_1D.dt
+    cfg, r, r_b, dt = CFG_1D, CFG_1D.radius, CFG_1D.r_b, DT
     x_r, v_r, a_r = x_o - x_e, v_o - v_e, a_o - a_e
     terms = np.array([x_r - r, v_r, a_r])  # dX_o (n = +1), dX_o', dX_o'' for (K, B, M)
     net_in = np.array([x_r, v_r, a_r, 0.0]) / np.array(cfg.net.input_scale)
@@ -216,21 +221,17 @@ def test_update_equals_hand_computed_update_1d():
 
 
 def test_no_learning_outside_sphere_and_while_receding_without_contact():
-    init, update = nets.make_online_learner(CFG_1D, sphere_1d)
+    init, update = _learner_1d()
     state = init(jax.random.PRNGKey(0), jnp.float64)
     for x_o, v_o in ((0.5, -1.0), (0.2, +0.5)):  # outside; inside but receding
-        inputs = LearnerInputs(
-            *(jnp.array([v]) for v in (0.0, 0.0, 0.0, x_o, v_o, 0.0, 0.0)), jnp.asarray(False)
-        )
+        inputs = _inputs_1d((0.0, 0.0, 0.0, x_o, v_o, 0.0, 0.0), False)
         new_state, out = update(state, inputs)
         assert not bool(out.learning)
         _assert_same_params(state.params, new_state.params)
     assert float(update(state, inputs)[1].f_o[0]) != 0.0  # inside: F_o acts even when not learning
     # a sample that does not learn keeps the weights exactly, also when a forward value is not
     # finite (a NaN acceleration estimate: 0 * NaN in the backward pass must not reach them)
-    bad = LearnerInputs(
-        *(jnp.array([v]) for v in (0.01, 0.05, 0.3, 0.2, -0.9, np.nan, 0.0)), jnp.asarray(False)
-    )
+    bad = _inputs_1d((0.01, 0.05, 0.3, 0.2, -0.9, np.nan, 0.0), False)
     held_state, held_out = update(state._replace(was_inside=jnp.asarray(True)), bad, False)
     assert not bool(held_out.learning) and np.isnan(held_out.f_o[0])
     _assert_same_params(state.params, held_state.params)
@@ -247,10 +248,10 @@ def test_short_learning_run_lowers_energy_and_peak_force(learning_run):
     """Six 1.2 s swings with the weights carried over: the task energy accumulated inside the sphere
     and the peak contact force fall from swing to swing and below the frozen initial networks."""
     logs = learning_run
-    energy = np.sum(logs["energy"] * logs["inside"], axis=1) * CFG_1D.dt  # per episode
+    energy = np.sum(logs["energy"] * logs["inside"], axis=1) * DT  # per episode
     peak = -np.min(logs["f_int"], axis=1)
     _, flog = make_episodes(CFG_1D, steps=1200, learn=False)(jax.random.PRNGKey(0), 1)
-    frozen_energy = float(np.sum(flog["energy"] * flog["inside"]) * CFG_1D.dt)
+    frozen_energy = float(np.sum(flog["energy"] * flog["inside"]) * DT)
     frozen_peak = float(-np.min(np.asarray(flog["f_int"])))
     assert energy[0] < frozen_energy  # learning acts within the first swing already
     assert energy[-1] < energy[0]

@@ -10,7 +10,10 @@ import pytest
 from mujoco import mjx
 
 from hec_jax import control as C
+from hec_jax import loop as L
 from hec_jax import mjx_scene as S
+from hec_jax.loop import observation as observe_mod
+from hec_jax.mjx_scene._mjx_internal import inertia_storage
 from hec_jax.mjx_scene.sim import _mjx_ctx
 
 N_BATCH = 4  # every call of the shared compiled function uses this batch size (one compile)
@@ -39,8 +42,10 @@ def quantities(scene):
         d = mjx.make_data(m).replace(qpos=qpos, qvel=qvel, ctrl=ctrl)
         with _mjx_ctx():
             d = mjx.forward(m, d)
-        obs = C.observe(m, ids, S.SimStep(d=d, f_int=jnp.zeros(3), t=d.time))
-        J_fd = jax.jacfwd(lambda q: C.hand_position(m, d, ids, q))(qpos[np.array(ids.arm_qpos)])
+        obs = L.observe(m, ids, S.SimStep(d=d, f_int=jnp.zeros(3), t=d.time))
+        J_fd = jax.jacfwd(lambda q: observe_mod.hand_position(m, d, ids, q))(
+            qpos[np.array(ids.arm_qpos)]
+        )
         return dict(
             M=S.full_mass_matrix(m, d),
             h=S.bias_force(d),
@@ -109,7 +114,7 @@ def test_dynamics_match_mujoco_c(scene, quantities):
             d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[i], qvel[i], ctrl[i]
             mujoco.mj_forward(mc, d)
             cq = S.c_quantities(mc, d, ids)
-            obs_c = C.observe_c(ids, d.qpos, d.qvel, cq, np.zeros(3))
+            obs_c = L.observe_c(ids, d.qpos, d.qvel, cq, np.zeros(3))
             pairs = dict(
                 M=(out["M"][i], cq.M),
                 h=(out["h"][i], cq.h),
@@ -232,10 +237,12 @@ def test_camera_intrinsics_and_pose(scene):
     uv, z = S.project(K, R, p, pts)
     assert np.all(z > 0.5)
     assert np.all((uv >= 0) & (uv <= [640, 480]))
-    with pytest.raises(ValueError):
-        S.intrinsics(0.0)
-    with pytest.raises(ValueError):
-        S.intrinsics(45.0, 0, 480)
+    from hec_jax.geometry import intrinsics_from_fovy
+
+    with pytest.raises(ValueError, match="fovy"):
+        intrinsics_from_fovy(0.0, 640, 480)
+    with pytest.raises(ValueError, match="image size"):
+        intrinsics_from_fovy(45.0, 0, 480)
 
 
 def test_conditions_validation():
@@ -270,7 +277,7 @@ def test_cg_sparse_solver_matches_c_and_newton():
             d = mjx.forward(mx, d)
         # the sparse inertia path was taken: MJX keeps M as the nC entries of the tree (a private
         # field of MJX 3.17's JAX implementation; the dense path keeps it as (nv, nv))
-        assert d._impl.M.shape == (mx.nC,)
+        assert inertia_storage(d).shape == (mx.nC,)
         return d.qacc, S.hand_contact_force(mx, d, ids), S.full_mass_matrix(mx, d)
 
     qacc_mjx, f_mjx, m_mjx = jax.tree.map(np.asarray, jax.jit(jax.vmap(one))(qpos, qvel, ctrl))

@@ -11,7 +11,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = [
-    "--rod-length", "0.6", "0.65", "--cube-mass", "0.7", "--release-angles", "-0.5",
+    "--rod-lengths", "0.6", "0.65", "--cube-masses", "0.7", "--release-angles", "-0.5",
     "--seeds", "1", "--swings", "2", "--swing-s", "0.7",
 ]  # fmt: skip
 
@@ -28,6 +28,14 @@ def _sweep(out, *extra, devices=1):
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     return proc.stdout
+
+
+def _tiny_sweep(*extra):
+    """The SweepConfig that experiments/sweep.py builds from TINY (+ ``extra``)."""
+    from hec_jax.cli import parse
+    from hec_jax.loop.cli import SweepRun
+
+    return parse(SweepRun(), [*TINY, *extra]).sweep
 
 
 def _load(folder):
@@ -67,7 +75,7 @@ def test_shards_merge_and_resume(sharded_by_process):
         cwd=ROOT, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert proc.returncode != 0 and "other settings" in proc.stderr
-    assert "'solver': (None, 'cg')" in proc.stderr
+    assert "'task': " in proc.stderr and "'cg'" in proc.stderr
     assert chunk0.stat().st_mtime_ns == mtime0
 
 
@@ -86,8 +94,7 @@ def test_sharding_over_two_devices_matches(sharded_by_process, tmp_path, spmd):
 
 
 def test_a_chunk_with_its_plain_rows_divides_over_the_devices():
-    sys.path.insert(0, str(ROOT))
-    from experiments.sweep import plain_rows
+    from hec_jax.loop.sweep import plain_rows
 
     for chunk, seeds, n_dev in [(4, 2, 2), (6, 2, 2), (2, 1, 2), (12, 5, 4), (16, 3, 8)]:
         rows = plain_rows(chunk, seeds, n_dev)
@@ -99,17 +106,16 @@ def test_a_chunk_with_its_plain_rows_divides_over_the_devices():
 def test_plain_runs_are_shared_across_seeds(sharded_by_process):
     """Plain impedance ignores the networks: the sweep runs it once per distinct condition. Run it
     here with two other network seeds and check both against the sweep's (seed-0) result."""
-    sys.path.insert(0, str(ROOT))
     import jax
 
-    from experiments import sweep
-    from experiments import task_loop as tl
+    from hec_jax import loop as tl
+    from hec_jax.loop import sweep
     from hec_jax.mjx_scene import PendulumConditions
 
-    args = sweep.parse(["--out", str(sharded_by_process), *TINY])
-    config = tl.config_from_args(args, tl.learner_from_args(args, "catching", args.f_cd), 0.7, 2)
-    run = jax.jit(sweep.make_summary(config, tl.make_sweep(config)))
-    conditions, _ = sweep.grid(args)
+    config = _tiny_sweep()
+    lp = tl.build_loop(config.task)
+    run = jax.jit(sweep.make_summary(lp, tl.make_sweep(lp)))
+    conditions, _ = config.runs()
     first = _load(sharded_by_process)
     cond = PendulumConditions(**{k: np.repeat(conditions[k][1:2], 2) for k in conditions})
     keys = jax.random.split(jax.random.PRNGKey(7), 2)
@@ -131,23 +137,22 @@ def test_plain_runs_are_shared_across_seeds(sharded_by_process):
 def test_networks_inside_the_sphere_only_give_the_same_sweep(sharded_by_process):
     """``--nets-inside-only`` (O = 0 outside the virtual sphere, where Eq. 47 gives F_o = 0): the
     same learned peaks and settle forces as the sweep's default runs, in both swings."""
-    sys.path.insert(0, str(ROOT))
     import jax
 
-    from experiments import sweep
-    from experiments import task_loop as tl
+    from hec_jax import loop as tl
+    from hec_jax.loop import sweep
     from hec_jax.mjx_scene import PendulumConditions
     from hec_jax.nets.learner import NETS_SHELL
 
-    args = sweep.parse(["--out", str(sharded_by_process), *TINY, "--nets-inside-only"])
-    learner = tl.learner_from_args(args, "catching", args.f_cd)
+    config = _tiny_sweep("--no-nets-outside")
+    learner = config.task.learner
     assert not learner.nets_outside
-    config = tl.config_from_args(args, learner, 0.7, 2)
-    conditions, seed_index = sweep.grid(args)
-    keys = jax.random.split(jax.random.PRNGKey(args.seed), args.seeds)[seed_index]
+    lp = tl.build_loop(config.task)
+    conditions, seed_index = config.runs()
+    keys = jax.random.split(jax.random.PRNGKey(config.seed), config.seeds)[seed_index]
     cond = PendulumConditions(**{k: np.asarray(conditions[k]) for k in conditions})
-    logs = jax.jit(tl.make_sweep(config))(keys, tl.switches("learned"), cond)
-    out = sweep.make_summary(config, lambda *a: logs)(None, None, None)  # the sweep's reduction
+    logs = jax.jit(tl.make_sweep(lp))(keys, tl.switches("learned"), cond)
+    out = sweep.make_summary(lp, lambda *a: logs)(None, None, None)  # the sweep's reduction
     # the learner's wiring: K_o is 0 beyond the networks' shell past the sphere, not 0 inside it
     k_o, inside = np.asarray(logs["k_o"]), np.asarray(logs["inside"])  # (B, S, T, 2), (B, S, T)
     rho = np.linalg.norm(np.asarray(logs["x_o"]) - np.asarray(logs["x_e"]), axis=-1)

@@ -1,29 +1,23 @@
-"""Non-contact impedance control of Sec. 4 (Eqs. 39-49) as pure JAX functions.
+"""The hand: impedance control without Jacobian inverse and the virtual sphere (Eqs. 39-49).
 
-Imports only jax, numpy and ``hec_jax.mjx_scene``.
+Pure functions on arrays; imports jax and numpy only (no other part of ``hec_jax``, no MuJoCo).
+The observation of the plant (``TaskObs``) is computed by the caller, e.g.
+``hec_jax.loop.observation`` from MJX or MuJoCo C.
 """
 
-from hec_jax.control.closed_loop import make_c_policy, make_mjx_policy
 from hec_jax.control.impedance import (
     ControlInfo,
     ControllerConfig,
     ControllerState,
     ImpedanceParams,
     Target,
+    TaskObs,
     fixed_target,
     impedance_params,
     impedance_torque,
     make_impedance_controller,
     operational_inertia,
     solve_spd,
-)
-from hec_jax.control.kinematics import (
-    TaskObs,
-    hand_position,
-    object_state,
-    observe,
-    observe_c,
-    task_jacobians,
 )
 from hec_jax.control.virtual import (
     SphereKinematics,
@@ -45,21 +39,14 @@ __all__ = [
     "TaskObs",
     "VirtualParams",
     "fixed_target",
-    "hand_position",
     "impedance_params",
     "impedance_torque",
     "is_stable",
-    "make_c_policy",
     "make_impedance_controller",
-    "make_mjx_policy",
-    "object_state",
-    "observe",
-    "observe_c",
     "operational_inertia",
-    "solve_spd",
     "project_stable",
+    "solve_spd",
     "sphere_kinematics",
-    "task_jacobians",
     "virtual_force",
     "virtual_params",
 ]

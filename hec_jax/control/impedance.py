@@ -36,13 +36,45 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hec_jax.control.kinematics import TaskObs
 from hec_jax.control.virtual import (
     SphereKinematics,
     VirtualParams,
     sphere_kinematics,
     virtual_force,
 )
+
+
+class TaskObs(NamedTuple):
+    """Everything the controller reads at one step (task coordinates (x, z), world frame).
+
+    Attributes:
+        q: [rad] (3,) arm joint angles theta.
+        qd: [rad/s] (3,) joint velocities theta'.
+        M: [kg m^2] (3, 3) joint-space inertia M(theta) (armature included).
+        h: [N m] (3,) h(theta, theta') of Eq. 39: Coriolis, centrifugal, gravity and joint damping.
+        x_e: [m] (2,) end-effector position X_e.
+        xd_e: [m/s] (2,) end-effector velocity X_e' = J theta'.
+        J: [m/rad] (2, 3) Jacobian dX_e/dtheta.
+        jdot_qdot: [m/s^2] (2,) J' theta'.
+        f_int: [N] (2,) interaction force exerted ON the end-effector by the environment (Eq. 39).
+        x_o: [m] (2,) object position X_o (cube centre).
+        xd_o: [m/s] (2,) object velocity X_o'.
+        xdd_o: [m/s^2] (2,) object acceleration X_o'' when an estimator provides one (e.g. the
+            eye's filter); ``None`` (default): the controller differentiates ``xd_o`` over one sample.
+    """
+
+    q: jax.Array
+    qd: jax.Array
+    M: jax.Array
+    h: jax.Array
+    x_e: jax.Array
+    xd_e: jax.Array
+    J: jax.Array
+    jdot_qdot: jax.Array
+    f_int: jax.Array
+    x_o: jax.Array
+    xd_o: jax.Array
+    xdd_o: jax.Array | None = None
 
 
 class ImpedanceParams(NamedTuple):
@@ -97,29 +129,24 @@ def fixed_target(x_d) -> Target:
 class ControllerConfig:
     """Static settings of the impedance controller (hashable).
 
+    The control period and the torque limits are the plant's (read from the model: see
+    :func:`make_impedance_controller`), not settings.
+
     Attributes:
-        dt: [s] control period (backward differences for X_e'', X_o'').
         mx_damping: [1/kg] lambda of the damped inverse in Eq. 44.
         null_kp: [1/s^2] posture stiffness K_n (scaled by M, i.e. an acceleration gain).
         null_kd: [1/s] posture damping D_n.
-        torque_limit: [N m] (3,) symmetric saturation (as the actuators' ctrlrange).
     """
 
-    dt: float = 0.001
     mx_damping: float = 1e-3
     null_kp: float = 25.0
     null_kd: float = 10.0
-    torque_limit: tuple[float, float, float] = (100.0, 60.0, 20.0)
 
     def __post_init__(self):
-        if not self.dt > 0:
-            raise ValueError(f"dt must be > 0, got {self.dt}")
         if not self.mx_damping >= 0:
             raise ValueError(f"mx_damping must be >= 0, got {self.mx_damping}")
         if self.null_kp < 0 or self.null_kd < 0:
             raise ValueError("null-space gains must be >= 0")
-        if len(self.torque_limit) != 3 or min(self.torque_limit) <= 0:
-            raise ValueError(f"torque_limit must be 3 positive values, got {self.torque_limit}")
 
 
 DEFAULT_CONFIG = ControllerConfig()
@@ -276,15 +303,27 @@ def _check_obs_shapes(obs: TaskObs) -> None:
             raise ValueError(f"TaskObs.{k} must have shape {s}, got {got}")
 
 
-def make_impedance_controller(cfg: ControllerConfig | None = None) -> tuple[Init, Apply]:
+def make_impedance_controller(
+    dt: float, torque_limit, cfg: ControllerConfig | None = None
+) -> tuple[Init, Apply]:
     """Factory of the non-contact impedance controller (Eqs. 41-48) as pure (init, apply).
+
+    Args:
+        dt: [s] control period (backward differences for X_e'', X_o''); the plant's time step.
+        torque_limit: [N m] (3,) symmetric saturation (the actuators' ctrlrange).
+        cfg: controller settings (default ``ControllerConfig()``).
 
     ``apply(params, vparams, target, state, obs) -> (tau, state, info)``; shapes are checked at
     trace time (ValueError); values are not (use ``impedance_params``/``virtual_params``).
     Setting ``vparams`` to zeros gives plain impedance control (F_o = 0).
     """
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be finite and > 0, got {dt}")
+    limit = np.asarray(torque_limit, dtype=float)
+    if limit.shape != (3,) or not np.all(limit > 0):
+        raise ValueError(f"torque_limit must be 3 positive values, got {torque_limit}")
     cfg = DEFAULT_CONFIG if cfg is None else cfg
-    limit = jnp.asarray(cfg.torque_limit)
+    limit = jnp.asarray(limit)
 
     def init(obs: TaskObs) -> ControllerState:
         _check_obs_shapes(obs)
@@ -292,9 +331,9 @@ def make_impedance_controller(cfg: ControllerConfig | None = None) -> tuple[Init
 
     def apply(params, vparams, target, state, obs):
         _check_obs_shapes(obs)
-        xdd_e = (obs.xd_e - state.xd_e_prev) / cfg.dt  # [m/s^2], one sample old
+        xdd_e = (obs.xd_e - state.xd_e_prev) / dt  # [m/s^2], one sample old
         if obs.xdd_o is None:
-            xdd_o = (obs.xd_o - state.xd_o_prev) / cfg.dt
+            xdd_o = (obs.xd_o - state.xd_o_prev) / dt
         else:  # from an estimator (a piecewise prediction would spike under differencing)
             xdd_o = obs.xdd_o
         sk = sphere_kinematics(obs.x_o - obs.x_e, obs.xd_o - obs.xd_e, xdd_o - xdd_e, vparams.r)

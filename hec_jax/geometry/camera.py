@@ -1,7 +1,11 @@
-"""Pinhole camera helpers: pixel <-> normalised image coordinates, projection.
+"""The eye's one camera convention: pinhole K, pixel <-> normalised coordinates, projection.
 
-Camera frame convention (the pinhole convention of an intrinsic matrix): x right, y down, z forward
-(optical axis). Normalised image coordinates are x = X/Z, y = Y/Z (Eq. 3 of the paper).
+Camera frame (the pinhole convention of an intrinsic matrix): x right, y down, z forward (optical
+axis). Normalised image coordinates are x = X/Z, y = Y/Z (Eq. 3 of the paper). Pixel (u, v): u to
+the right, v down, origin at the top-left corner of the top-left pixel, so the image centre is
+(W/2, H/2) (OpenCV's integer pixel indices are u - 0.5, v - 0.5). A MuJoCo camera looks along
+its local -z with y up: R_world_cam = R_world_mjcam @ diag(1, -1, -1)
+(:func:`pinhole_rotation_from_mujoco`). Pure NumPy/JAX: no MuJoCo import here.
 """
 
 from __future__ import annotations
@@ -28,9 +32,11 @@ def intrinsics_from_fovy(fovy_deg: float, width: int, height: int) -> np.ndarray
     """3x3 intrinsic matrix of an ideal pinhole camera (square pixels, centred principal point).
 
     MuJoCo's camera ``fovy`` is the full vertical field of view in degrees, so
-    f = (height / 2) / tan(fovy / 2) [px]; cx, cy are at the image centre (pixel centres at
-    integer coordinates, so the centre is (W - 1)/2, (H - 1)/2 in that convention; we follow
-    OpenCV/MuJoCo rendering, where the image spans [0, W] x [0, H] and the centre is W/2, H/2).
+    f = (H / 2) / tan(fovy / 2) [px] and K = [[f, 0, W/2], [0, f, H/2], [0, 0, 1]] (pixel origin
+    at the corner of the image, see the module docstring).
+
+    Raises:
+        ValueError: fovy outside (0, 180) degrees or a non-positive image size.
     """
     if not (0.0 < fovy_deg < 180.0):
         raise ValueError(f"fovy must be in (0, 180) degrees, got {fovy_deg}")
@@ -38,6 +44,20 @@ def intrinsics_from_fovy(fovy_deg: float, width: int, height: int) -> np.ndarray
         raise ValueError(f"image size must be positive, got {width}x{height}")
     f = 0.5 * height / np.tan(np.deg2rad(fovy_deg) / 2.0)
     return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+# MuJoCo camera axes (x right, y up, looking along -z) -> pinhole axes (x right, y down, z forward)
+MUJOCO_TO_PINHOLE = np.diag([1.0, -1.0, -1.0])
+
+
+def pinhole_rotation_from_mujoco(R_world_mjcam) -> np.ndarray:
+    """R_world_cam (3, 3) in the pinhole convention from a MuJoCo camera's orientation.
+
+    Args:
+        R_world_mjcam: the camera's world orientation as MuJoCo stores it (``data.cam_xmat[i]``,
+            (9,) or (3, 3)).
+    """
+    return np.asarray(R_world_mjcam, dtype=np.float64).reshape(3, 3) @ MUJOCO_TO_PINHOLE
 
 
 def pixel_to_normalized(pixels: Array, intrinsics: Array) -> Array:

@@ -6,7 +6,7 @@
     result = loop.run_experiment(exp)
     result.metrics["learned"]["peak_force"], result.logs["learned"]["x_e"].shape
 
-Modules: ``config`` (configs and named presets), ``observe`` (simulator -> task observation),
+Modules: ``config`` (configs and named presets), ``observation`` (simulator -> task observation),
 ``object_state`` (eye + touch), ``policy`` (one control step; :func:`build_loop`), ``episodes``
 (swings in ``lax.scan``, seeds and conditions ``vmap``-ed), ``camera_loop`` (render -> mask ->
 tracker -> jitted segment, at the NumPy boundary), ``metrics``, ``experiment``
@@ -37,7 +37,7 @@ from hec_jax.loop.object_state import (
     touch_object_state,
     truth_eye,
 )
-from hec_jax.loop.observe import observe, observe_c
+from hec_jax.loop.observation import observe, observe_c
 from hec_jax.loop.policy import (
     CONDITIONS,
     Loop,

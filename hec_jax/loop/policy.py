@@ -32,7 +32,7 @@ from hec_jax.loop.object_state import (
     touch_object_state,
     truth_eye,
 )
-from hec_jax.loop.observe import observe, observe_c
+from hec_jax.loop.observation import observe, observe_c
 from hec_jax.mjx_scene import (
     CUBE_EDGE,
     HAND_RADIUS,
@@ -146,7 +146,7 @@ def hold_point(f_cd: float, pendulum: PendulumConditions, k_e: float, m_c=None) 
     m_rod = ROD_DENSITY * np.pi * ROD_RADIUS**2 * rod
     g = -float(m_c.opt.gravity[2])
     sin_theta = f_cd * l_c / ((mass * l_c + m_rod * rod / 2) * g)
-    if not 0 < sin_theta < 1:
+    if not 0 <= sin_theta < 1:
         raise ValueError(f"no hold point: gravity cannot press the cube with {f_cd} N")
     theta = -np.arcsin(sin_theta)
     cube = hinge + l_c * np.array([np.sin(theta), -np.cos(theta)])

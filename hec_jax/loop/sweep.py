@@ -29,27 +29,38 @@ from hec_jax.loop.devices import OnDevices, Sharded
 from hec_jax.loop.episodes import make_sweep, sweep_in_axes
 from hec_jax.loop.metrics import mean_std
 from hec_jax.loop.policy import build_loop, switches
-from hec_jax.mjx_scene import PendulumConditions, validate_conditions
+from hec_jax.mjx_scene import PendulumConditions, PendulumConfig, validate_conditions
 from hec_jax.mjx_scene.model import scene_hinge_x
 from hec_jax.runs import save_figure, start_run, write_json, write_npz
 
 FIELDS = PendulumConditions._fields
+# the grid's field (plural) of each pendulum field (by name, never by position)
+GRID_FIELD = {
+    "rod_length": "rod_lengths",
+    "cube_mass": "cube_masses",
+    "release_angle": "release_angles",
+    "release_speed": "release_speeds",
+    "hinge_damping": "hinge_dampings",
+    "arrival_phase": "arrival_phases",
+    "hinge_x": "hinge_xs",
+}
 
 
 @dataclass(frozen=True)
 class SweepGrid:
     """The values of each pendulum field the sweep takes (the grid is their product)."""
 
-    rod_length: tuple[float, ...] = (0.5, 0.6, 0.7)  # [m]
-    cube_mass: tuple[float, ...] = (0.5, 0.7, 0.9)  # [kg]
-    release_angle: tuple[float, ...] = (-0.45, -0.5, -0.55)  # [rad]
-    release_speed: tuple[float, ...] = (0.0,)  # [rad/s]
-    hinge_damping: tuple[float, ...] = (0.002,)  # [N m s/rad]
-    arrival_phase: tuple[float, ...] = (0.0,)  # [s]
-    hinge_x: tuple[float, ...] | None = None  # [m]; None: scene.xml's hinge
+    rod_lengths: tuple[float, ...] = (0.5, 0.6, 0.7)  # [m]
+    cube_masses: tuple[float, ...] = (0.5, 0.7, 0.9)  # [kg]
+    release_angles: tuple[float, ...] = (-0.45, -0.5, -0.55)  # [rad]
+    release_speeds: tuple[float, ...] = (0.0,)  # [rad/s]
+    hinge_dampings: tuple[float, ...] = (0.002,)  # [N m s/rad]
+    arrival_phases: tuple[float, ...] = (0.0,)  # [s]
+    hinge_xs: tuple[float, ...] | None = None  # [m]; None: scene.xml's hinge
 
     def __post_init__(self):
-        for name in FIELDS:
+        assert set(GRID_FIELD) == set(FIELDS)
+        for name in GRID_FIELD.values():
             v = getattr(self, name)
             if v is not None and len(v) == 0:
                 raise ValueError(f"SweepGrid.{name} needs at least one value")
@@ -57,8 +68,8 @@ class SweepGrid:
         validate_conditions(PendulumConditions(**{k: table[:, i] for i, k in enumerate(FIELDS)}))
 
     def values(self, name: str) -> tuple[float, ...]:
-        """The values of field ``name`` (hinge_x None: scene.xml's)."""
-        v = getattr(self, name)
+        """The values of pendulum field ``name`` (hinge_x None: scene.xml's)."""
+        v = getattr(self, GRID_FIELD[name])
         return (scene_hinge_x(),) if v is None else tuple(v)
 
     def table(self) -> np.ndarray:
@@ -87,6 +98,11 @@ class SweepConfig:
                 raise ValueError(f"SweepConfig.{name} must be an integer >= 1, got {v}")
         if self.task.learner.task != "catching" or self.task.final_s:
             raise ValueError("the sweep runs catching tasks without a continuous run")
+        if self.task.pendulum != PendulumConfig():
+            raise ValueError(
+                "the sweep's pendulum conditions come from its grid (--rod-lengths, "
+                "--cube-masses, ...), not from the task's pendulum fields"
+            )
 
     def runs(self) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Flattened grid: condition fields (N,) each and the seed index (N,) of every run
@@ -221,7 +237,7 @@ def run_sweep(
     chunk_dir = folder / "chunks"
     check_same_sweep(chunk_dir, config)
     settings = dict(
-        config.settings(), **(run_settings or {}), devices=[str(d) for d in jax.devices()]
+        sweep=config.settings(), **(run_settings or {}), devices=[str(d) for d in jax.devices()]
     )
     start_run(folder / f"shard_{shard_index}", config.seed, settings)
     loop = build_loop(config.task)

@@ -30,9 +30,9 @@ Modelling choices (see also ``scene.xml``):
 from hec_jax.mjx_scene.camera import (
     IMAGE_HEIGHT,
     IMAGE_WIDTH,
+    camera_id,
     camera_intrinsics,
     camera_pose_world,
-    intrinsics,
     project,
 )
 from hec_jax.mjx_scene.model import (
@@ -43,6 +43,7 @@ from hec_jax.mjx_scene.model import (
     TASK_AXES,
     X_HOME,
     PendulumConditions,
+    PendulumConfig,
     SceneIds,
     apply_conditions,
     default_conditions,
@@ -53,6 +54,13 @@ from hec_jax.mjx_scene.model import (
     set_solver_options,
     solve_posture,
     validate_conditions,
+)
+from hec_jax.mjx_scene.render import (
+    RenderedSequence,
+    SceneCamera,
+    render_model_like,
+    render_rollout,
+    render_swing,
 )
 from hec_jax.mjx_scene.sim import (
     CQuantities,
@@ -83,12 +91,16 @@ __all__ = [
     "TASK_AXES",
     "CQuantities",
     "PendulumConditions",
+    "PendulumConfig",
+    "RenderedSequence",
+    "SceneCamera",
     "SceneIds",
     "SimStep",
     "Trajectory",
     "apply_conditions",
     "c_quantities",
     "dynamics_stages",
+    "camera_id",
     "camera_intrinsics",
     "camera_pose_world",
     "default_conditions",
@@ -98,7 +110,6 @@ __all__ = [
     "site_jacobians",
     "site_position",
     "hand_contact_force_c",
-    "intrinsics",
     "load_mj_model",
     "load_mjx_model",
     "make_data",
@@ -108,6 +119,9 @@ __all__ = [
     "solve_posture",
     "X_HOME",
     "project",
+    "render_model_like",
+    "render_rollout",
+    "render_swing",
     "rollout",
     "rollout_c",
     "scene_ids",

@@ -1,9 +1,8 @@
-"""The fixed calibrated camera of Sec. 6.1: intrinsics and pose in the pinhole convention.
+"""The fixed calibrated camera of Sec. 6.1 read from a MuJoCo model: intrinsics and pose.
 
-Pinhole convention used by the eye: camera frame x right, y down, z forward (optical axis); pixel
-(u, v) with u to the right and v down, origin at the top-left corner of the top-left pixel, so the
-image centre is (W/2, H/2). MuJoCo cameras look along their local -z with y up; the conversion is
-R_world_cam = R_world_mjcam @ diag(1, -1, -1).
+The convention (pinhole K, camera frame x right, y down, z forward, pixel origin at the image
+corner) and the conversion from MuJoCo's camera axes are defined once, in
+:mod:`hec_jax.geometry.camera`; this module only reads a camera's fovy and pose from MuJoCo.
 """
 
 from __future__ import annotations
@@ -11,30 +10,37 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from hec_jax.geometry.camera import intrinsics_from_fovy
+from hec_jax.geometry.camera import intrinsics_from_fovy, pinhole_rotation_from_mujoco
 
 IMAGE_WIDTH = 640  # [px] intended resolution of the TV camera
 IMAGE_HEIGHT = 480  # [px]
 
 
-def intrinsics(fovy_deg: float, width: int = IMAGE_WIDTH, height: int = IMAGE_HEIGHT) -> np.ndarray:
-    """3x3 intrinsic matrix K from MuJoCo's vertical field of view (square pixels, centred).
+def camera_id(m: mujoco.MjModel, camera: int | str) -> int:
+    """The id of ``camera`` (a name or an id) in ``m``.
 
-    f = (H / 2) / tan(fovy / 2) [px], K = [[f, 0, W/2], [0, f, H/2], [0, 0, 1]]
-    (:func:`hec_jax.geometry.intrinsics_from_fovy`).
+    Raises:
+        ValueError: no such camera.
     """
-    return intrinsics_from_fovy(fovy_deg, width, height)
+    if isinstance(camera, str):
+        cam = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, camera)
+    else:
+        cam = int(camera)
+    if not 0 <= cam < m.ncam:
+        raise ValueError(f"model has no camera {camera!r}")
+    return cam
 
 
 def camera_intrinsics(
-    m: mujoco.MjModel, cam_id: int, width: int = IMAGE_WIDTH, height: int = IMAGE_HEIGHT
+    m: mujoco.MjModel, camera: int | str, width: int = IMAGE_WIDTH, height: int = IMAGE_HEIGHT
 ) -> np.ndarray:
-    """K of camera ``cam_id`` from its MJCF fovy at the given resolution."""
-    return intrinsics(float(m.cam_fovy[cam_id]), width, height)
+    """K (3, 3) of ``camera`` (name or id) from its MJCF fovy at the given resolution [px]
+    (:func:`hec_jax.geometry.intrinsics_from_fovy`)."""
+    return intrinsics_from_fovy(float(m.cam_fovy[camera_id(m, camera)]), width, height)
 
 
 def camera_pose_world(
-    m: mujoco.MjModel, d: mujoco.MjData, cam_id: int
+    m: mujoco.MjModel, d: mujoco.MjData, camera: int | str
 ) -> tuple[np.ndarray, np.ndarray]:
     """(R_world_cam (3, 3), p_world_cam [m] (3,)) in the pinhole convention
     (x right, y down, z forward).
@@ -42,9 +48,8 @@ def camera_pose_world(
     A world point X has camera coordinates R_world_cam.T @ (X - p_world_cam). Needs mj_kinematics
     (or mj_forward) to have been run on ``d``.
     """
-    R_mj = d.cam_xmat[cam_id].reshape(3, 3)
-    R = R_mj @ np.diag([1.0, -1.0, -1.0])
-    return R, d.cam_xpos[cam_id].copy()
+    cam = camera_id(m, camera)
+    return pinhole_rotation_from_mujoco(d.cam_xmat[cam]), d.cam_xpos[cam].copy()
 
 
 def project(K: np.ndarray, R_world_cam: np.ndarray, p_world_cam: np.ndarray, X_world: np.ndarray):

@@ -41,9 +41,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from mujoco import mjx
-from mujoco.mjx._src import solver as mjx_solver
-from mujoco.mjx._src.types import SolverType
 
+from hec_jax.mjx_scene import _mjx_internal as internal
+from hec_jax.mjx_scene._mjx_internal import SolverType
 from hec_jax.mjx_scene.model import SceneIds
 from hec_jax.mjx_scene.sim import (
     Policy,
@@ -77,16 +77,14 @@ def solve(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     cost at that solution (module docstring). Sets ``qacc``, ``qfrc_constraint`` and ``efc_force``
     as ``mjx.solve`` does.
     """
-    if d._impl.efc_J.size == 0:
+    if not internal.has_constraints(d):
         return d.replace(qacc=d.qacc_smooth)
     qacc_star = jax.lax.stop_gradient(mjx.solve(_stop(m), _stop(d)).qacc)
     mn = newton_model(m)
-    ctx = mjx_solver.Context.create(mn, d.replace(qacc=qacc_star), grad=True)
+    ctx = internal.solver_context(mn, d.replace(qacc=qacc_star), grad=True)
     qacc = qacc_star - ctx.Mgrad  # Mgrad = H^-1 g (Newton); g ~ 0 at qacc_star
-    ctx = mjx_solver.Context.create(mn, d.replace(qacc=qacc), grad=False)
-    return d.tree_replace(
-        {"qfrc_constraint": ctx.qfrc_constraint, "qacc": qacc, "_impl.efc_force": ctx.efc_force}
-    )
+    ctx = internal.solver_context(mn, d.replace(qacc=qacc), grad=False)
+    return internal.with_constraint_solution(d, qacc, ctx.qfrc_constraint, ctx.efc_force)
 
 
 @_allow_promotion

@@ -10,6 +10,7 @@ compiler would have produced for those values.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import warnings
 from pathlib import Path
 from typing import NamedTuple
@@ -49,6 +50,8 @@ class SceneIds:
         ft_site: site of the force/torque sensor between wrist flange and hand.
         camera: camera id of the fixed camera ``eye``.
         force_sensor_adr: sensordata address of the 3-axis force sensor.
+        timestep: [s] the model's time step (``opt.timestep``), the control period.
+        torque_limit: [N m] (3,) symmetric limits of the arm's motors (their ``ctrlrange``).
     """
 
     arm_qpos: tuple[int, ...]
@@ -66,6 +69,8 @@ class SceneIds:
     ft_site: int
     camera: int
     force_sensor_adr: int
+    timestep: float
+    torque_limit: tuple[float, float, float]
 
 
 def scene_ids(m: mujoco.MjModel) -> SceneIds:
@@ -98,6 +103,10 @@ def scene_ids(m: mujoco.MjModel) -> SceneIds:
         ft_site=oid(mujoco.mjtObj.mjOBJ_SITE, "ft_sensor"),
         camera=oid(mujoco.mjtObj.mjOBJ_CAMERA, "eye"),
         force_sensor_adr=int(m.sensor_adr[oid(mujoco.mjtObj.mjOBJ_SENSOR, "hand_force")]),
+        timestep=float(m.opt.timestep),
+        torque_limit=tuple(
+            float(m.actuator_ctrlrange[oid(mujoco.mjtObj.mjOBJ_ACTUATOR, n), 1]) for n in ARM_JOINTS
+        ),
     )
 
 
@@ -112,6 +121,7 @@ class PendulumConditions(NamedTuple):
         hinge_damping: [N m s/rad] viscous damping of the ceiling hinge.
         arrival_phase: [s] delay of the release after t = 0: the pendulum is held in its release
             state for this long, which shifts when the cube arrives at the hand.
+        hinge_x: [m] world x of the ceiling hinge (the rod's parent body); scene.xml: 0.35.
     """
 
     rod_length: jnp.ndarray
@@ -120,23 +130,61 @@ class PendulumConditions(NamedTuple):
     release_speed: jnp.ndarray
     hinge_damping: jnp.ndarray
     arrival_phase: jnp.ndarray
+    hinge_x: jnp.ndarray
+
+
+@functools.cache
+def scene_hinge_x(path: str | Path = SCENE_XML) -> float:
+    """[m] world x of the pendulum's ceiling hinge in the MJCF (read from the model)."""
+    m = load_mj_model(path)
+    rod = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "rod")
+    return float(m.body_pos[int(m.body_parentid[rod])][0])
+
+
+@dataclasses.dataclass(frozen=True)
+class PendulumConfig:
+    """One pendulum condition as static settings (a preset's or a command line's); the defaults
+    are the set-up's nominal values (docs/paper_readings.md, parameter values). ``conditions()``
+    turns it into the :class:`PendulumConditions` pytree that the simulation takes.
+
+    Attributes: as :class:`PendulumConditions`; ``hinge_x`` None is scene.xml's hinge.
+    """
+
+    rod_length: float = 0.6  # [m] hinge to the cube's top face
+    cube_mass: float = 0.7  # [kg]
+    release_angle: float = -0.5  # [rad] hinge angle at release (0: hanging)
+    release_speed: float = 0.0  # [rad/s] hinge angular velocity at release
+    hinge_damping: float = 0.002  # [N m s/rad]
+    arrival_phase: float = 0.0  # [s] the pendulum is held at its release state this long
+    hinge_x: float | None = None  # [m] world x of the ceiling hinge; None: scene.xml's
+
+    def __post_init__(self):
+        values = {k: np.asarray(np.nan if v is None else v, float) for k, v in self._items()}
+        if self.hinge_x is None:
+            values["hinge_x"] = np.asarray(0.0)
+        validate_conditions(PendulumConditions(**values))
+
+    def _items(self):
+        return dataclasses.asdict(self).items()
+
+    def conditions(self, dtype=float) -> PendulumConditions:
+        """The pytree of these conditions (scalar leaves of ``dtype``)."""
+        values = dataclasses.asdict(self)
+        if values["hinge_x"] is None:
+            values["hinge_x"] = scene_hinge_x()
+        return PendulumConditions(**{k: jnp.asarray(v, dtype=dtype) for k, v in values.items()})
 
 
 def default_conditions(**overrides: float) -> PendulumConditions:
-    """Conditions of paper-notes Sec. 4: 0.6 m rod, 0.7 kg cube, released from rest at -0.5 rad."""
-    base = dict(
-        rod_length=0.6,
-        cube_mass=0.7,
-        release_angle=-0.5,
-        release_speed=0.0,
-        hinge_damping=0.002,
-        arrival_phase=0.0,
-    )
-    unknown = set(overrides) - set(base)
+    """The nominal conditions (:class:`PendulumConfig`'s defaults) with ``overrides`` applied.
+
+    Raises:
+        ValueError: an unknown field name, or a meaningless value (``validate_conditions``).
+    """
+    unknown = set(overrides) - set(PendulumConditions._fields)
     if unknown:
         raise ValueError(f"unknown pendulum condition(s): {sorted(unknown)}")
-    base.update(overrides)
-    return PendulumConditions(**{k: jnp.asarray(v, dtype=float) for k, v in base.items()})
+    return PendulumConfig(**overrides).conditions()
 
 
 def validate_conditions(c: PendulumConditions) -> None:
@@ -149,7 +197,7 @@ def validate_conditions(c: PendulumConditions) -> None:
         v = np.asarray(getattr(c, name))
         if np.any(~np.isfinite(v)) or np.any(v < 0):
             raise ValueError(f"{name} must be finite and >= 0, got {v}")
-    for name in ("release_angle", "release_speed"):
+    for name in ("release_angle", "release_speed", "hinge_x"):
         v = np.asarray(getattr(c, name))
         if np.any(~np.isfinite(v)):
             raise ValueError(f"{name} must be finite, got {v}")
@@ -246,6 +294,8 @@ def mj_model_with_conditions(c: PendulumConditions, path: str | Path = SCENE_XML
     spec.body("cube").pos = np.array([0.0, 0.0, -(L + CUBE_EDGE / 2)])
     spec.geom("cube").mass = float(c.cube_mass)
     spec.joint("hinge").damping = np.array([float(c.hinge_damping), 0.0, 0.0])
+    ceiling = spec.body("rod").parent
+    ceiling.pos = np.array([float(c.hinge_x), ceiling.pos[1], ceiling.pos[2]])
     return spec.compile()
 
 
@@ -257,7 +307,7 @@ def apply_conditions(m: mjx.Model, ids: SceneIds, c: PendulumConditions) -> mjx.
         principal inertia (m_r (3a^2 + L^2)/12, same, m_r a^2 / 2).
     Cube (edge e, uniform): body origin at (0, 0, -(L + e/2)), mass m_c,
         inertia m_c e^2 / 6 per axis.
-    Hinge: dof_damping of the pendulum dof. Release angle/speed and arrival phase enter through the
+    Hinge: dof_damping of the pendulum dof; its position: x of the ceiling body. Release angle/speed and arrival phase enter through the
     state (see ``make_data``) and the hold in ``rollout``, not the model.
     """
     L = c.rod_length
@@ -287,6 +337,9 @@ def apply_conditions(m: mjx.Model, ids: SceneIds, c: PendulumConditions) -> mjx.
     ceiling = int(np.asarray(m.body_parentid)[ids.rod_body])
     if ceiling != 0:
         body_subtreemass = body_subtreemass.at[ceiling].add(new_sub - old_sub)
+    body_pos = m.body_pos.at[ids.cube_body].set(cube_pos)
+    if ceiling != 0:
+        body_pos = body_pos.at[ceiling, 0].set(c.hinge_x)
     geom_size = m.geom_size.at[ids.rod_geom, 1].set(L / 2)
     geom_pos = m.geom_pos.at[ids.rod_geom].set(rod_com)
     return m.replace(
@@ -297,7 +350,7 @@ def apply_conditions(m: mjx.Model, ids: SceneIds, c: PendulumConditions) -> mjx.
         .at[ids.cube_body]
         .set(cube_inertia),
         body_ipos=m.body_ipos.at[ids.rod_body].set(rod_com),
-        body_pos=m.body_pos.at[ids.cube_body].set(cube_pos),
+        body_pos=body_pos,
         geom_size=geom_size,
         geom_pos=geom_pos,
         dof_damping=m.dof_damping.at[ids.pend_dof].set(c.hinge_damping),

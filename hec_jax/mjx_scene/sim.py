@@ -23,8 +23,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 from mujoco import mjx
-from mujoco.mjx._src import support as mjx_support
 
+from hec_jax.mjx_scene import _mjx_internal as internal
 from hec_jax.mjx_scene.model import PendulumConditions, SceneIds
 
 # MJX's own code relies on implicit rank promotion; the project runs with
@@ -73,13 +73,12 @@ def hand_contact_force(m: mjx.Model, d: mjx.Data, ids: SceneIds) -> jax.Array:
     force geom1 exerts on geom2 (checked against mj_contactForce in tests), so the force on the hand
     is +f if the hand is geom2 and -f if it is geom1. Inactive contacts (efc_address < 0) give 0.
     """
-    con = d._impl.contact
-    n = con.dist.shape[0]
+    geoms = internal.contact_geoms(d)
     total = jnp.zeros(3)
-    for i in range(n):  # static, tiny (one pair -> at most a few contacts)
-        f = mjx_support.contact_force(m, d, i, to_world_frame=True)[:3]
-        sign = jnp.where(con.geom[i, 1] == ids.hand_geom, 1.0, 0.0) - jnp.where(
-            con.geom[i, 0] == ids.hand_geom, 1.0, 0.0
+    for i in range(internal.contact_count(d)):  # static, tiny (one pair: a few contacts at most)
+        f = internal.contact_force_world(m, d, i)[:3]
+        sign = jnp.where(geoms[i, 1] == ids.hand_geom, 1.0, 0.0) - jnp.where(
+            geoms[i, 0] == ids.hand_geom, 1.0, 0.0
         )
         total = total + sign * f
     return total
@@ -179,7 +178,7 @@ def dynamics_stages(
     """
     d = mjx.fwd_actuation(m, d.replace(ctrl=ctrl))
     d = mjx.fwd_acceleration(m, d)
-    if d._impl.efc_J.size == 0:
+    if not internal.has_constraints(d):
         d = d.replace(qacc=d.qacc_smooth)
     else:
         d = mjx.solve(m, d)
@@ -415,7 +414,7 @@ def site_jacobians(
     """
     point = d.site_xpos[site_id]
     jacp, _ = mjx.jac(m, d, point, body_id)
-    jacp_dot, _ = mjx_support.jac_dot(m, d, point, body_id)
+    jacp_dot, _ = internal.jac_dot(m, d, point, body_id)
     return jacp.T, jacp_dot.T
 
 

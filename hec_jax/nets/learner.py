@@ -1,6 +1,6 @@
 """Online learning of the virtual impedance (Sec. 5.2, Eqs. 52-58) for catching and hitting.
 
-``make_online_learner(config, sphere_fn)`` returns pure ``init(key) -> LearnerState`` and
+``make_online_learner(config, dt, m_e, b_e, k_e)`` returns pure ``init(key) -> LearnerState`` and
 ``update(state, inputs, allow=True) -> (state, LearnerOutput)``; ``update`` runs once per control
 sample inside the jitted rollout (one ``lax.scan``), never in Python; ``allow`` False (e.g. the
 object not seen) holds the weights for that sample.
@@ -11,8 +11,8 @@ Per sample (readings from paper-notes Sec. 3):
    being outside: X_r'(t_c) is latched per encounter.
 2. O = (K_o, B_o, M_o) per axis from the networks (Eqs. 50-51), and
    F_o = M_o dX_o'' + B_o dX_o' + K_o dX_o inside the sphere, 0 outside (Eq. 47); the geometry
-   (dX_o and derivatives, Eq. 45-46) comes from ``sphere_fn``, passed in by the caller (the hand's
-   ``hec_jax.control`` owns it; ``nets`` stands alone).
+   (dX_o and derivatives, Eq. 45-46) comes in with the inputs (``LearnerInputs.sphere``): the
+   hand's ``hec_jax.control.sphere_kinematics`` computes it; ``nets`` stands alone.
 3. Energy E(t) of the task and its gradient with respect to X_e and X_e' (autodiff of the energy
    expression, object state held fixed):
    * catching (Eqs. 59-62): E = c 1/2 |alpha(|X_r|) X_r'(t_c) - X_r'(t)|^2 + mu e_f, where c = 1
@@ -48,10 +48,11 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from hec_jax.nets import impedance_nets as nets
@@ -70,14 +71,12 @@ class LearnerConfig:
 
     Attributes:
         task: "catching" or "hitting".
-        dt: sampling interval Delta t_s [s].
         radius: virtual sphere radius r [m].
         r_b: R_b of the gain functions [m] (below the contact distance).
         eta: learning rates of (VSN, VVN, VIN).
         mu: weight of the force term E_cf / E_hf.
         f_desired: desired contact force magnitude f_d [N] (F_cd or F_hd = -f_d n in contact).
         contact_stiffness: nominal k_c [N/m] for dF_int/dX_e = -k_c n n^T in contact.
-        m_e, b_e, k_e: target impedance diagonals [kg], [N s/m], [N/m] (fix U of Eq. 51).
         gate_receding: pause learning while the object recedes without contact (in catching with
             ``velocity_after_contact``, only until the first contact of the encounter).
         velocity_after_contact: keep E_cv after the first contact (Eq. 59 as printed); False: E_cv
@@ -98,22 +97,18 @@ class LearnerConfig:
             no weights of runs outside the sphere that sample (a sweep's or benchmark's choice).
     """
 
-    task: str = "catching"
-    dt: float = 1e-3
+    task: Literal["catching", "hitting"] = "catching"
     radius: float = 0.25
     r_b: float = 0.06
     eta: tuple[float, float, float] = (0.1, 0.1, 0.1)
     mu: float = 1e-3
     f_desired: float = 1.0
     contact_stiffness: float = 1e4
-    m_e: tuple[float, ...] = (1.0, 1.0)
-    b_e: tuple[float, ...] = (40.0, 40.0)
-    k_e: tuple[float, ...] = (400.0, 400.0)
     gate_receding: bool = True
     velocity_after_contact: bool = False
     contact_damping: float = 0.0
     net: nets.NetConfig = field(default_factory=nets.NetConfig)
-    kernel: str = "xla"
+    kernel: Literal["xla", "triton", "interpret"] = "xla"
     nets_outside: bool = True
 
     def __post_init__(self):
@@ -123,25 +118,17 @@ class LearnerConfig:
             raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
         if not (0.0 <= self.r_b < self.radius):
             raise ValueError(f"need 0 <= R_b < r, got R_b={self.r_b}, r={self.radius}")
-        if self.dt <= 0:
-            raise ValueError(f"dt must be positive, got {self.dt}")
-        for name in ("m_e", "b_e", "k_e"):
-            v = getattr(self, name)
-            if len(v) != self.net.n_axes or min(v) <= 0:
-                raise ValueError(f"{name} must have {self.net.n_axes} positive entries, got {v}")
         if len(self.eta) != 3 or min(self.eta) < 0:
             raise ValueError(f"eta must be 3 non-negative rates (VSN, VVN, VIN), got {self.eta}")
 
 
 class SphereGeometry(NamedTuple):
-    """What ``sphere_fn`` returns (task space, per axis): dX_o, dX_o', dX_o'' (Eqs. 45-46)."""
+    """The virtual sphere's geometry at one sample (task space, per axis; Eqs. 45-46): the
+    object's offset from the sphere surface dX_o [m] and its derivatives [m/s], [m/s^2]."""
 
     dx_o: Array
     dxd_o: Array
     dxdd_o: Array
-
-
-SphereFn = Callable[[Array, Array, Array, float], SphereGeometry]
 
 
 class LearnerInputs(NamedTuple):
@@ -155,6 +142,7 @@ class LearnerInputs(NamedTuple):
     xdd_o: Array  # [m/s^2]
     f_int: Array  # [N] force exerted on the hand by the environment (Eq. 39)
     in_contact: Array  # bool ()
+    sphere: SphereGeometry  # Eqs. 45-46 at this sample, for the learner's sphere radius
 
 
 class LearnerState(NamedTuple):
@@ -236,19 +224,30 @@ def task_energy(
 
 
 def make_online_learner(
-    config: LearnerConfig, sphere_fn: SphereFn
+    config: LearnerConfig, dt: float, m_e, b_e, k_e
 ) -> tuple[Callable[[Array], LearnerState], Callable[..., tuple[LearnerState, LearnerOutput]]]:
     """Factory of the pure ``init`` and ``update`` of the online learner (Eqs. 52-58).
 
     Args:
         config: static configuration.
-        sphere_fn: ``(x_r, xd_r, xdd_r, radius) -> SphereGeometry`` (Eqs. 45-46), e.g. from
-            ``hec_jax.control``.
+        dt: [s] sampling interval Delta t_s (the control period).
+        m_e, b_e, k_e: target impedance diagonals [kg], [N s/m], [N/m], (n_axes,) each: they fix
+            the bound U of Eq. 51 and the Eq. 49 margins (the controller's own values).
+
+    Raises:
+        ValueError: ``dt`` not positive, or a target impedance without ``n_axes`` positive entries.
     """
     n_axes = config.net.n_axes
-    u = nets.u_max(
-        config.net, jnp.asarray(config.m_e), jnp.asarray(config.b_e), jnp.asarray(config.k_e)
-    )
+    if not (np.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt must be finite and > 0, got {dt}")
+    target = {}
+    for name, v in (("m_e", m_e), ("b_e", b_e), ("k_e", k_e)):
+        a = np.asarray(v, dtype=float)
+        if a.shape != (n_axes,) or not np.all(np.isfinite(a) & (a > 0)):
+            raise ValueError(f"{name} must have {n_axes} finite positive entries, got {v}")
+        target[name] = jnp.asarray(a)
+    m_e, b_e, k_e = target["m_e"], target["b_e"], target["k_e"]
+    u = nets.u_max(config.net, m_e, b_e, k_e)
     eta = jnp.asarray(config.eta)
 
     def init(key: Array, dtype=jnp.float32) -> LearnerState:
@@ -275,12 +274,12 @@ def make_online_learner(
         entering = inside & ~state.was_inside
         xd_r_tc = jnp.where(entering, xd_r, state.xd_r_tc)  # latch X_r'(t_c) per encounter
         touched = (state.touched & ~entering) | (inside & inputs.in_contact)
-        geometry = sphere_fn(x_r, xd_r, xdd_r, config.radius)
+        geometry = inputs.sphere
         net_in = nets.normalise_inputs(config.net, x_r, xd_r, xdd_r, inputs.f_int)
         energy, (de_dx, de_dxd) = jax.value_and_grad(
             lambda xe, xde: task_energy(config, xe, xde, inputs, xd_r_tc, touched), argnums=(0, 1)
         )(inputs.x_e, inputs.xd_e)
-        de_df_act = de_dx * config.dt**2 + de_dxd * config.dt  # Eqs. 54-58
+        de_df_act = de_dx * dt**2 + de_dxd * dt  # Eqs. 54-58
         learning = inside & allow
         if config.gate_receding:
             receding = jnp.dot(x_r, xd_r) > 0
@@ -305,7 +304,7 @@ def make_online_learner(
         )  # Eq. 52 where learning (the weights held exactly otherwise); O = 0 where not active
         f_o = jnp.where(inside, jnp.sum(o * terms.astype(o.dtype), axis=-1), 0.0)  # Eq. 47
         _, f_d = desired_force(config, x_r, inputs.in_contact)
-        energy_f = state.energy_f + 0.5 * jnp.sum((f_d - inputs.f_int) ** 2) * config.dt
+        energy_f = state.energy_f + 0.5 * jnp.sum((f_d - inputs.f_int) ** 2) * dt
         new_state = LearnerState(
             params=params,
             xd_r_tc=xd_r_tc,
@@ -314,9 +313,7 @@ def make_online_learner(
             energy_f=energy_f,
             encounters=state.encounters + entering.astype(jnp.int32),
         )
-        margins = nets.stability_margins(
-            o, jnp.asarray(config.m_e), jnp.asarray(config.b_e), jnp.asarray(config.k_e)
-        )
+        margins = nets.stability_margins(o, m_e, b_e, k_e)
         out = LearnerOutput(
             f_o=f_o,
             impedance=o,

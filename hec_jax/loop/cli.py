@@ -1,0 +1,86 @@
+"""The task scripts' command line: a preset's fields as flags, one run folder per call."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from hec_jax.cli import parse
+from hec_jax.loop.config import PRESETS, ExperimentConfig
+from hec_jax.loop.sweep import SweepConfig
+
+
+@dataclass(frozen=True)
+class TaskRun:
+    """A task experiment and where it writes its run folder."""
+
+    experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
+    out: Path = Path("runs/experiment")  # run folder
+    float32: bool = False  # float32 (default float64, as every number in the docs)
+
+
+def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
+    """Parses ``argv`` over the named preset, runs the experiment and writes its run folder.
+
+    Returns the metrics.
+    """
+    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering for the camera
+    default = TaskRun(experiment=PRESETS[preset](), out=Path(f"runs/{preset}"))
+    run = parse(default, argv, doc)
+    import jax
+
+    jax.config.update("jax_enable_x64", not run.float32)
+    from hec_jax.loop.experiment import run_experiment
+    from hec_jax.loop.report import print_summary, write_experiment
+    from hec_jax.runs import start_run
+
+    exp = run.experiment
+    settings = dict(
+        experiment=dataclasses.asdict(exp),
+        preset=preset,
+        out=str(run.out),
+        float32=run.float32,
+        argv_given=None if argv is None else list(argv),
+    )
+    folder = start_run(run.out, exp.seed, settings)
+    result = run_experiment(exp)
+    write_experiment(folder, result)
+    print(f"run folder: {folder}")
+    print_summary(result)
+    return result.metrics
+
+
+@dataclass(frozen=True)
+class SweepRun:
+    """A sweep and where its folder is; which shard this process computes."""
+
+    sweep: SweepConfig = field(default_factory=SweepConfig)
+    out: Path = Path("runs/sweep")  # sweep folder (chunks/, shard_*/, metrics.json)
+    shard_index: int = 0  # this process takes every num_shards-th chunk from here
+    num_shards: int = 1
+    merge_only: bool = False  # only merge the chunk files that exist
+
+    def __post_init__(self):
+        if not 0 <= self.shard_index < self.num_shards:
+            raise ValueError(
+                f"need 0 <= shard_index < num_shards, got {self.shard_index}, {self.num_shards}"
+            )
+
+
+def sweep_main(doc: str | None = None, argv=None) -> dict:
+    """Parses ``argv`` into a :class:`SweepRun`, runs (or merges) the sweep; returns the merged
+    metrics."""
+    run = parse(SweepRun(), argv, doc)
+    import jax
+
+    jax.config.update("jax_enable_x64", not run.sweep.float32)
+    from hec_jax.loop.sweep import merge, run_sweep
+    from hec_jax.runs import enable_compile_cache
+
+    enable_compile_cache()
+    if run.merge_only:
+        return merge(run.out, run.sweep)
+    given = {"argv_given": None if argv is None else list(argv)}
+    return run_sweep(run.sweep, run.out, run.shard_index, run.num_shards, given)

@@ -1,0 +1,63 @@
+"""Imports point one way: geometry, control and nets stand alone; MJX internals in one module;
+no library module imports the scripts or edits sys.path (read from the source, not at run time)."""
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parents[1] / "hec_jax"
+SCRIPTS = [Path(__file__).resolve().parents[1] / d for d in ("experiments", "benchmarks")]
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module name a file imports (absolute names; relative imports resolved)."""
+    tree = ast.parse(path.read_text())
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = ".".join(
+                    path.relative_to(PACKAGE.parent).with_suffix("").parts[: -node.level]
+                )
+                names.add(f"{base}.{node.module}" if node.module else base)
+            else:
+                names.add(node.module)
+                names |= {f"{node.module}.{a.name}" for a in node.names}
+    return names
+
+
+@pytest.mark.parametrize("sub", ["geometry", "control", "nets"])
+def test_lower_layers_stand_alone(sub):
+    for path in (PACKAGE / sub).rglob("*.py"):
+        for name in _imports(path):
+            top = name.split(".")[0]
+            assert top != "mujoco", f"{path.name} imports {name}"
+            if top == "hec_jax":
+                assert name.startswith(f"hec_jax.{sub}"), f"{path.name} imports {name}"
+
+
+def test_world_touches_mjx_internals_in_one_module():
+    users = {
+        path.name
+        for path in PACKAGE.rglob("*.py")
+        if "_src" in path.read_text() or "._impl" in path.read_text()
+    }
+    assert users == {"_mjx_internal.py"}
+
+
+def test_no_import_runs_back_up():
+    """mjx_scene does not import the loop; nothing in the package imports the scripts."""
+    for path in PACKAGE.rglob("*.py"):
+        for name in _imports(path):
+            assert not name.startswith(("experiments", "benchmarks")), f"{path} imports {name}"
+            if path.parent.name == "mjx_scene":
+                assert not name.startswith(("hec_jax.loop", "hec_jax.control", "hec_jax.nets"))
+
+
+def test_scripts_do_not_edit_sys_path():
+    for folder in SCRIPTS:
+        for path in folder.glob("*.py"):
+            assert "sys.path" not in path.read_text(), path
