@@ -39,7 +39,8 @@ def markdown_table(header: Sequence[str], rows: Sequence[Sequence]) -> list[str]
 
 def metrics_table(metrics: dict[str, dict]) -> list[str]:
     """Lines of a Markdown table "| quantity | value |" of {part: {name: value}}: one row
-    "part: name" per value, numbers to 4 significant digits, strings and dicts as they print."""
+    "part: name" per value, numbers to 4 significant digits, strings and dicts as they print.
+    """
     rows = [
         (f"{part}: {key}", val if isinstance(val, (dict, str)) else f"{val:.4g}")
         for part, d in metrics.items()

@@ -93,6 +93,7 @@ def write_json(path: str | os.PathLike, obj: Any) -> None:
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:
+    """Writes ``text`` (UTF-8) atomically."""
     atomic_write_bytes(path, text.encode())
 
 
@@ -116,7 +117,8 @@ def save_figure(fig, path: str | os.PathLike, dpi: int = 120) -> None:
 
 def _even_frames(frames, shape):
     """Checks each RGB uint8 frame against ``shape`` and pads it to even height and width by
-    repeating its last row/column (H.264 with 4:2:0 chroma needs even sizes)."""
+    repeating its last row/column (H.264 with 4:2:0 chroma needs even sizes).
+    """
     for frame in frames:
         f = np.asarray(frame)
         if f.dtype != np.uint8 or f.shape != shape:

@@ -68,7 +68,7 @@ def _zoh_reference(m, b, k, f):
 NO_VIRTUAL = C.virtual_params(0.0, 0.0, 0.0, 0.25)
 AVOID = C.virtual_params(0.0, 20.0, 400.0, 0.25)
 IMPEDANCES = [
-    C.impedance_params(1.0, 40.0, 400.0),  # paper-notes Sec. 4
+    C.impedance_params(1.0, 40.0, 400.0),  # docs/paper_readings.md, Sec. 4
     C.impedance_params([0.3, 0.5], [20.0, 30.0], [300.0, 500.0]),  # inertia shaping
 ]
 

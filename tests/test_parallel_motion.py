@@ -257,7 +257,7 @@ def test_procrustes_gradient_with_equal_singular_values():
 
 
 def test_axis_parallel_to_segments():
-    """Pure rotation about an axis parallel to AB (paper-notes: the second root is exactly Phi = I).
+    """Pure rotation about an axis parallel to AB (docs/paper_readings.md#eq-37-38: the second root is exactly Phi = I).
 
     Measured here: the Phi = I root puts points behind the camera, so the depth rule rejects it and
     the estimate is right and not ambiguous; a prior does not override an unambiguous choice."""

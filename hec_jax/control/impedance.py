@@ -1,6 +1,6 @@
 """Impedance control of Sec. 4.1 with the virtual force of Sec. 4.2 (Eqs. 40-44, 48).
 
-Reading implemented (paper-notes Sec. 2, dots restored):
+Reading implemented (docs/paper_readings.md, Sec. 2, dots restored):
 
     tau = tau_eff + tau_comp + tau_null                                              (Eq. 41 + null)
     tau_eff  = J^T { M_x [ M_e^-1 (-K_e dX - B_e dX' + F_o) + X_d'' - J' theta' ]

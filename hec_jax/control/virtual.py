@@ -1,6 +1,6 @@
 """Virtual sphere of the non-contact impedance control (Eqs. 45-47) and the stability set (Eq. 49).
 
-Readings (paper-notes Sec. 2):
+Readings (docs/paper_readings.md, Sec. 2):
 * X_r = X_o - X_e, n = X_r / |X_r| points from the hand to the object (n = 0 at X_r = 0, Eq. 46);
 * dX_o = X_r - r n (Eq. 45) = -(r - |X_r|) n inside the sphere; with K_o > 0, F_o = K_o dX_o pushes
   the hand away from the object;

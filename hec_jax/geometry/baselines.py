@@ -72,7 +72,8 @@ def opencv_pnp(pixels_before, pixels_after, face, intrinsics, edge: float):
 
 def opencv_homography(pixels_before, pixels_after, face, intrinsics, true_rotation):
     """Homography between the frames on one face, decomposed; the candidate closest to
-    ``true_rotation`` (oracle choice) -> (Phi, None) or None."""
+    ``true_rotation`` (oracle choice) -> (Phi, None) or None.
+    """
     h, _ = cv2.findHomography(pixels_before[list(face)], pixels_after[list(face)], 0)
     if h is None:
         return None

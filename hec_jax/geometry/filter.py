@@ -67,6 +67,7 @@ def init(config: FilterConfig, position: Array) -> FilterState:
 
 
 def predict(config: FilterConfig, state: FilterState) -> FilterState:
+    """The state one frame interval ``config.dt`` later (constant-acceleration model)."""
     f, q = transition(config)
     return FilterState(f @ state.mean, f @ state.cov @ f.T + q)
 

@@ -1,7 +1,7 @@
 """Motion of a rigid object from two perspective images of a pair of 3D-parallel segments.
 
 Implements Secs. 2-3 of Terauchi, Tanaka & Tsuji (Eqs. 1-38) with the errata of
-``shared/paper-notes.md`` corrected. Every step is a small pure function named after its equation;
+``docs/paper_readings.md`` corrected. Every step is a small pure function named after its equation;
 :func:`estimate_motion_core` chains them (jittable, vmappable, differentiable) and
 :func:`estimate_motion` is the public boundary that validates its input.
 
@@ -32,7 +32,7 @@ Readings implemented (each checked against synthetic ground truth in ``tests/tes
   them at once. On noise-free data the right root has zero residual and the wrong one a non-zero
   residual (measured on 4000 random cube scenes: right root < 2e-13, wrong root > 1e-5 at the 1st
   percentile in float64; the l4-length residual alone separates them 10x less well). Roots that
-  put a point behind the camera lose. paper-notes says that for a rotation axis parallel to the
+  put a point behind the camera lose. docs/paper_readings.md#eq-37-38 says that for a rotation axis parallel to the
   segments the second root is exactly Phi = I: we find that for pure rotations, and that root then
   has negative depths, so the choice stays right. Should both roots ever fit (both residuals
   below 0.01 sqrt(eps), distinct roots) the estimate is flagged ``ambiguous`` and ``prior_rotation``
@@ -97,14 +97,15 @@ def _eps(dtype) -> float:
 
 
 def _safe_div(num: Array, den: Array) -> Array:
-    """num / den with 0 where den == 0 (finite values and gradients)."""
+    """Num / den with 0 where den == 0 (finite values and gradients)."""
     ok = den != 0
     return jnp.where(ok, num / jnp.where(ok, den, 1.0), 0.0)
 
 
 def _sum_last(x: Array, keepdims: bool = False) -> Array:
     """Sum over the last (short) axis as elementwise additions: the same sum, but a tiny
-    reduction per batch element is slow on the CPU (a vmapped reduction runs as a library call)."""
+    reduction per batch element is slow on the CPU (a vmapped reduction runs as a library call).
+    """
     out = sum(x[..., i] for i in range(x.shape[-1]))
     return out[..., None] if keepdims else out
 
@@ -117,10 +118,11 @@ def _safe_norm(v: Array) -> Array:
 
 
 def _safe_unit(v: Array) -> Array:
-    """v / |v| over the last axis, 0 where |v|^2 is 0 or below the smallest normal float.
+    """V / |v| over the last axis, 0 where |v|^2 is 0 or below the smallest normal float.
 
     Double where: the division only ever sees a norm whose square is a normal float, so neither
-    the value nor the derivative (which divides by |v|^2) can overflow to inf or make 0 / 0."""
+    the value nor the derivative (which divides by |v|^2) can overflow to inf or make 0 / 0.
+    """
     sq = _sum_last(v * v, keepdims=True)
     ok = sq > jnp.finfo(v.dtype).tiny
     return jnp.where(ok, v / jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
@@ -305,7 +307,8 @@ def _special_polar(h: Array) -> Array:
     (rank one at a simple eigenvalue). Agrees with the SVD form to rounding (measured: 4e-14 on
     random 3 x 3 matrices, half of them with det < 0); where the two largest eigenvalues of N
     coincide (h of rank <= 1) the maximiser is not unique and either answer is one of them.
-    h = 0 gives the identity."""
+    h = 0 gives the identity.
+    """
     e = [[h[..., i, j] for j in range(3)] for i in range(3)]
     # Horn's N from S = h^T (S_ab = sum before_a after_b)
     sxx, sxy, sxz = e[0][0], e[1][0], e[2][0]
@@ -373,12 +376,13 @@ def _special_polar(h: Array) -> Array:
 
 @_special_polar.defjvp
 def _special_polar_jvp(primals, tangents):
-    """dR = R [w]x: with h = R S (S = R^T h symmetric) and Y = R^T dh, Y - Y^T = W S + S W for
+    """DR = R [w]x: with h = R S (S = R^T h symmetric) and Y = R^T dh, Y - Y^T = W S + S W for
     W = R^T dR = [w]x, i.e. (tr(S) I - S) w = vee(Y - Y^T). In the singular basis this is the
     usual W_ij = (X_ij - X_ji) / (s_i + s_j) (X = U'^T dh V, the last singular value carrying the
     sign of det(U V^T)); unlike the SVD's own derivative (terms 1 / (s_i^2 - s_j^2)) it stays
     finite and exact when singular values are equal, which happens on exact data. Where
-    tr(S) I - S is singular (s_i + s_j = 0) the tangent is set to 0."""
+    tr(S) I - S is singular (s_i + s_j = 0) the tangent is set to 0.
+    """
     (h,), (dh,) = primals, tangents
     rot = _special_polar(h)
     r = [[rot[..., i, j] for j in range(3)] for i in range(3)]
@@ -418,8 +422,9 @@ def _special_polar_jvp(primals, tangents):
 
 
 def _rotate(rotation: Array, v: Array) -> Array:
-    """rotation (..., 3, 3) times v (..., 3), elementwise (a batched contraction is slow on the
-    CPU)."""
+    """Rotation (..., 3, 3) times v (..., 3), elementwise (a batched contraction is slow on the
+    CPU).
+    """
     return sum(rotation[..., :, j] * v[..., j, None] for j in range(3))
 
 
@@ -510,7 +515,8 @@ def model_points(state: ModelState, length: Array) -> tuple[Array, Array]:
 
 def _retract(state: ModelState, delta: Array) -> ModelState:
     """Model parameters moved by a 15-vector (dA, du in the plane perpendicular to u, dC, ds, dw,
-    dcentre'): the rotation is updated as Cayley(dw) Phi and u is renormalised."""
+    dcentre'): the rotation is updated as Cayley(dw) Phi and u is renormalised.
+    """
     e1, e2 = _perpendicular_basis(state.u)
     u = state.u + delta[3] * e1 + delta[4] * e2
     return ModelState(
@@ -536,7 +542,8 @@ def reprojection_residuals(state: ModelState, before: Array, after: Array, lengt
 def _gauss_newton_step(state, before, after, length):
     """One Gauss-Newton step, solved by QR of the column-scaled Jacobian (the normal equations
     would square its condition number, too much for float32 on ill-conditioned scenes); a damping
-    of 1e-3 sqrt(eps) relative to the column norms keeps it finite on rank-deficient problems."""
+    of 1e-3 sqrt(eps) relative to the column norms keeps it finite on rank-deficient problems.
+    """
     dtype = before.dtype
     residual_at = lambda d: reprojection_residuals(_retract(state, d), before, after, length)  # noqa: E731
     zero = jnp.zeros(15, dtype)
@@ -651,7 +658,8 @@ def rotation_angle(rotation: Array) -> Array:
     arccos(cos) with cos = (trace - 1) / 2. At |cos| >= 1 (angle 0 or pi, where the angle is not
     differentiable, and where rounding pushes cos past 1) arccos' is infinite: there the value is
     arccos(+-1) taken as a constant (derivative 0, like the norm at 0) and arccos only sees a safe
-    operand (double where; clipping alone gives 0 * inf = NaN)."""
+    operand (double where; clipping alone gives 0 * inf = NaN).
+    """
     cos = 0.5 * (jnp.trace(rotation, axis1=-2, axis2=-1) - 1.0)
     inside = jnp.abs(cos) < 1.0
     edge = jax.lax.stop_gradient(jnp.arccos(jnp.clip(cos, -1.0, 1.0)))
@@ -751,7 +759,8 @@ def estimate_motion_core(
 
 def consistency_check(estimate: MotionEstimate, tol: float) -> Array:
     """``valid`` restricted to estimates whose rigidity residual is below ``tol`` (rejects
-    non-parallel segments and gross noise; the residual is 0 on exact data)."""
+    non-parallel segments and gross noise; the residual is 0 on exact data).
+    """
     return estimate.valid & (estimate.residual < tol)
 
 

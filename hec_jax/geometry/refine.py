@@ -90,7 +90,7 @@ def so3_log(rotation: Array) -> Array:
 
 
 def retract(pose: Pose, delta: Array) -> Pose:
-    """pose (+) delta, delta = (dw, dt) (6,): R <- exp(dw) R, t <- t + dt."""
+    """Pose (+) delta, delta = (dw, dt) (6,): R <- exp(dw) R, t <- t + dt."""
     return Pose(so3_exp(delta[:3]) @ pose.rotation, pose.translation + delta[3:])
 
 
@@ -111,9 +111,10 @@ class Fit(NamedTuple):
 
 
 def solve_spd(a: Array, b: Array) -> Array:
-    """x = a^-1 b for a small symmetric positive definite a (n, n), b (n,): Cholesky unrolled into
+    """X = a^-1 b for a small symmetric positive definite a (n, n), b (n,): Cholesky unrolled into
     elementwise operations, so that a vmapped batch runs as vector code instead of a loop of
-    LAPACK calls (the LM step's 6x6 system)."""
+    LAPACK calls (the LM step's 6x6 system).
+    """
     n = a.shape[-1]
     return jnp.stack(_solve_spd_lists([[a[i, j] for j in range(n)] for i in range(n)], list(b)))
 
@@ -250,7 +251,8 @@ def _projection_terms(rot: list, t: list, obj: list, uv: tuple, intrinsics: Arra
 
     ``rot`` nested list (3 x 3) and ``t`` list (3) of scalars; ``obj`` the three coordinates
     [m] and ``uv`` the measured pixels [px], each an (n,) array or one scalar (then everything
-    is scalar: under ``vmap`` one vector over the batch)."""
+    is scalar: under ``vmap`` one vector over the batch).
+    """
     k = intrinsics
     fx, skew, cx, fy, cy = k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2]
     q = [rot[i][0] * obj[0] + rot[i][1] * obj[1] + rot[i][2] * obj[2] for i in range(3)]
@@ -279,13 +281,15 @@ def _corner_terms(rot: list, t: list, pixels: Array, size, intrinsics: Array, ja
 def _materialize(x, one):
     """``x / one`` with ``one`` equal to 1 at run time: the same value, bit for bit. XLA counts a
     division as expensive and so computes ``x`` once into a buffer; without it, it fuses (and
-    recomputes) the whole expression of ``x`` into each of its consumers."""
+    recomputes) the whole expression of ``x`` into each of its consumers.
+    """
     return x / one
 
 
 def _corner_project(rot: list, t: list, size) -> tuple[list, list, list]:
     """Normalised image points (x, y) and inverse depths of the 8 corners at a pose (lists of 8).
-    The divisions make XLA compute them once, for all their uses."""
+    The divisions make XLA compute them once, for all their uses.
+    """
     half = 0.5 * size
     col = [[half * rot[i][j] for i in range(3)] for j in range(3)]  # R e_j size / 2
     xs, ys, izs = [], [], []
@@ -318,7 +322,8 @@ def _corner_normal(rot: list, xs, ys, izs, pixels, weights, size, intrinsics):
     """Normal equations of the corner reprojection error at a pose: a = J^T W J (nested 6 x 6,
     symmetric) and g = J^T W r (6), with the analytic Jacobian of :func:`_projection_terms` (left
     perturbation (dw, dt): d(u)/d(dw) = q x d(u)/dP, q = R X) from the projected corners, its
-    known zeros left out."""
+    known zeros left out.
+    """
     k = intrinsics
     fx, skew, cx, fy, cy = k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2]
     half = 0.5 * size
@@ -360,7 +365,8 @@ def _corner_lm(pose: Pose, pixels, weights, size, intrinsics, iters: int):
     The projected corners (:func:`_corner_project`) are carried with the pose, so the normal
     equations of the next step reuse those of the accepted trial pose; the trial cost is
     materialised once (:func:`_materialize`) for the acceptance test and its many selects.
-    Returns (R (3, 3), t (3,), cost, rss, projected corners (xs, ys, izs))."""
+    Returns (R (3, 3), t (3,), cost, rss, projected corners (xs, ys, izs)).
+    """
     dtype = pose.translation.dtype
 
     def mat(rot9):
@@ -446,7 +452,8 @@ def _refine_corners(iters, pose, pixels, weights, size, intrinsics):
 def _refine_corners_jvp(iters, primals, tangents):
     """Implicit derivative at the optimum: the cost's gradient over the pose perturbation,
     g = J^T W r, vanishes there, so dp = -(dg/dp)^-1 (dg/d(data) d(data)) with the exact Hessian
-    dg/dp (curvature of the residuals included); the start pose has no influence."""
+    dg/dp (curvature of the residuals included); the start pose has no influence.
+    """
     pose, pixels, weights, size, intrinsics = primals
     _, d_pixels, d_weights, d_size, d_k = tangents
     fit = _refine_corners(iters, *primals)
@@ -519,7 +526,8 @@ def refine_edges(
 
 def _select(index: Array, options: list):
     """``options[index]`` for a traced integer index (a chain of selects; the last match wins, and
-    the indices are distinct)."""
+    the indices are distinct).
+    """
     out = options[0]
     for i in range(1, len(options)):
         out = jnp.where(index == i, options[i], out)
@@ -566,7 +574,8 @@ def _norm(a) -> Array:
 def _face_pose_lists(x: list, obj: list) -> tuple[list, list]:
     """:func:`face_pose_from_homography` on scalars: ``x`` the 4 corners' normalised image points
     (pairs), ``obj`` their object points (triples) [m], a parallelogram in cyclic order. Returns
-    (R nested 3 x 3, t (3))."""
+    (R nested 3 x 3, t (3)).
+    """
     u = [obj[1][i] - obj[0][i] for i in range(3)]
     v = [obj[3][i] - obj[0][i] for i in range(3)]
     su, sv = _norm(u), _norm(v)
@@ -638,7 +647,8 @@ def largest_visible_face(pixels: Array) -> tuple[Array, Array, Array]:
 
 def _largest(visible: list, area: list) -> Array:
     """Index of the largest visible face (``jnp.argmax``: a reduction, which XLA computes once
-    rather than in each of its uses)."""
+    rather than in each of its uses).
+    """
     return jnp.argmax(
         jnp.stack([jnp.where(v, a, -1.0) for v, a in zip(visible, area, strict=True)])
     )
@@ -646,7 +656,8 @@ def _largest(visible: list, area: list) -> Array:
 
 def _init_pose(normalized: list, visible: list, area: list, size) -> tuple[list, list]:
     """Homography start on the largest visible face: (R nested 3 x 3, t (3)) from the 8 corners'
-    normalised image points (pairs) and the face visibility lists."""
+    normalised image points (pairs) and the face visibility lists.
+    """
     face = _largest(visible, area)
     x = [
         tuple(_select(face, [normalized[FACES[f][k]][i] for f in range(6)]) for i in range(2))
@@ -677,7 +688,8 @@ def _pose_from_corners(pixels, normalized, visible, area, size, intrinsics, iter
 
 def pose_from_corners(pixels: Array, size, intrinsics: Array, iters: int = 10) -> tuple[Fit, Array]:
     """Pose from labelled corner pixels (8, 2): homography on the largest visible face, then LM on
-    all visible corners. Returns (fit, (8,) visible corners)."""
+    all visible corners. Returns (fit, (8,) visible corners).
+    """
     visible, area = _face_visibility_lists(pixels)
     normalized = _normalized_lists(pixels, intrinsics)
     return _pose_from_corners(pixels, normalized, visible, area, size, intrinsics, iters)
@@ -688,7 +700,8 @@ def _best_parallel_pair_lists(pixels: Array, visible_edges: list) -> list:
     whose second-longest visible edge is longest; ties to the lower index, as a stable sort).
 
     The three choices are ``jnp.argmax`` reductions: XLA computes a reduction once, where it
-    would recompute a chain of selects in every one of its many uses."""
+    would recompute a chain of selects in every one of its many uses.
+    """
     length = []
     for e, (a, b) in enumerate(EDGES):
         d = [pixels[b, i] - pixels[a, i] for i in range(2)]

@@ -83,7 +83,8 @@ class SmoothedTrack(NamedTuple):
     """Attributes: rotation (T, 3, 3) R_cam_box; position, velocity, acceleration (T, 3)
     [m, m/s, m/s^2]; position_cov (T, 3, 3) [m^2]; hinge (bool, the fixed-axis model was used);
     hinge_axis (3,) its unit axis a (camera frame); hinge_cost its median normalised squared
-    residual over the measured frames (NaN where not fitted)."""
+    residual over the measured frames (NaN where not fitted).
+    """
 
     rotation: Array
     position: Array
@@ -133,7 +134,8 @@ def smooth_rotations(rotations: Array, info_rot: Array, dt: float, cfg: Smoother
 class HingeFit(NamedTuple):
     """Fixed-axis fit. Attributes: rotation (T, 3, 3), position (T, 3) [m], axis (3,) unit,
     pivot (3,) a point on the axis [m], angle (T,) theta [rad], frame_cost (T,) normalised
-    squared residual of each frame (NaN where unmeasured), cost its median over measured frames."""
+    squared residual of each frame (NaN where unmeasured), cost its median over measured frames.
+    """
 
     rotation: Array
     position: Array
@@ -283,6 +285,7 @@ def smooth_track(
     inputs unchanged with zero velocity and acceleration.
 
     Args:
+        cfg: the smoother's settings.
         rotations: (T, 3, 3) per-frame R_cam_box (a guess where not valid, e.g. coasted).
         positions: (T, 3) per-frame centres [m] (any finite value where not valid).
         information: (T, 6, 6) information of (dw, dt) [1/rad^2, 1/m^2].

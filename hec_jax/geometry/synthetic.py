@@ -96,6 +96,7 @@ class SceneConfig:
 
     @property
     def intrinsics(self) -> np.ndarray:
+        """(3, 3) pinhole K [px] of this camera (principal point at the image centre)."""
         return np.array(
             [[self.focal_px, 0, self.width / 2], [0, self.focal_px, self.height / 2], [0, 0, 1.0]]
         )

@@ -138,7 +138,8 @@ class TrackConfig:
 class Association(NamedTuple):
     """Segments clipped to their model edges. Attributes: endpoints (M, 2, 2) [px], edge_ids (M,),
     weights (M,) [px] (overlap length, 0 = unassigned), coverage (fraction of visible edge length),
-    families (number of edge families with an assigned segment)."""
+    families (number of edge families with an assigned segment).
+    """
 
     endpoints: Array
     edge_ids: Array
@@ -363,7 +364,8 @@ def usable_edges(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(edges (12, 2, 2) [px], usable (12,)) of a pose (NumPy): visible, long enough, and not
     within ``min_separation_px`` of another visible edge of the same family (a face seen nearly
-    edge-on cannot be resolved)."""
+    edge-on cannot be resolved).
+    """
     corners = project_corners_np(rotation, translation, size, intrinsics)
     e = corners[EDGES]
     vis_f = face_visibility_np(rotation, translation, size)
@@ -665,7 +667,8 @@ class BoxTracker:
     def predict(self, dt: float) -> BoxPrediction:
         """The state ``dt`` [s] after the last processed frame (constant-acceleration model;
         rotation at the last angular velocity). ``dt`` may be fractional, e.g. the time to the
-        next control step between frames; ``dt = 0`` returns the filtered state."""
+        next control step between frames; ``dt = 0`` returns the filtered state.
+        """
         rot = np.eye(3) if self._rot_prev is None else self._rot_prev
         if not self._started:
             z = np.zeros(3)
@@ -678,7 +681,8 @@ class BoxTracker:
 
     def _acquire(self, gray, gate):
         """Search from scratch: (prior (R, t), segments, mask) of the best valid candidate, or None.
-        ``gate`` = (predicted centre (3,) [m], radius [m]) rejects far candidates (or None)."""
+        ``gate`` = (predicted centre (3,) [m], radius [m]) rejects far candidates (or None).
+        """
         m, k = self.config.max_segments, self.intrinsics
         if self._bg_dirty:
             self.background = np.median(np.stack(self._bg_frames), axis=0).astype(np.uint8)

@@ -54,7 +54,8 @@ def frame_steps(cam: CameraConfig, dt: float, steps: int) -> np.ndarray:
 
 class _Estimate:
     """One frame's estimate in world task coordinates, and when the controller gets it
-    (``seen`` False: the eye has lost the object; the controller drops it)."""
+    (``seen`` False: the eye has lost the object; the controller drops it).
+    """
 
     __slots__ = ("t_avail", "t_stamp", "x", "xd", "xdd", "seen")
 
@@ -68,7 +69,8 @@ def _eye_input(
 ) -> EyeInput:
     """The estimates in force during [t0, t1): the newest that arrived by t0 and the first that
     arrives inside the segment (if any); ``touch_guard``, ``touch_memory`` [s] as in
-    :class:`~hec_jax.loop.object_state.EyeInput`."""
+    :class:`~hec_jax.loop.object_state.EyeInput`.
+    """
     eps = 1e-9
     old = [e for e in queue if e.t_avail <= t0 + eps]
     new = [e for e in queue if t0 + eps < e.t_avail < t1 - eps]
@@ -102,7 +104,8 @@ def make_segment(loop: Loop):
     batch of seeds (``touch``: :class:`~hec_jax.loop.object_state.TouchMemory`):
     ``len(active)`` control steps of the closed loop from ``d`` in one ``lax.scan``, of which the
     ``active`` ones advance the state (so a shorter last segment shares the compiled function);
-    ``switches`` carries each seed's :class:`~hec_jax.loop.object_state.EyeInput` (leading seed axis)."""
+    ``switches`` carries each seed's :class:`~hec_jax.loop.object_state.EyeInput` (leading seed axis).
+    """
 
     def one(d, cs, ls, touch, f_prev, sw, active, conditions):
         m = loop.model_for(conditions)
@@ -118,7 +121,8 @@ def make_segment(loop: Loop):
 
 def make_start(loop: Loop):
     """``start(ls, switches, conditions) -> (d0, cs0, touch0)`` at the release, for a batch of
-    seeds."""
+    seeds.
+    """
 
     def one(ls, sw, conditions):
         m = loop.model_for(conditions)
@@ -207,7 +211,8 @@ def mask_robot(
 
 def _draw_overlay(frame: np.ndarray, step, k: np.ndarray, r_cam_world, t_cam_world, x_true_world):
     """The frame with the detected edges (green), the estimated centre (red) and the true centre
-    (blue, for reference) drawn on it; BGR for OpenCV's writer."""
+    (blue, for reference) drawn on it; BGR for OpenCV's writer.
+    """
     img = np.ascontiguousarray(frame[..., ::-1])
     for seg in np.asarray(step.segments):
         if np.all(np.isfinite(seg)):

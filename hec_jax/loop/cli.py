@@ -71,7 +71,8 @@ class SweepRun:
 
 def sweep_main(doc: str | None = None, argv=None) -> dict:
     """Parses ``argv`` into a :class:`SweepRun`, runs (or merges) the sweep; returns the merged
-    metrics."""
+    metrics.
+    """
     run = parse(SweepRun(), argv, doc)
     import jax
 

@@ -38,7 +38,8 @@ def _positive(obj, *names: str, allow_zero: bool = False) -> None:
 class TargetImpedance:
     """The target impedance of Eq. 40 per task axis (x, z): the hand's apparent mass, damping and
     stiffness. The controller realises it; the learner's output bound U (Eq. 51) and the Eq. 49
-    margins are taken against it. Values: docs/paper_readings.md, parameter values."""
+    margins are taken against it. Values: docs/paper_readings.md, parameter values.
+    """
 
     m_e: tuple[float, float] = (1.0, 1.0)  # M_e [kg]
     b_e: tuple[float, float] = (40.0, 40.0)  # B_e [N s/m]
@@ -255,7 +256,8 @@ def hitting(**overrides) -> ExperimentConfig:
 def sweep_catching() -> TaskConfig:
     """The task of each run of the catching sweep (``hec_jax.loop.sweep``): 6 swings of 1.5 s,
     the hand at ``X_HOME``, F_cd = 1 N, mu = 1e-3, all three networks learning (eta 0.3 each); the
-    pendulum's fields are the sweep's grid."""
+    pendulum's fields are the sweep's grid.
+    """
     return TaskConfig(
         learner=_learner("catching", f_desired=1.0, mu=1e-3, eta_vin=0.3),
         x_home=X_HOME,

@@ -104,14 +104,16 @@ class OnDevices:
 
     def compile(self, placed: list[tuple]) -> OnDevices:
         """Compiles every device's executable, in parallel threads (traced and lowered in the
-        calling thread, under its JAX settings)."""
+        calling thread, under its JAX settings).
+        """
         lowered = [self._jitted.lower(*a) for a in placed]
         self._compiled = list(self._pool.map(lambda low: low.compile(), lowered))
         return self
 
     def run(self, placed: list[tuple]):
         """All runs' outputs (NumPy, run axis first, in order); each device called from its own
-        thread."""
+        thread.
+        """
         if self._compiled is None:
             self.compile(placed)
 
@@ -131,6 +133,7 @@ class OnDevices:
         return jax.tree_util.tree_map(lambda *x: np.concatenate(x), *outs)
 
     def __call__(self, *args):
+        """``run(place(*args))``."""
         return self.run(self.place(*args))
 
 
@@ -165,13 +168,16 @@ class Sharded:
         return tuple(jax.tree_util.tree_map(put, self.in_axes, args, is_leaf=_is_none))
 
     def compile(self, placed: tuple) -> Sharded:
+        """Compiles the program for the placed arguments (ahead of the first run)."""
         self._compiled = self._jitted.lower(*placed).compile()
         return self
 
     def run(self, placed: tuple):
+        """Runs on the placed arguments; returns the outputs as NumPy, runs in order."""
         if self._compiled is None:
             self.compile(placed)
         return jax.tree_util.tree_map(np.asarray, self._compiled(*placed))
 
     def __call__(self, *args):
+        """``run(place(*args))``."""
         return self.run(self.place(*args))

@@ -25,7 +25,8 @@ def _float_dtype():
 def make_seed_run(loop: Loop):
     """``run(key, switches, conditions) -> logs`` of one seed and one condition (pure): the task's
     swings (world restarted at the release each swing, learner state carried over), then the
-    optional continuous run (``logs["final"]``, leading axis 1)."""
+    optional continuous run (``logs["final"]``, leading axis 1).
+    """
 
     def one_swing(ls, sw, conditions, m, n_steps):
         d0 = loop.data_for(m, conditions)
@@ -76,7 +77,8 @@ def make_sweep(loop: Loop, per_run_switches: bool = False):
     leaf of ``conditions`` (B,), one pendulum condition and network seed per run (``vmap``). With
     ``per_run_switches`` the ``use_virtual``/``learn`` leaves of ``switches`` are (B,) too, so
     plain and learned runs share one batch (and one compile). Not jitted here, so the caller can
-    choose devices (:mod:`hec_jax.loop.devices`)."""
+    choose devices (:mod:`hec_jax.loop.devices`).
+    """
     return jax.vmap(make_seed_run(loop), in_axes=sweep_in_axes(per_run_switches))
 
 
@@ -90,7 +92,8 @@ def run_conditions(
     """All three conditions (plain, frozen, learned) for ``n_seeds`` seeds with the simulator's
     object state; ``conditions`` default to the task's pendulum. Returns
     ({condition: logs as NumPy}, {condition: wall time [s]}, with ``compile`` apart);
-    ``progress(condition)`` is called after each condition."""
+    ``progress(condition)`` is called after each condition.
+    """
     conditions = loop.config.pendulum.conditions() if conditions is None else conditions
     run = make_episodes(loop)
     keys = jax.random.split(jax.random.PRNGKey(seed), n_seeds)

@@ -51,7 +51,8 @@ class ExperimentResult:
 
 def run_experiment(config: ExperimentConfig, progress: bool = True) -> ExperimentResult:
     """Runs ``config`` (the loop built once, compiled once per condition set) and computes its
-    metrics; nothing is written to disk (see :mod:`hec_jax.loop.report`)."""
+    metrics; nothing is written to disk (see :mod:`hec_jax.loop.report`).
+    """
     t0 = time.perf_counter()
     loop = build_loop(config.task)
     conditions = config.task.pendulum.conditions()
@@ -79,7 +80,8 @@ def run_experiment(config: ExperimentConfig, progress: bool = True) -> Experimen
 
 def _peak(loop: Loop, logs: dict, condition: str) -> np.ndarray:
     """The task's peak force per seed [N]: catching, the swing the metrics use (learned: the
-    last); hitting, the largest pulse of the continuous run."""
+    last); hitting, the largest pulse of the continuous run.
+    """
     if loop.final_steps:
         return mt.force_norm(logs["final"])[:, 0].max(-1)
     w = loop.config.swings - 1 if condition == "learned" else 0
@@ -88,7 +90,8 @@ def _peak(loop: Loop, logs: dict, condition: str) -> np.ndarray:
 
 def condition_metrics(loop: Loop, logs: dict, condition: str) -> dict:
     """The task's metrics of one condition (catching: the last swing; hitting: the continuous
-    run)."""
+    run).
+    """
     cfg, dt = loop.config, loop.ids.timestep
     if cfg.learner.task == "hitting":
         return mt.hitting_condition_metrics(logs, dt, cfg.contact_threshold)
@@ -141,7 +144,8 @@ def task_metrics(loop: Loop, logs: dict) -> dict:
 def camera_metrics(loop: Loop, logs: dict, truth: dict, eyes: dict) -> dict:
     """A camera run against its ground-truth twin: the eye's counts and accuracy per condition
     (:func:`~hec_jax.loop.metrics.eye_metrics`; of the continuous run as ``<condition>_final``),
-    the twin's peak force and metrics, and the camera/truth ratio of the mean peaks."""
+    the twin's peak force and metrics, and the camera/truth ratio of the mean peaks.
+    """
     dt = loop.ids.timestep
     out = {"eye": {}, "truth_peak_force": {}, "camera_over_truth_peak": {}}
     for condition in CONDITIONS:

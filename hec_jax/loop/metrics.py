@@ -13,7 +13,8 @@ import numpy as np
 
 def contact_events(f_norm: np.ndarray, threshold: float, min_gap: int) -> list[tuple[int, int]]:
     """(start, end) sample indices of contact episodes in a force-magnitude series; contacts closer
-    than ``min_gap`` samples are merged into one event (one hit may chatter)."""
+    than ``min_gap`` samples are merged into one event (one hit may chatter).
+    """
     on = np.flatnonzero(f_norm > threshold)
     if on.size == 0:
         return []
@@ -116,7 +117,8 @@ def stability_summary(logs: dict) -> dict:
 
 def eye_metrics(eye: dict, logs: dict, dt: float) -> dict:
     """Counts and accuracy of the eye in the loop, and the real-time factor, of one set of
-    episodes (``eye`` and ``logs`` as returned by :func:`run_camera`, or their ``final`` parts)."""
+    episodes (``eye`` and ``logs`` as returned by :func:`run_camera`, or their ``final`` parts).
+    """
     init = eye["initialised"]
     lost = init[..., :-1] & ~init[..., 1:]  # a track held on one frame and gone on the next
     err = eye["x_est"] - eye["x_true"]
@@ -197,7 +199,8 @@ def catching_condition_metrics(
 ) -> dict:
     """Mean +- std over seeds of :func:`catching_swing_metrics` (learned: last swing; plain and
     frozen: swing 1, all swings alike), with the per-seed values; a metric some seed lacks (no
-    contact) is averaged over the seeds that have it, and ``seeds_without_contact`` counts them."""
+    contact) is averaged over the seeds that have it, and ``seeds_without_contact`` counts them.
+    """
     n_seeds, n_swings = logs["inside"].shape[:2]
     w = n_swings - 1 if condition == "learned" else 0
     args = (f_cd, settle_steps, dt, threshold)
@@ -221,7 +224,8 @@ def catching_condition_metrics(
 
 def hitting_condition_metrics(logs: dict, dt: float, threshold: float) -> dict:
     """Hits of the continuous run (``logs["final"]``) per seed (:func:`hit_series`) and their
-    mean +- std; the training swings' peak force per swing."""
+    mean +- std; the training swings' peak force per swing.
+    """
     f = force_norm(logs["final"])[:, 0]
     per_seed = [hit_series(f[s], dt, threshold) for s in range(f.shape[0])]
     return {

@@ -156,7 +156,8 @@ def hold_point(f_cd: float, pendulum: PendulumConditions, k_e: float, m_c=None) 
 
 def with_contact(mx, config: TaskConfig):
     """The MJX model with the task's hand-cube contact parameters (every pair of the scene: there
-    is one, ``hand_cube``); unchanged where the config leaves them at None."""
+    is one, ``hand_cube``); unchanged where the config leaves them at None.
+    """
     if config.contact_solref is not None:
         ref = jnp.broadcast_to(jnp.asarray(config.contact_solref), mx.pair_solref.shape)
         mx = mx.replace(pair_solref=ref.astype(mx.pair_solref.dtype))

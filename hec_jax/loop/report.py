@@ -82,7 +82,8 @@ def print_summary(result: ExperimentResult) -> None:
 def save_trajectories(folder, logs_by_condition: dict, dt: float) -> None:
     """One ``trajectory_<condition>.npz`` per condition: t, x_e, x_o (as the controller used it),
     x_o_true (simulator), f_int, k_o, b_o, m_o (+ more),
-    arrays with a leading seed axis (then swing and sample axes for swing-structured runs)."""
+    arrays with a leading seed axis (then swing and sample axes for swing-structured runs).
+    """
     for condition, logs in logs_by_condition.items():
         steps = logs["x_e"].shape[-2]
         write_npz(

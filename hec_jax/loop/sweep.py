@@ -106,7 +106,8 @@ class SweepConfig:
 
     def runs(self) -> tuple[dict[str, np.ndarray], np.ndarray]:
         """Flattened grid: condition fields (N,) each and the seed index (N,) of every run
-        (seeds are the fastest axis)."""
+        (seeds are the fastest axis).
+        """
         table = self.grid.table()
         rows = np.repeat(table, self.seeds, axis=0)
         seed_index = np.tile(np.arange(self.seeds), len(table))
@@ -123,7 +124,8 @@ class SweepConfig:
 def make_summary(loop, sweep):
     """``run(keys, switches, conditions) -> per-run metrics`` (not jitted): the swing logs are
     reduced on the device (peak |F_int| per swing [N], smallest Eq. 49 margins, settle force [N]),
-    so only a few numbers per run leave it."""
+    so only a few numbers per run leave it.
+    """
     settle = int(round(loop.config.settle_s / loop.ids.timestep))  # the last swing's last part
 
     def run(keys, sw, conditions):
@@ -142,7 +144,8 @@ def make_summary(loop, sweep):
 def unique_conditions(conditions: dict[str, np.ndarray], size: int):
     """The distinct conditions among a chunk's runs, padded to ``size`` rows (a fixed shape for
     one compile), and for every run the row of its condition. Plain impedance does not use the
-    networks, so its result depends on the condition only, not on the seed."""
+    networks, so its result depends on the condition only, not on the seed.
+    """
     table = np.stack([conditions[k] for k in FIELDS], axis=1)
     rows, inverse = np.unique(table, axis=0, return_inverse=True)
     if len(rows) > size:
@@ -153,7 +156,8 @@ def unique_conditions(conditions: dict[str, np.ndarray], size: int):
 
 def plain_rows(chunk: int, seeds: int, n_dev: int) -> int:
     """Rows of the plain batch: distinct conditions a chunk of consecutive runs can hold (seeds
-    are the fastest grid axis), rounded up to a multiple of the device count."""
+    are the fastest grid axis), rounded up to a multiple of the device count.
+    """
     rows = min(chunk, -(-chunk // seeds) + 1)
     return -(-rows // n_dev) * n_dev
 
@@ -161,7 +165,8 @@ def plain_rows(chunk: int, seeds: int, n_dev: int) -> int:
 def chunk_inputs(keys, conditions, n_plain):
     """One batch for a chunk: its learned runs, then its distinct conditions under plain impedance
     (the first key; plain ignores the networks), so both share one compiled function. Returns the
-    arguments of ``make_summary``'s function and, for every run, the row of its plain result."""
+    arguments of ``make_summary``'s function and, for every run, the row of its plain result.
+    """
     plain_cond, inverse = unique_conditions(conditions, n_plain)
     n = len(keys)
     learned, plain = switches("learned"), switches("plain")
@@ -318,7 +323,8 @@ def run_sweep(
 def merge(folder: Path, config: SweepConfig) -> dict:
     """Merges whatever chunk files exist into ``metrics.json`` and ``peak_ratio_map.png`` (the
     settings are checked first). A run counts as diverged when any of its forces is not finite;
-    "never reaches the hand" needs a finite plain run whose peak stays at or below 1 N."""
+    "never reaches the hand" needs a finite plain run whose peak stays at or below 1 N.
+    """
     chunk_dir = folder / "chunks"
     check_same_sweep(chunk_dir, config)
     _, seed_index = config.runs()

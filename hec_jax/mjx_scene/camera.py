@@ -35,7 +35,8 @@ def camera_intrinsics(
     m: mujoco.MjModel, camera: int | str, width: int = IMAGE_WIDTH, height: int = IMAGE_HEIGHT
 ) -> np.ndarray:
     """K (3, 3) of ``camera`` (name or id) from its MJCF fovy at the given resolution [px]
-    (:func:`hec_jax.geometry.intrinsics_from_fovy`)."""
+    (:func:`hec_jax.geometry.intrinsics_from_fovy`).
+    """
     return intrinsics_from_fovy(float(m.cam_fovy[camera_id(m, camera)]), width, height)
 
 

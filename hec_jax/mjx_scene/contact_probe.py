@@ -34,6 +34,8 @@ KD = np.array([20.0, 10.0, 2.0])  # [N m s/rad]
 
 
 class Probe(NamedTuple):
+    """The contact probe: model, ids, the hand's home posture and its loss function."""
+
     mx: object
     ids: SceneIds
     q_home: jax.Array

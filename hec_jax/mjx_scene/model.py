@@ -230,7 +230,9 @@ def set_solver_options(
     scene.xml's value (100 / 50 iterations, Newton, ``auto``).
 
     Args:
-        iterations, ls_iterations: caps of ``opt.iterations`` / ``opt.ls_iterations`` (>= 1).
+        m: the MuJoCo model (changed in place).
+        iterations: cap of ``opt.iterations`` (>= 1).
+        ls_iterations: cap of ``opt.ls_iterations`` (>= 1).
         solver: ``opt.solver``, "newton" or "cg". Both minimise the same convex problem; CG
             preconditions with M^-1 instead of factoring the Newton Hessian.
         jacobian: ``opt.jacobian``, "dense", "sparse" or "auto" (dense for this scene's nv = 4).
@@ -372,7 +374,8 @@ def solve_posture(
     tol: float = 1e-12,
 ) -> np.ndarray:
     """Arm joint angles [rad] (3,) putting the hand centre at ``x_task`` = (x, z) [m] with the hand
-    link at pitch ``hand_pitch`` = q1 + q2 + q3 [rad] (Newton iterations on MuJoCo C kinematics)."""
+    link at pitch ``hand_pitch`` = q1 + q2 + q3 [rad] (Newton iterations on MuJoCo C kinematics).
+    """
     d = mujoco.MjData(m)
     q = np.asarray(q_guess, dtype=float).copy()
     target = np.array([x_task[0], x_task[1], hand_pitch])

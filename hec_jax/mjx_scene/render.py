@@ -113,6 +113,7 @@ class SceneCamera:
         return out[0] if len(out) == 1 else tuple(out)
 
     def close(self) -> None:
+        """Frees the renderer (its OpenGL context)."""
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
@@ -150,7 +151,8 @@ def body_in_camera(
     model: mujoco.MjModel, data: mujoco.MjData, body: str, camera: int | str
 ) -> tuple[np.ndarray, np.ndarray]:
     """(position (3,) [m], rotation R_cam_body (3, 3)) of ``body`` in the pinhole camera frame
-    (after mj_forward)."""
+    (after mj_forward).
+    """
     bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, body)
     if bid < 0:
         raise ValueError(f"model has no body {body!r}")
@@ -220,7 +222,8 @@ def render_swing(
 ) -> RenderedSequence:
     """The scene's pendulum released at rest from ``release_rad`` [rad] and swinging freely, seen
     by the camera ``eye``, with the cube's true state; the arm is held still (its bias forces
-    compensated), so it stays where the model puts it."""
+    compensated), so it stays where the model puts it.
+    """
     m = load_mj_model()
     d = mujoco.MjData(m)
     d.qpos[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "hinge")]] = release_rad

@@ -217,8 +217,9 @@ def rollout(
         active: (T,) bool; steps where it is False leave the state (data, policy state, force
             measurement) unchanged and their rows are meaningless: segments of different lengths
             then share one compiled scan. Default: all steps active.
-        observe, dynamics: replacements of :func:`observe_stages` / :func:`dynamics_stages` with
-            the same signatures (e.g. ``differentiable.dynamics_stages`` for exact gradients).
+        observe: replacement of :func:`observe_stages` with the same signature.
+        dynamics: replacement of :func:`dynamics_stages` with the same signature (e.g.
+            ``differentiable.dynamics_stages`` for exact gradients).
         checkpoint: rematerialise each step in the backward pass (``jax.checkpoint`` of the body).
 
     Returns:
@@ -393,13 +394,15 @@ def rollout_c(
 @_allow_promotion
 def full_mass_matrix(m: mjx.Model, d: mjx.Data) -> jax.Array:
     """Dense joint-space inertia M(theta) (nv, nv) [kg m^2], armature included
-    (after fwd_position)."""
+    (after fwd_position).
+    """
     return mjx.full_m(m, d)
 
 
 def bias_force(d: mjx.Data) -> jax.Array:
     """h(theta, theta') of Eq. 39 (nv,) [N m]: qfrc_bias (Coriolis, centrifugal, gravity) minus
-    qfrc_passive (joint damping), so that M theta'' + h = tau + J^T F (after fwd_velocity)."""
+    qfrc_passive (joint damping), so that M theta'' + h = tau + J^T F (after fwd_velocity).
+    """
     return d.qfrc_bias - d.qfrc_passive
 
 
@@ -421,5 +424,6 @@ def site_jacobians(
 @_allow_promotion
 def site_position(m: mjx.Model, d: mjx.Data, qpos: jax.Array, site_id: int) -> jax.Array:
     """World position [m] (3,) of a site at joint positions ``qpos`` (pure kinematics,
-    differentiable)."""
+    differentiable).
+    """
     return mjx.kinematics(m, d.replace(qpos=qpos)).site_xpos[site_id]

@@ -1,6 +1,6 @@
 """The virtual stiffness, viscosity and inertia networks VSN, VVN, VIN (Sec. 5.1, Eqs. 50-51).
 
-Reading implemented (paper-notes Sec. 3): one network per virtual-impedance parameter and per task
+Reading implemented (docs/paper_readings.md, Sec. 3): one network per virtual-impedance parameter and per task
 axis. For axis i, VSN_i, VVN_i and VIN_i take the four inputs (X_r,i, X_r,i', X_r,i'', F_int,i)
 (normalised by fixed scales, since their units differ by orders of magnitude) and output K_o,i,
 B_o,i and M_o,i: a diagonal virtual impedance. Each network is 4-20-20-1 with sigmoid hidden units
@@ -75,13 +75,15 @@ class NetConfig:
 
 class FlaxMlp(nn.Module):
     """One network as a Flax module (the reference and the initialiser): Dense-sigmoid x
-    len(hidden), then a Dense to the pre-activation x of Eq. 51."""
+    len(hidden), then a Dense to the pre-activation x of Eq. 51.
+    """
 
     hidden: tuple[int, ...]
     init_output_std: float
 
     @nn.compact
     def __call__(self, inputs: Array) -> Array:
+        """Pre-activation x of the output unit for ``inputs`` (..., 4)."""
         y = inputs
         for width in self.hidden:
             y = nn.sigmoid(nn.Dense(width)(y))  # Eqs. 50-51, middle layers
@@ -124,7 +126,8 @@ def to_flax(params: dict, n_hidden: int) -> dict:
 
 def init_params(key: Array, config: NetConfig, dtype=jnp.float32) -> dict:
     """Random parameters for all n_axes x 3 networks (leading axes (n_axes, 3)), in ``dtype``
-    (Flax's initialisation of :class:`FlaxMlp`, converted with :func:`from_flax`)."""
+    (Flax's initialisation of :class:`FlaxMlp`, converted with :func:`from_flax`).
+    """
     model = FlaxMlp(config.hidden, config.init_output_std)
     keys = jax.random.split(key, config.n_axes * 3)
     params = jax.vmap(lambda k: model.init(k, jnp.zeros((4,), jnp.float32))["params"])(keys)
@@ -144,13 +147,14 @@ def normalise_inputs(
 
 def _layer(weight: Array, y: Array) -> Array:
     """sum_j w_ij y_j (Eq. 50) over the last axis: weight (..., out, in), y (..., in) with leading
-    axes broadcastable to weight's -> (..., out)."""
+    axes broadcastable to weight's -> (..., out).
+    """
     y = jnp.broadcast_to(y, weight.shape[:-2] + y.shape[-1:])
     return jnp.einsum("...oi,...i->...o", weight, y)
 
 
 def pre_activation(params: dict, inputs: Array) -> Array:
-    """x of Eq. 51 for every network, shape (n_axes, 3): sum_j w_ij y_j + b_i through the sigmoid
+    """X of Eq. 51 for every network, shape (n_axes, 3): sum_j w_ij y_j + b_i through the sigmoid
     middle layers (Eq. 50), with the weights (out, in).
 
     Args:
@@ -176,6 +180,7 @@ def apply(params: dict, config: NetConfig, inputs: Array, u: Array) -> Array:
 
     Args:
         params: from :func:`init_params`.
+        config: the networks' structure (threshold theta of Eq. 51).
         inputs: (n_axes, 4) normalised inputs of each axis (:func:`normalise_inputs`).
         u: (n_axes, 3) maximum outputs U (:func:`u_max`).
     """
@@ -184,6 +189,7 @@ def apply(params: dict, config: NetConfig, inputs: Array, u: Array) -> Array:
 
 def stability_margins(o: Array, m_e: Array, b_e: Array, k_e: Array) -> Array:
     """Strict Eq. 49 margins (K_o + K_e, B_o + B_e, M_o + M_e) per axis, shape (..., n_axes, 3);
-    all must be > 0."""
+    all must be > 0.
+    """
     target = jnp.stack([jnp.asarray(k_e), jnp.asarray(b_e), jnp.asarray(m_e)], axis=-1)
     return o + jnp.broadcast_to(target, o.shape)

@@ -5,7 +5,7 @@
 sample inside the jitted rollout (one ``lax.scan``), never in Python; ``allow`` False (e.g. the
 object not seen) holds the weights for that sample.
 
-Per sample (readings from paper-notes Sec. 3):
+Per sample (readings from docs/paper_readings.md, Sec. 3):
 
 1. X_r = X_o - X_e and its derivatives; inside = |X_r| <= r. t_c is the first sample inside after
    being outside: X_r'(t_c) is latched per encounter.
@@ -67,7 +67,7 @@ NETS_SHELL = 1e-4
 
 @dataclass(frozen=True)
 class LearnerConfig:
-    """Static configuration of the online learner (parameter values: paper-notes Sec. 4).
+    """Static configuration of the online learner (parameter values: docs/paper_readings.md, Sec. 4).
 
     Attributes:
         task: "catching" or "hitting".
@@ -124,7 +124,8 @@ class LearnerConfig:
 
 class SphereGeometry(NamedTuple):
     """The virtual sphere's geometry at one sample (task space, per axis; Eqs. 45-46): the
-    object's offset from the sphere surface dX_o [m] and its derivatives [m/s], [m/s^2]."""
+    object's offset from the sphere surface dX_o [m] and its derivatives [m/s], [m/s^2].
+    """
 
     dx_o: Array
     dxd_o: Array
@@ -146,6 +147,8 @@ class LearnerInputs(NamedTuple):
 
 
 class LearnerState(NamedTuple):
+    """What the learner carries from sample to sample (weights and the encounter's memory)."""
+
     params: dict  # network parameters, leading axes (n_axes, 3)
     xd_r_tc: Array  # (n_axes,) X_r'(t_c) latched at the last entry into the sphere
     was_inside: Array  # bool ()
@@ -155,6 +158,8 @@ class LearnerState(NamedTuple):
 
 
 class LearnerOutput(NamedTuple):
+    """What one learner sample reports (forces, impedance, energy, flags, margins)."""
+
     f_o: Array  # (n_axes,) virtual force F_o [N] (Eq. 47)
     impedance: Array  # (n_axes, 3) O = (K_o, B_o, M_o)
     energy: Array  # () E(t) of the task (velocity term + mu * force integrand)
@@ -184,7 +189,8 @@ def _norm(v: Array) -> Array:
 
 def desired_force(config: LearnerConfig, x_r: Array, in_contact: Array) -> tuple[Array, Array]:
     """(n, F_d): unit vector hand -> object (0 at X_r = 0) and the desired force on the hand,
-    -f_d n while in contact, 0 otherwise (F_cd of Eq. 61 / F_hd of Eq. 65)."""
+    -f_d n while in contact, 0 otherwise (F_cd of Eq. 61 / F_hd of Eq. 65).
+    """
     rho = _norm(x_r)
     n = jnp.where(rho > 0, x_r / jnp.where(rho > 0, rho, 1.0), 0.0)
     return n, -config.f_desired * in_contact.astype(x_r.dtype) * n
@@ -231,8 +237,10 @@ def make_online_learner(
     Args:
         config: static configuration.
         dt: [s] sampling interval Delta t_s (the control period).
-        m_e, b_e, k_e: target impedance diagonals [kg], [N s/m], [N/m], (n_axes,) each: they fix
-            the bound U of Eq. 51 and the Eq. 49 margins (the controller's own values).
+        m_e: [kg] (n_axes,) target inertia M_e: with b_e and k_e it fixes the bound U of Eq. 51
+            and the Eq. 49 margins (the controller's own values).
+        b_e: [N s/m] (n_axes,) target damping B_e.
+        k_e: [N/m] (n_axes,) target stiffness K_e.
 
     Raises:
         ValueError: ``dt`` not positive, or a target impedance without ``n_axes`` positive entries.
@@ -265,7 +273,8 @@ def make_online_learner(
         state: LearnerState, inputs: LearnerInputs, allow: Array | bool = True
     ) -> tuple[LearnerState, LearnerOutput]:
         """One control sample; ``allow`` (bool ()) False: no Eq. 52 step this sample (the
-        weights are held, ``LearnerOutput.learning`` is False)."""
+        weights are held, ``LearnerOutput.learning`` is False).
+        """
         x_r = inputs.x_o - inputs.x_e
         xd_r = inputs.xd_o - inputs.xd_e
         xdd_r = inputs.xdd_o - inputs.xdd_e

@@ -66,7 +66,8 @@ _TILE = 32  # padded width of the 20-unit layers (power of 2 >= every layer widt
 
 def _reference(params, net_in, g_scale, learning, eta, u, theta, active=None):
     """Reference step (XLA): O (0 where not ``active``), and the parameters after Eq. 52 where
-    ``learning & active``; ``active`` None: always active."""
+    ``learning & active``; ``active`` None: always active.
+    """
 
     def impedance(p):
         return nets.output_unit(nets.pre_activation(p, net_in), u, theta)
@@ -190,7 +191,8 @@ def _kernel_body(
 
 def _triton_batched(params, net_in, g_scale, learning, active, eta, u, theta, interpret=False):
     """The kernel over a batch: every argument with a leading batch axis (B, ...) except ``eta``
-    (3,) and ``u`` (n_axes, 3), all in the parameters' dtype (``learning``, ``active``: bool)."""
+    (3,) and ``u`` (n_axes, 3), all in the parameters' dtype (``learning``, ``active``: bool).
+    """
     from jax.experimental import pallas as pl
     from jax.experimental.pallas import triton as plt
 
