@@ -311,3 +311,25 @@ def test_controller_jit_vmap_grad():
     Mx, _ = C.operational_inertia(obs.M, obs.J, 1e-3)
     expected = np.asarray(obs.J).T @ np.asarray(Mx) @ np.diag(-np.asarray(obs.x_e))
     np.testing.assert_allclose(np.asarray(g), expected, rtol=1e-9)
+
+
+@pytest.mark.parametrize("field", ["x_o", "xd_o", "xdd_o"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_a_non_finite_object_estimate_gives_no_virtual_force(field, bad):
+    """A NaN/inf object estimate (a lost eye): F_o = 0 and the torque is plain impedance
+    control's, finite; a finite estimate inside the sphere gives a non-zero F_o."""
+    init, apply = C.make_impedance_controller(DT, TORQUE_LIMIT)
+    obs = _random_obs(np.random.default_rng(6))
+    obs = obs._replace(x_o=obs.x_e + jnp.array([0.1, 0.0]), xdd_o=jnp.zeros(2))
+    st0 = init(obs)
+    p = C.impedance_params(1.0, 40.0, 400.0)
+    vp = C.virtual_params(0.2, 5.0, 100.0, 0.25)
+    tgt = C.fixed_target([0.0, 0.0])
+    _, _, info = apply(p, vp, tgt, st0, obs)
+    assert np.all(np.asarray(info.f_o) != 0.0)
+    bad_obs = obs._replace(**{field: getattr(obs, field).at[0].set(bad)})
+    tau, _, info = apply(p, vp, tgt, st0, bad_obs)
+    tau_plain, _, _ = apply(p, C.virtual_params(0.0, 0.0, 0.0, 0.25), tgt, st0, obs)
+    np.testing.assert_array_equal(info.f_o, 0.0)
+    assert np.all(np.isfinite(tau))
+    np.testing.assert_allclose(tau, tau_plain, rtol=1e-12)

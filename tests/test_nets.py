@@ -229,12 +229,47 @@ def test_no_learning_outside_sphere_and_while_receding_without_contact():
         assert not bool(out.learning)
         _assert_same_params(state.params, new_state.params)
     assert float(update(state, inputs)[1].f_o[0]) != 0.0  # inside: F_o acts even when not learning
-    # a sample that does not learn keeps the weights exactly, also when a forward value is not
-    # finite (a NaN acceleration estimate: 0 * NaN in the backward pass must not reach them)
-    bad = _inputs_1d((0.01, 0.05, 0.3, 0.2, -0.9, np.nan, 0.0), False)
-    held_state, held_out = update(state._replace(was_inside=jnp.asarray(True)), bad, False)
-    assert not bool(held_out.learning) and np.isnan(held_out.f_o[0])
-    _assert_same_params(state.params, held_state.params)
+
+
+FIELDS_1D = ("x_e", "xd_e", "xdd_e", "x_o", "xd_o", "xdd_o", "f_int")
+
+
+@pytest.mark.parametrize("bad_value", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("field", FIELDS_1D)
+def test_a_non_finite_input_never_reaches_the_weights(field, bad_value):
+    """A NaN/inf in any input while learning (object inside the sphere, approaching): the sample
+    is skipped (no weight change, F_o = 0, O = 0, E_cf and the encounter's memory unchanged),
+    counted and flagged; the next finite sample learns as if it had not happened."""
+    init, update = _learner_1d()
+    state = init(jax.random.PRNGKey(0), jnp.float64)._replace(
+        was_inside=jnp.asarray(True), xd_r_tc=jnp.array([-1.1])
+    )
+    good_values = (0.01, 0.05, 0.3, 0.2, -0.9, 1.5, 0.0)
+    good = _inputs_1d(good_values, False)
+    assert bool(update(state, good)[1].learning)  # this sample would learn
+    values = [bad_value if f == field else v for f, v in zip(FIELDS_1D, good_values, strict=True)]
+    skipped_state, out = update(state, _inputs_1d(values, False))
+    assert not bool(out.finite) and not bool(out.learning) and not bool(out.inside)
+    np.testing.assert_array_equal(out.f_o, 0.0)
+    np.testing.assert_array_equal(out.impedance, 0.0)
+    _assert_same_params(state.params, skipped_state.params)
+    assert int(skipped_state.nonfinite_samples) == 1
+    for name in ("xd_r_tc", "was_inside", "touched", "energy_f", "encounters"):
+        np.testing.assert_array_equal(getattr(skipped_state, name), getattr(state, name), name)
+    after, _ = update(skipped_state, good)
+    reference, _ = update(state, good)
+    _assert_same_params(after.params, reference.params)
+
+
+def test_a_non_finite_sphere_geometry_is_skipped_too():
+    init, update = _learner_1d()
+    state = init(jax.random.PRNGKey(0), jnp.float64)
+    inputs = _inputs_1d((0.01, 0.05, 0.3, 0.2, -0.9, 1.5, 0.0), False)
+    inputs = inputs._replace(sphere=inputs.sphere._replace(dxd_o=jnp.array([np.nan])))
+    new_state, out = update(state, inputs)
+    assert not bool(out.finite) and not bool(out.learning)
+    np.testing.assert_array_equal(out.f_o, 0.0)
+    _assert_same_params(state.params, new_state.params)
 
 
 @pytest.fixture(scope="module")

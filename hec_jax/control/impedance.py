@@ -338,6 +338,8 @@ def make_impedance_controller(
             xdd_o = obs.xdd_o
         sk = sphere_kinematics(obs.x_o - obs.x_e, obs.xd_o - obs.xd_e, xdd_o - xdd_e, vparams.r)
         f_o = virtual_force(vparams, sk)  # Eq. 47
+        # a non-finite object estimate (NaN/inf) gives no virtual force, never a NaN torque
+        f_o = jnp.where(jnp.isfinite(f_o), f_o, 0.0)
         tau_cmd, cond = impedance_torque(obs, params, target, f_o, state.q_posture, cfg)
         tau = jnp.clip(tau_cmd, -limit, limit)
         info = ControlInfo(

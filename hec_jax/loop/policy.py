@@ -255,6 +255,7 @@ def build_loop(config: TaskConfig) -> Loop:
             energy=out.energy,
             inside=out.inside,
             learning=out.learning,
+            inputs_finite=out.finite,
             in_contact=in_contact,
             saturated=info.saturated,
         )

@@ -27,6 +27,10 @@ Modelling choices (see also ``scene.xml``):
 * Time step 1 ms, semi-implicit Euler with joint damping integrated explicitly (eulerdamp off).
 """
 
+# first: mujoco.mjx without its warp lines (see _quiet_import)
+from hec_jax.mjx_scene import _quiet_import  # noqa: F401, I001
+
+
 from hec_jax.mjx_scene.camera import (
     IMAGE_HEIGHT,
     IMAGE_WIDTH,

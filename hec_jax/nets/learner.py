@@ -155,6 +155,7 @@ class LearnerState(NamedTuple):
     touched: Array  # bool (): contact has occurred since the last entry into the sphere
     energy_f: Array  # () running E_cf / E_hf integral [N^2 s]
     encounters: Array  # int () number of entries into the sphere so far
+    nonfinite_samples: Array  # int () samples skipped for a non-finite input (NaN/inf)
 
 
 class LearnerOutput(NamedTuple):
@@ -167,6 +168,7 @@ class LearnerOutput(NamedTuple):
     inside: Array  # bool ()
     learning: Array  # bool (): weights updated this sample
     margins: Array  # (n_axes, 3) strict Eq. 49 margins, all > 0
+    finite: Array  # bool (): every input finite; else the sample is skipped (F_o = 0, O = 0)
 
 
 def gain_alpha(rho: Array, radius: float, r_b: float) -> Array:
@@ -267,22 +269,30 @@ def make_online_learner(
             touched=jnp.asarray(False),
             energy_f=jnp.zeros((), dtype),
             encounters=jnp.zeros((), jnp.int32),
+            nonfinite_samples=jnp.zeros((), jnp.int32),
         )
 
     def update(
         state: LearnerState, inputs: LearnerInputs, allow: Array | bool = True
     ) -> tuple[LearnerState, LearnerOutput]:
         """One control sample; ``allow`` (bool ()) False: no Eq. 52 step this sample (the
-        weights are held, ``LearnerOutput.learning`` is False).
+        weights are held, ``LearnerOutput.learning`` is False). A sample with a non-finite input
+        (NaN or inf anywhere in ``inputs``) is skipped: no learning, F_o = 0 and O = 0 (as
+        outside the sphere), the encounter's memory and E_cf unchanged, and it is counted in
+        ``LearnerState.nonfinite_samples`` and flagged by ``LearnerOutput.finite``.
         """
+        finite = jnp.all(
+            jnp.stack([jnp.all(jnp.isfinite(v)) for v in jax.tree_util.tree_leaves(inputs)])
+        )
         x_r = inputs.x_o - inputs.x_e
         xd_r = inputs.xd_o - inputs.xd_e
         xdd_r = inputs.xdd_o - inputs.xdd_e
         rho = _norm(x_r)
-        inside = rho <= config.radius
+        inside = finite & (rho <= config.radius)
         entering = inside & ~state.was_inside
         xd_r_tc = jnp.where(entering, xd_r, state.xd_r_tc)  # latch X_r'(t_c) per encounter
         touched = (state.touched & ~entering) | (inside & inputs.in_contact)
+        touched = jnp.where(finite, touched, state.touched)  # a skipped sample changes nothing
         geometry = inputs.sphere
         net_in = nets.normalise_inputs(config.net, x_r, xd_r, xdd_r, inputs.f_int)
         energy, (de_dx, de_dxd) = jax.value_and_grad(
@@ -311,16 +321,19 @@ def make_online_learner(
             config.kernel,
             active=None if config.nets_outside else rho <= config.radius * (1.0 + NETS_SHELL),
         )  # Eq. 52 where learning (the weights held exactly otherwise); O = 0 where not active
+        o = jnp.where(finite, o, 0.0)
         f_o = jnp.where(inside, jnp.sum(o * terms.astype(o.dtype), axis=-1), 0.0)  # Eq. 47
         _, f_d = desired_force(config, x_r, inputs.in_contact)
-        energy_f = state.energy_f + 0.5 * jnp.sum((f_d - inputs.f_int) ** 2) * dt
+        e_f = jnp.where(finite, 0.5 * jnp.sum((f_d - inputs.f_int) ** 2) * dt, 0.0)
+        energy_f = state.energy_f + e_f
         new_state = LearnerState(
             params=params,
             xd_r_tc=xd_r_tc,
-            was_inside=inside,
+            was_inside=jnp.where(finite, inside, state.was_inside),
             touched=touched,
             energy_f=energy_f,
             encounters=state.encounters + entering.astype(jnp.int32),
+            nonfinite_samples=state.nonfinite_samples + (~finite).astype(jnp.int32),
         )
         margins = nets.stability_margins(o, m_e, b_e, k_e)
         out = LearnerOutput(
@@ -331,6 +344,7 @@ def make_online_learner(
             inside=inside,
             learning=learning,
             margins=margins,
+            finite=finite,
         )
         return new_state, out
 
