@@ -26,7 +26,9 @@ case "$cmd" in
   install) install ;;
   main)
     install
-    exec "$VENV/bin/python" experiments/catching.py --out "${HEC_OUT:-runs/catching}" "$@"
+    # a fresh run folder each time (a run never writes into an existing one without --overwrite)
+    exec "$VENV/bin/python" experiments/catching.py \
+      --out "${HEC_OUT:-runs/catching-$(date -u +%Y%m%dT%H%M%SZ)}" "$@"
     ;;
   test)
     install

@@ -8,12 +8,15 @@ half-written file.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import json
 import os
 import platform
+import shutil
 import sys
 import tempfile
+import time
 import warnings
 from importlib import metadata
 from pathlib import Path
@@ -80,11 +83,18 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; results are shared
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:
@@ -98,11 +108,11 @@ def write_text(path: str | os.PathLike, text: str) -> None:
 
 
 def write_npz(path: str | os.PathLike, **arrays) -> None:
-    """Atomic ``np.savez`` of named arrays."""
+    """Atomic, compressed ``np.savez_compressed`` of named arrays (``np.load`` reads it)."""
     import io
 
     buf = io.BytesIO()
-    np.savez(buf, **{k: np.asarray(v) for k, v in arrays.items()})
+    np.savez_compressed(buf, **{k: np.asarray(v) for k, v in arrays.items()})
     atomic_write_bytes(path, buf.getvalue())
 
 
@@ -223,7 +233,7 @@ def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Pa
     ``config.json`` holds ``seed``, ``command``, ``argv``, ``versions``, ``device`` and, at the top
     level beside them, the run's own ``settings`` (so e.g. ``m_e`` is ``config["m_e"]``).
     """
-    reserved = {"seed", "command", "argv", "versions", "device"} & set(settings)
+    reserved = {"seed", "command", "argv", "versions", "device", "started_utc"} & set(settings)
     if reserved:
         raise ValueError(f"settings may not use the reserved keys {sorted(reserved)}")
     folder = Path(out)
@@ -232,6 +242,7 @@ def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Pa
         folder / "config.json",
         {
             "seed": int(seed),
+            "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "command": " ".join([sys.executable, *sys.argv]),
             "argv": list(sys.argv),
             "versions": package_versions(),
@@ -240,6 +251,60 @@ def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Pa
         },
     )
     return folder
+
+
+def _set_status(folder: Path, status: str, error: str | None = None) -> None:
+    config = json.loads((folder / "config.json").read_text())
+    config.update(status=status, finished_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    if error is not None:
+        config["error"] = error
+    write_json(folder / "config.json", config)
+
+
+@contextlib.contextmanager
+def run_folder(
+    out: str | os.PathLike, seed: int, settings: dict[str, Any], overwrite: bool = False
+):
+    """A run folder that appears complete, or not at all (a context manager yielding the folder
+    to write into).
+
+    The run writes into a hidden sibling ``.<name>.partial-<pid>`` whose ``config.json`` says
+    ``"status": "running"``; when the block ends normally the status becomes ``complete`` and
+    the folder is renamed to ``out`` (replacing an old one only with ``overwrite``). If the block
+    raises (Ctrl-C included) the status becomes ``failed`` with the error, and the folder is
+    renamed to ``<name>.failed-<UTC time>``; a killed process leaves only the hidden partial
+    folder. Either way ``out`` never holds a mix of two runs or a run that did not finish.
+
+    Raises:
+        FileExistsError: ``out`` exists, is not empty and ``overwrite`` is False (checked
+            before anything is computed).
+    """
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
+        raise FileExistsError(
+            f"{out} exists and is not empty: choose another --out, or pass --overwrite"
+        )
+    partial = out.with_name(f".{out.name}.partial-{os.getpid()}")
+    if partial.exists():
+        shutil.rmtree(partial)
+    start_run(partial, seed, dict(settings, status="running"))
+    try:
+        yield partial
+    except BaseException as e:
+        _set_status(partial, "failed", f"{type(e).__name__}: {e}")
+        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
+        failed = out.with_name(f"{out.name}.failed-{stamp}")
+        os.replace(partial, failed)
+        print(f"run failed; what it wrote is in {failed}", file=sys.stderr)
+        raise
+    _set_status(partial, "complete")
+    if out.exists():
+        old = out.with_name(f".{out.name}.replaced-{os.getpid()}")
+        os.replace(out, old)
+        os.replace(partial, out)
+        shutil.rmtree(old) if old.is_dir() else old.unlink()
+    else:
+        os.replace(partial, out)
 
 
 def enable_compile_cache() -> None:

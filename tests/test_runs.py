@@ -1,5 +1,9 @@
-"""Run-folder writers: the one video writer (H.264 through imageio-ffmpeg, OpenCV mp4v without)."""
+"""Run folders: complete or not at all (status, refusal, overwrite, failure, kill), file modes, and
+the one video writer (H.264 through imageio-ffmpeg, OpenCV mp4v without)."""
 
+import json
+import signal
+import subprocess
 import sys
 
 import cv2
@@ -78,3 +82,67 @@ def test_bad_input(tmp_path, frames, fps, message):
     with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
         runs.write_video(tmp_path / "v.mp4", frames, fps)
     assert list(tmp_path.iterdir()) == []
+
+
+def _settings():
+    return {"what": "test"}
+
+
+def test_run_folder_appears_complete_or_not_at_all(tmp_path):
+    out = tmp_path / "run"
+    with runs.run_folder(out, 0, _settings()) as folder:
+        assert not out.exists() and folder.name.startswith(".run.partial-")
+        runs.write_json(folder / "metrics.json", {"x": 1})
+        config = json.loads((folder / "config.json").read_text())
+        assert config["status"] == "running"
+    config = json.loads((out / "config.json").read_text())
+    assert config["status"] == "complete" and config["what"] == "test"
+    assert (out / "metrics.json").stat().st_mode & 0o044  # readable by group and others
+    # an existing non-empty folder is refused before anything runs; --overwrite replaces it
+    with pytest.raises(FileExistsError, match="--overwrite"):
+        with runs.run_folder(out, 1, _settings()):
+            raise AssertionError("must not run")
+    with runs.run_folder(out, 1, _settings(), overwrite=True) as folder:
+        runs.write_json(folder / "other.json", {})
+    assert sorted(p.name for p in out.iterdir()) == ["config.json", "other.json"]
+    assert json.loads((out / "config.json").read_text())["seed"] == 1
+    assert [p.name for p in tmp_path.iterdir()] == ["run"]  # nothing left beside it
+
+
+def test_a_failed_run_never_looks_complete(tmp_path):
+    out = tmp_path / "run"
+    with pytest.raises(ZeroDivisionError):
+        with runs.run_folder(out, 0, _settings()) as folder:
+            runs.write_json(folder / "half.json", {})
+            1 / 0  # noqa: B018
+    assert not out.exists()
+    (failed,) = tmp_path.glob("run.failed-*")
+    config = json.loads((failed / "config.json").read_text())
+    assert config["status"] == "failed" and "ZeroDivisionError" in config["error"]
+
+
+def test_a_killed_run_leaves_no_run_folder(tmp_path):
+    """A process killed (SIGKILL) while it writes leaves only the hidden partial folder; an
+    earlier complete run in the same place is untouched."""
+    out = tmp_path / "run"
+    with runs.run_folder(out, 0, _settings()) as folder:
+        runs.write_json(folder / "metrics.json", {"run": "first"})
+    script = (
+        "import time, sys\n"
+        "from hec_jax import runs\n"
+        "with runs.run_folder(sys.argv[1], 0, {}, overwrite=True) as f:\n"
+        "    runs.write_json(f / 'metrics.json', {'run': 'second'})\n"
+        "    print('writing', flush=True)\n"
+        "    time.sleep(60)\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script, str(out)], stdout=subprocess.PIPE, text=True
+    )
+    assert proc.stdout.readline().strip() == "writing"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert json.loads((out / "metrics.json").read_text()) == {"run": "first"}
+    assert json.loads((out / "config.json").read_text())["status"] == "complete"
+    partial = [p for p in tmp_path.iterdir() if p.name.startswith(".run.partial-")]
+    assert len(partial) == 1
+    assert json.loads((partial[0] / "config.json").read_text())["status"] == "running"

@@ -17,7 +17,8 @@ class TaskRun:
     """A task experiment and where it writes its run folder."""
 
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
-    out: Path = Path("runs/experiment")  # run folder
+    out: Path = Path("runs/experiment")  # run folder (written complete or not at all)
+    overwrite: bool = False  # replace an existing non-empty --out (else refused up front)
     float32: bool = False  # float32 (default float64, as every number in the docs)
 
 
@@ -34,7 +35,7 @@ def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
     jax.config.update("jax_enable_x64", not run.float32)
     from hec_jax.loop.experiment import run_experiment
     from hec_jax.loop.report import print_summary, write_experiment
-    from hec_jax.runs import start_run
+    from hec_jax.runs import run_folder
 
     exp = run.experiment
     settings = dict(
@@ -44,10 +45,10 @@ def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
         float32=run.float32,
         argv_given=None if argv is None else list(argv),
     )
-    folder = start_run(run.out, exp.seed, settings)
-    result = run_experiment(exp)
-    write_experiment(folder, result)
-    print(f"run folder: {folder}")
+    with run_folder(run.out, exp.seed, settings, run.overwrite) as folder:
+        result = run_experiment(exp)
+        write_experiment(folder, result)
+    print(f"run folder: {run.out}")
     print_summary(result)
     return result.metrics
 
