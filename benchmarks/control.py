@@ -54,6 +54,7 @@ class ControlBenchmark:
 
 
 def main(argv=None):
+    """Runs the benchmark on the flags in ``argv`` (None: the command line); prints its table."""
     cfg = parse(ControlBenchmark(), argv, __doc__)
     bench.float_dtype(cfg.float32)
     T = cfg.steps

@@ -51,6 +51,7 @@ class GradientsBenchmark:
 
 
 def main(argv=None):
+    """Runs the benchmark on the flags in ``argv`` (None: the command line); returns its rows."""
     cfg = parse(GradientsBenchmark(), argv, __doc__)
     dtype = bench.float_dtype(cfg.float32)
     enable_compile_cache()

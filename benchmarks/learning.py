@@ -31,7 +31,7 @@ from hec_jax import benchmarking as bench
 from hec_jax.cli import parse
 from hec_jax.loop import TaskConfig, build_loop, sweep_catching
 from hec_jax.report import markdown_table
-from hec_jax.runs import start_run, write_json, write_text
+from hec_jax.runs import run_folder, write_json, write_text
 
 LATENCY_ROWS = {  # metrics key: row of the latency table
     "control_and_learning": "control + learning on an observation (Eqs. 52-58, 41-47)",
@@ -53,7 +53,8 @@ class LearningBenchmark:
     """The learning benchmark: the task, rollout length, batches and repeats."""
 
     task: TaskConfig = field(default_factory=sweep_catching)
-    out: Path = Path("runs/bench_learning")  # run folder
+    out: Path = Path("runs/bench_learning")  # run folder (written complete or not at all)
+    overwrite: bool = False  # replace an existing non-empty --out (else refused up front)
     seed: int = 0  # PRNG seed of the network initialisations (and the release perturbations)
     steps: int = 500  # control steps per rollout
     batches: tuple[int, ...] = (1, 16, 128)  # vmapped rollouts, one row each
@@ -61,20 +62,13 @@ class LearningBenchmark:
     float32: bool = False  # float32 (default float64)
 
 
-def main(argv=None):
-    cfg = parse(LearningBenchmark(), argv, __doc__)
-    dtype = bench.float_dtype(cfg.float32)
-    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k != "seed"}
-    folder = start_run(cfg.out, cfg.seed, settings)
+def measure(cfg: LearningBenchmark, dtype) -> tuple[dict, list]:
+    """({row: latency [s]}, [(batch, {rollout: (steps/s, compile [s])})]) of one run."""
     loop = build_loop(cfg.task)
     conditions = cfg.task.pendulum.conditions()
     key = jax.random.PRNGKey(cfg.seed)
-
-    # --- latency of one step -----------------------------------------------------------------
     steps = bench.learning_steps(loop, conditions, key, dtype)
     lat = {name: bench.mean_call(fn, args, cfg.repeats) for name, (fn, args) in steps.items()}
-
-    # --- rollout throughput ----------------------------------------------------------------------
     rollouts = bench.learning_rollouts(loop, conditions, cfg.steps, dtype)
     rows = []
     for batch in cfg.batches:
@@ -90,35 +84,44 @@ def main(argv=None):
             f"{rates['forward_only'][0]:.3g} steps/s",
             flush=True,
         )
+    return lat, rows
 
-    us = {k: v * 1e6 for k, v in lat.items()}
-    lat_rows = [[what, f"{us[k]:.1f}"] for k, what in LATENCY_ROWS.items()]
-    ratio = lat["control_and_learning"] / lat["control_only"]
-    lat_rows.insert(2, ["ratio learning / control only", f"{ratio:.2f}"])
-    rate_rows = []
-    for b, r in rows:
-        learn, fwd, compile_s = r["learning"][0], r["forward_only"][0], r["learning"][1]
-        rate_rows.append(
-            (b, f"{learn:.3g}", f"{fwd:.3g}", f"{learn / fwd:.2f}", f"{compile_s:.1f}")
-        )
-    lines = [
-        f"Device: {jax.devices()[0]} ({jax.default_backend()}), {jnp.dtype(dtype).name}, "
-        f"{cfg.steps}-step rollouts.",
-        "",
-        *markdown_table(["one jitted step", "latency [us]"], lat_rows),
-        "",
-        *markdown_table(RATE_HEADER, rate_rows),
-    ]
-    text = "\n".join(lines) + "\n"
-    metrics = {
-        "latency_us": us,
-        "latency_target_100us_met": bool(lat["control_and_learning"] <= 100e-6),
-        "throughput_steps_per_s": {
-            str(b): {name: rate for name, (rate, _) in r.items()} for b, r in rows
-        },
-    }
-    write_json(folder / "metrics.json", metrics)
-    write_text(folder / "table.md", text)
+
+def main(argv=None):
+    """Runs the benchmark on the flags in ``argv`` (None: the command line); returns metrics."""
+    cfg = parse(LearningBenchmark(), argv, __doc__)
+    dtype = bench.float_dtype(cfg.float32)
+    settings = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in ("seed", "overwrite")}
+    with run_folder(cfg.out, cfg.seed, settings, cfg.overwrite) as folder:
+        lat, rows = measure(cfg, dtype)
+        us = {k: v * 1e6 for k, v in lat.items()}
+        lat_rows = [[what, f"{us[k]:.1f}"] for k, what in LATENCY_ROWS.items()]
+        ratio = lat["control_and_learning"] / lat["control_only"]
+        lat_rows.insert(2, ["ratio learning / control only", f"{ratio:.2f}"])
+        rate_rows = []
+        for b, r in rows:
+            learn, fwd, compile_s = r["learning"][0], r["forward_only"][0], r["learning"][1]
+            rate_rows.append(
+                (b, f"{learn:.3g}", f"{fwd:.3g}", f"{learn / fwd:.2f}", f"{compile_s:.1f}")
+            )
+        lines = [
+            f"Device: {jax.devices()[0]} ({jax.default_backend()}), {jnp.dtype(dtype).name}, "
+            f"{cfg.steps}-step rollouts.",
+            "",
+            *markdown_table(["one jitted step", "latency [us]"], lat_rows),
+            "",
+            *markdown_table(RATE_HEADER, rate_rows),
+        ]
+        text = "\n".join(lines) + "\n"
+        metrics = {
+            "latency_us": us,
+            "latency_target_100us_met": bool(lat["control_and_learning"] <= 100e-6),
+            "throughput_steps_per_s": {
+                str(b): {name: rate for name, (rate, _) in r.items()} for b, r in rows
+            },
+        }
+        write_json(folder / "metrics.json", metrics)
+        write_text(folder / "table.md", text)
     print(text)
     return metrics
 

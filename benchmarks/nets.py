@@ -46,14 +46,15 @@ class NetsBenchmark:
 
 def _synthetic_sample(t, run, n_axes, dtype):
     """Per-run, per-sample network inputs (n_axes, 4), Eq. 47 coefficients (n_axes, 3) and
-    cotangent (n_axes,), smooth in t and different for every run."""
+    cotangent (n_axes,), smooth in t and different for every run.
+    """
     s = jnp.sin(0.01 * t + 1e-3 * run + jnp.arange(8 * n_axes, dtype=dtype))
     s = s.reshape(n_axes, 8)
     return s[:, :4], 0.1 * s[:, 4:7], 1e-3 * s[:, 7]
 
 
 def make_rollout(forward, n_axes, eta, steps, dtype):
-    """vmap over runs of a scan over samples of: forward, VJP, w <- w - eta dE/dw (Eq. 52)."""
+    """Jitted ``vmap`` over runs of a scan over samples: forward, VJP, w -= eta dE/dw (Eq. 52)."""
 
     def step(params, t, run):
         x, coeff, cotangent = _synthetic_sample(t, run, n_axes, dtype)
@@ -71,6 +72,7 @@ def make_rollout(forward, n_axes, eta, steps, dtype):
 
 
 def main(argv=None):
+    """Runs the benchmark on the flags in ``argv`` (None: the command line); prints its table."""
     cfg = parse(NetsBenchmark(), argv, __doc__)
     dtype = bench.float_dtype(not cfg.float64)
     config, imp = cfg.net, cfg.impedance

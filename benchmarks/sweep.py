@@ -68,6 +68,7 @@ class SweepBenchmark:
 
 
 def main(argv=None):
+    """Runs the benchmark on the flags in ``argv`` (None: the command line); prints its table."""
     cfg = parse(SweepBenchmark(), argv, __doc__)
     if cfg.warp and importlib.util.find_spec("warp") is None:  # fail before the long rows
         raise SystemExit('--warp needs warp-lang: pip install -e ".[warp]"')
@@ -129,10 +130,10 @@ def main(argv=None):
         print(f"  exact gradient / forward rollout (catching, 1 device) = {grad_ratio:.2f}")
     for variant in variants:
         for n in loop.counts:
-            rate = loop.rates[variant, n]
+            rate, speedup = loop.rates[variant, n], loop.rates[variant, n] / loop.rates[variant, n1]
             print(
                 f"  {n} device(s), {variant} network step: learning loop / mujoco.rollout = "
-                f"{rate / c_rate:.2f}, speed-up over 1 device = {rate / loop.rates[variant, n1]:.2f}"
+                f"{rate / c_rate:.2f}, speed-up over 1 device = {speedup:.2f}"
             )
 
 

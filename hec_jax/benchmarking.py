@@ -76,7 +76,8 @@ def first_call(fn, *args) -> tuple[object, float]:
 
 def mean_call(fn, args: tuple, repeats: int) -> float:
     """Mean wall time [s] per call of ``fn(*args)``: one call to compile, then ``repeats`` calls
-    dispatched back to back and the last one waited for (latency of a pipelined control loop)."""
+    dispatched back to back and the last one waited for (latency of a pipelined control loop).
+    """
     jax.block_until_ready(fn(*args))
 
     def calls():
@@ -89,7 +90,8 @@ def mean_call(fn, args: tuple, repeats: int) -> float:
 
 def interleaved_best(fns: dict[str, Callable], args: tuple, repeat: int) -> dict[str, float]:
     """{name: shortest wall time [s] of ``fn(*args)``} over ``repeat`` rounds, each round calling
-    every function once in turn, so that a change of load hits every row alike."""
+    every function once in turn, so that a change of load hits every row alike.
+    """
     times = {name: np.inf for name in fns}
     for _ in range(repeat):
         for name, fn in fns.items():
@@ -100,7 +102,8 @@ def interleaved_best(fns: dict[str, Callable], args: tuple, repeat: int) -> dict
 
 def text_table(header: Sequence[str], widths: Sequence[int], rows: Sequence[Sequence]) -> list[str]:
     """Lines of a plain-text table: the first column left-aligned in ``widths[0]`` characters,
-    the next ones right-aligned in theirs, the last (notes) after two spaces, unpadded."""
+    the next ones right-aligned in theirs, the last (notes) after two spaces, unpadded.
+    """
 
     def line(cells):
         cells = [str(c) for c in cells]
@@ -149,7 +152,8 @@ def c_rollout_seconds(
     m: mujoco.MjModel, states: np.ndarray, ctrl: np.ndarray, threads: int, repeat: int = 3
 ) -> float:
     """Shortest wall time [s] of MuJoCo C's ``mujoco.rollout`` of ``states`` (B, nstate) under
-    the open-loop controls ``ctrl`` (B, T, nu) on ``threads`` threads, after one untimed call."""
+    the open-loop controls ``ctrl`` (B, T, nu) on ``threads`` threads, after one untimed call.
+    """
     batch = len(states)
     datas = [mujoco.MjData(m) for _ in range(threads)]
     with mj_rollout.Rollout(nthread=threads) as r:
@@ -175,7 +179,8 @@ def physics_only(m: mujoco.MjModel, batch: int, steps: int, impl: str = "jax"):
     """Jitted ``run(release) -> (largest hinge angle (B,), final qpos (B, nq))``: ``mjx.step`` in
     a ``lax.scan`` of ``steps`` steps, zero torques, from rest with the hinge at each ``release``
     [rad] (B,) (``vmap``), on MJX's ``impl`` ("jax" or "warp": MuJoCo Warp, whose contact buffers
-    are sized for ``batch`` worlds)."""
+    are sized for ``batch`` worlds).
+    """
     mx = mjx.put_model(m, impl=impl)
     if impl == "warp":  # contact buffers are shared by all worlds: one hand-cube contact each
         d0 = mjx.make_data(m, impl="warp", naconmax=max(batch, 8), njmax=16)
@@ -201,7 +206,8 @@ def physics_only(m: mujoco.MjModel, batch: int, steps: int, impl: str = "jax"):
 
 def control_step(mm, ids: SceneIds, conditions, q_home, cfg: ControllerConfig | None = None):
     """(jitted ``apply``, its arguments but the parameters) of one control step on the TaskObs of
-    MuJoCo C data at the release: ``apply(params, vparams, target, state, obs)``."""
+    MuJoCo C data at the release: ``apply(params, vparams, target, state, obs)``.
+    """
     d = make_data_c(mm, ids, conditions, q_home)
     obs = observe_c(ids, d.qpos, d.qvel, c_quantities(mm, d, ids), np.zeros(3))
     init, apply = make_impedance_controller(ids.timestep, ids.torque_limit, cfg)
@@ -212,7 +218,8 @@ def control_step(mm, ids: SceneIds, conditions, q_home, cfg: ControllerConfig | 
 def control_rollout(mx, ids, q_home, conditions, params, vparams, steps: int, cfg=None):
     """``run(release) -> Trajectory``: ``steps`` steps of MJX physics + observe + impedance
     controller in one ``lax.scan`` (``mjx_scene.rollout``) from ``release`` [rad] (pure,
-    vmappable); the target is the hand's position at the release."""
+    vmappable); the target is the hand's position at the release.
+    """
     policy_init, policy = make_mjx_policy(ids, cfg)
 
     def run(release):
@@ -227,7 +234,8 @@ def control_rollout(mx, ids, q_home, conditions, params, vparams, steps: int, cf
 
 def c_control_rollout(mm, ids, q_home, conditions, params, vparams, steps: int, cfg=None):
     """``() -> None``: the same closed loop on MuJoCo C (``rollout_c``, a Python loop calling the
-    same jitted controller on MuJoCo C quantities)."""
+    same jitted controller on MuJoCo C quantities).
+    """
     policy_init, policy = make_c_policy(ids, cfg)
 
     def run():
@@ -246,7 +254,8 @@ def c_control_rollout(mm, ids, q_home, conditions, params, vparams, steps: int, 
 
 def plain_impedance(loop: Loop) -> tuple[ImpedanceParams, Target, VirtualParams]:
     """The task's target impedance (Eq. 40), its resting target at ``loop.x_home`` and a zero
-    virtual impedance: the controller's arguments for plain impedance control."""
+    virtual impedance: the controller's arguments for plain impedance control.
+    """
     imp, radius = loop.config.impedance, loop.config.learner.radius
     params = ImpedanceParams(jnp.asarray(imp.m_e), jnp.asarray(imp.b_e), jnp.asarray(imp.k_e))
     target = Target(jnp.asarray(loop.x_home), jnp.zeros(2), jnp.zeros(2))
@@ -257,7 +266,8 @@ def plain_impedance(loop: Loop) -> tuple[ImpedanceParams, Target, VirtualParams]
 def learning_steps(loop: Loop, conditions: PendulumConditions, key, dtype) -> dict:
     """{name: (jitted fn, args)} of one step at the release: control + learning and control only
     on a given TaskObs, and the loop's policy and the plain impedance policy on the MJX data
-    (observation included). The learner's inputs take zero accelerations, as a first sample."""
+    (observation included). The learner's inputs take zero accelerations, as a first sample.
+    """
     task, ids = loop.config, loop.ids
     lc = task.learner
     params, target, zero_vp = plain_impedance(loop)
@@ -302,7 +312,8 @@ def learning_rollouts(loop: Loop, conditions: PendulumConditions, steps: int, dt
     """{"learning", "forward_only"}: ``run(key) -> x_hand (steps, 3)`` (pure, vmappable):
     ``steps`` steps of MJX physics + controller with the online learner (learned condition) or
     plain impedance; the release angle is moved by 1e-3 rad N(0, 1) drawn from ``key``, so that
-    ``vmap`` cannot hoist the work out of a batch."""
+    ``vmap`` cannot hoist the work out of a batch.
+    """
     task, ids = loop.config, loop.ids
     params, target, zero_vp = plain_impedance(loop)
     plain_init, plain_policy = make_mjx_policy(ids, task.controller)
@@ -338,7 +349,8 @@ def _batched(fn):
 def probe_gradients(task: TaskConfig, steps: int, batch: int, dtype):
     """(forward, {name: value_and_grad}, args) of the contact probe (PD-held hand struck by the
     pendulum, ``mjx_scene.contact_probe``) w.r.t. its 3 gains, over ``batch`` conditions.
-    ``task`` is not used (the probe has no learner)."""
+    ``task`` is not used (the probe has no learner).
+    """
     conds = probe_conditions(batch, 0, dtype)
     gains = jnp.zeros(3, dtype)
     base, one = make_probe(), make_probe(iterations=1)
@@ -369,7 +381,8 @@ def probe_gradients(task: TaskConfig, steps: int, batch: int, dtype):
 def catching_gradients(task: TaskConfig, steps: int, batch: int, dtype):
     """(forward, {name: value_and_grad}, args) of the catching loop with the initial (frozen)
     networks: sum |F_contact|^2 1e-5 + sum x_hand over ``steps`` steps from the release, w.r.t.
-    all network weights (Eqs. 50-51), over ``batch`` probe conditions."""
+    all network weights (Eqs. 50-51), over ``batch`` probe conditions.
+    """
     loop = build_loop(task)
     ls0 = loop.learner_init(jax.random.PRNGKey(0), dtype)
     conds = probe_conditions(batch, 0, dtype)
@@ -420,7 +433,8 @@ def variant_of(learner: LearnerConfig) -> str:
 
 def one_swing(task: TaskConfig, steps: int) -> TaskConfig:
     """``task`` with one swing of ``steps`` control steps (the model's time step) and no
-    continuous run (the settle window cut to the swing where longer)."""
+    continuous run (the settle window cut to the swing where longer).
+    """
     swing_s = steps * float(load_mj_model().opt.timestep)
     return dataclasses.replace(
         task, swings=1, swing_s=swing_s, final_s=0.0, settle_s=min(task.settle_s, swing_s)
@@ -437,7 +451,8 @@ def scene_solver(task: TaskConfig) -> TaskConfig:
 def release_batch(conditions: PendulumConditions, size: int, lo=-0.55, hi=-0.45):
     """(keys (size, 2), conditions (size,) each, release angles [rad] (size,)): ``conditions``
     with the release angle spread over [lo, hi] (distinct runs: ``vmap`` cannot hoist the work),
-    one network seed per run (``PRNGKey(0)`` split)."""
+    one network seed per run (``PRNGKey(0)`` split).
+    """
     release = jnp.linspace(lo, hi, size)
     batched = PendulumConditions(
         **{k: jnp.broadcast_to(v, (size,)) for k, v in conditions._asdict().items()}
@@ -449,7 +464,8 @@ def peaks_and_shares(loop: Loop):
     """``run(keys, conditions) -> (peak, learning, inside)`` (not jitted; for
     :class:`~hec_jax.loop.OnDevices`): each run's peak contact force [N] under the learned
     condition, and the shares of its steps in which the learner updated its weights and in which
-    the cube was inside the virtual sphere."""
+    the cube was inside the virtual sphere.
+    """
     sweep = make_sweep(loop)
     sw = switches("learned")
 
@@ -466,7 +482,8 @@ def peaks_and_shares(loop: Loop):
 def time_on_devices(runner, *args, repeat: int = 3):
     """(outputs, first call [s] (compile included), shortest of ``repeat`` calls [s]) of an
     :class:`~hec_jax.loop.OnDevices` / :class:`~hec_jax.loop.Sharded` ``runner`` on ``args``,
-    placed on its devices once, outside the timed calls."""
+    placed on its devices once, outside the timed calls.
+    """
     placed = runner.place(*args)
     out, compile_s = timed(lambda: runner.run(placed))
     return out, compile_s, best_of(lambda: runner.run(placed), repeat)
@@ -500,7 +517,8 @@ def loop_rows(task, variants, batch, steps, per_device, spmd, add_row) -> LoopRa
     variant on the first n devices, n = 1, 2, 4, ... (one executable per device, called from its
     own thread; with ``spmd`` also one GSPMD program for n > 1, not for the Triton kernel on
     GPUs); ``batch`` runs in all (``per_device``: on every device). Rows go to
-    ``add_row(what, steps/s, notes)`` as they are measured."""
+    ``add_row(what, steps/s, notes)`` as they are measured.
+    """
     n_dev = jax.device_count()
     counts = [n for n in (1, 2, 4, 8, 16) if n <= n_dev and (per_device or batch % n == 0)]
     rates, peaks, shares = {}, {}, (np.nan, np.nan)
@@ -536,7 +554,8 @@ def loop_rows(task, variants, batch, steps, per_device, spmd, add_row) -> LoopRa
 
 def physics_rows(m: mujoco.MjModel, release, steps: int, warp: bool, add_row) -> dict:
     """Times :func:`physics_only` on MJX (and with ``warp`` on MuJoCo Warp, with the largest
-    differences of its results from MJX's); returns {"jax": steps/s, "warp": steps/s}."""
+    differences of its results from MJX's); returns {"jax": steps/s, "warp": steps/s}.
+    """
     batch, rates, results = len(release), {}, {}
     for impl in ("jax", "warp") if warp else ("jax",):
         fn = physics_only(m, batch, steps, impl)
@@ -556,7 +575,8 @@ def physics_rows(m: mujoco.MjModel, release, steps: int, warp: bool, add_row) ->
 def c_rows(m: mujoco.MjModel, m_scene: mujoco.MjModel, release, steps, repeats, add_row) -> float:
     """Times MuJoCo C's ``mujoco.rollout`` (zero torques, all host cores) from each ``release``
     on ``m``, and on ``m_scene`` (scene.xml's solver) where MuJoCo runs that differently; returns
-    the faster rate [steps/s], the baseline (a setting that suits MJX cannot make C look slow)."""
+    the faster rate [steps/s], the baseline (a setting that suits MJX cannot make C look slow).
+    """
     batch, threads = len(release), host_threads()
     models = [(m, f"same settings ({solver_name(m)})")]
     if effective_settings(m_scene) != effective_settings(m):

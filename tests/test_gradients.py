@@ -87,6 +87,7 @@ def test_gradient_finite_float32_batch():
         release_speed=np.zeros(4),
         hinge_damping=np.full(4, 0.002),
         arrival_phase=np.zeros(4),
+        hinge_x=np.full(4, 0.35),  # scene.xml's hinge
     )
     grad, f_contact = _float32_grads(conds, batched=True)
     assert np.all(np.isfinite(grad))

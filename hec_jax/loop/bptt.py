@@ -29,7 +29,8 @@ from hec_jax.mjx_scene import PendulumConditions, PendulumConfig, differentiable
 def training_conditions(n: int, seed: int, pendulum: PendulumConfig, dtype) -> PendulumConditions:
     """``n`` conditions drawn around ``pendulum`` so that every swing reaches a hand waiting at
     X_HOME: rod 0.57-0.63 m, cube 0.5-0.9 kg, release -0.6 to -0.5 rad, from rest; hinge damping
-    and position are ``pendulum``'s."""
+    and position are ``pendulum``'s.
+    """
     rng = np.random.default_rng(seed)
     hinge_x = float(pendulum.conditions().hinge_x)
     fields = dict(
@@ -53,7 +54,8 @@ def converged_at(peaks: np.ndarray, tol: float = 0.1) -> int:
 
 def make_batch_loss(loop: Loop, conditions: PendulumConditions, ls0):
     """``loss(params) -> (L, (L per condition, peak |F_contact| per condition [N], smallest Eq. 49
-    margin))`` of one swing of the batch with the networks ``params`` frozen (pure)."""
+    margin))`` of one swing of the batch with the networks ``params`` frozen (pure).
+    """
     frozen, n = switches("frozen"), loop.swing_steps
     dt = loop.ids.timestep
 
@@ -131,7 +133,8 @@ def online_metrics(logs: dict, peak_plain: np.ndarray, reach: np.ndarray) -> dic
     """Learning-curve metrics of an online arm (logs (batch, swings, steps)) against the plain
     first-swing peaks ``peak_plain`` (batch,); ``reach``: conditions whose plain swing makes
     contact. With ``de_df_exact`` logged (the exact arm): the median cosine and magnitude ratio of
-    the paper's dE/dF_act to the exact one over the learning samples."""
+    the paper's dE/dF_act to the exact one over the learning samples.
+    """
     peaks = force_norm(logs).max(-1)
     out = {
         "final_peak_force": mean_std(peaks[:, -1]),
@@ -154,7 +157,8 @@ def online_metrics(logs: dict, peak_plain: np.ndarray, reach: np.ndarray) -> dic
 
 def bptt_metrics(hist: dict, peak_plain: np.ndarray, reach: np.ndarray) -> dict:
     """The same learning-curve metrics for :func:`train_bptt`'s history: swing k is run with the
-    networks after k - 1 updates (swing 1: the initial networks), the last with the trained ones."""
+    networks after k - 1 updates (swing 1: the initial networks), the last with the trained ones.
+    """
     peak = np.stack(hist["peak"], axis=1)  # (batch, swings + 1)
     final = peak[:, -1]
     return {

@@ -54,7 +54,8 @@ def make_control_step(loop: Loop, dynamics=dynamics_stages):
     """``step(m, d, obs, q_posture, f_o) -> (X_e, X_e')(t + dt)`` [m, m/s] (4,): one control step
     of the world from observed data ``d`` (position/velocity stages done) under the virtual force
     ``f_o`` [N] (2,), the loop's target impedance and X_d. ``dynamics``: ``mjx_scene``'s stages
-    (forward mode through MJX's solve) or ``differentiable.dynamics_stages`` (implicit)."""
+    (forward mode through MJX's solve) or ``differentiable.dynamics_stages`` (implicit).
+    """
     cc, ids = loop.config.controller, loop.ids
     params = _impedance(loop.config)
     target = Target(jnp.asarray(loop.x_home), jnp.zeros(2), jnp.zeros(2))
@@ -76,7 +77,8 @@ def make_one_step(loop: Loop):
     """``one_step(f_o (2,), qpos, qvel, f_int_world (3,), m) -> (X_e, X_e')(t + dt)`` (4,): one
     control step from a logged state (the posture target is ``loop.q_home``; the measured force
     at step k is the contact force solved at step k - 1). ``m``: the MJX model under the run's
-    conditions (``loop.model_for``), an argument so one compile serves every condition."""
+    conditions (``loop.model_for``), an argument so one compile serves every condition.
+    """
     c0 = loop.config.pendulum.conditions()
     d_template = loop.data_for(loop.model_for(c0), c0)
     step = make_control_step(loop)
@@ -91,7 +93,8 @@ def make_one_step(loop: Loop):
 
 def build_exact_loop(config: TaskConfig) -> Loop:
     """``build_loop(config)`` whose learner steps with the exact one-step dE/dF_act (module
-    docstring); its logs add ``de_df_exact`` and ``de_df_paper`` (2,) at learning samples."""
+    docstring); its logs add ``de_df_exact`` and ``de_df_paper`` (2,) at learning samples.
+    """
     base = build_loop(config)
     lc, ids, imp = config.learner, base.ids, config.impedance
     dt = ids.timestep

@@ -125,9 +125,12 @@ def task_metrics(loop: Loop, logs: dict) -> dict:
         "hand_follow_ratio": "X_e' . X_o' / |X_o'|^2 one sample before the first contact (0: the"
         " hand waits, 1: it moves with the object); target: > 0.3",
     }
+    def ratio(a: float, b: float) -> float | None:
+        return a / b if b > 0 else None  # None: the baseline never touched the object
+
     out["targets"] = {
-        "peak_learned_over_plain": peak["learned"] / peak["plain"],
-        "peak_learned_over_frozen": peak["learned"] / peak["frozen"],
+        "peak_learned_over_plain": ratio(peak["learned"], peak["plain"]),
+        "peak_learned_over_frozen": ratio(peak["learned"], peak["frozen"]),
         "peak_at_most_half_of_both_baselines": bool(
             peak["learned"] <= 0.5 * min(peak["plain"], peak["frozen"])
         ),

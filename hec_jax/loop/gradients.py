@@ -48,7 +48,8 @@ def unit_mass_jacobian(dt: float) -> np.ndarray:
 def energy_gradients(lc: LearnerConfig, log: dict, idx: np.ndarray, v_tc, touched):
     """(dE/dX_e, dE/dX_e') (n, 2) each of the task energy at the samples ``idx`` of one swing's
     ``log`` (x_e, xd_e, x_o, xd_o, f_int, in_contact), with X_r'(t_c) ``v_tc`` (n, 2) and the
-    touched flags (n,)."""
+    touched flags (n,).
+    """
 
     def grad_at(x_e, xd_e, x_o, xd_o, f_int, contact, v, t):
         z = jnp.zeros(2)
@@ -81,14 +82,16 @@ def stats(x: np.ndarray) -> dict:
 
 def phases_of(log: dict) -> np.ndarray:
     """-1 outside the sphere, else 0 approach, 1 contact, 2 after contact (logs of
-    :class:`HorizonProbe` swings, which carry the learner's ``touched`` flag)."""
+    :class:`HorizonProbe` swings, which carry the learner's ``touched`` flag).
+    """
     ph = np.where(log["in_contact"], 1, np.where(log["touched"], 2, 0))
     return np.where(log["inside"], ph, -1)
 
 
 def make_jacobian(loop: Loop):
     """Jitted ``jac(f_o (n, 2), qpos (n, nq), qvel (n, nv), f_prev (n, 3), m) -> (n, 4, 2)``: the
-    exact one-step Jacobians at n logged states (forward mode), and the jitted one step itself."""
+    exact one-step Jacobians at n logged states (forward mode), and the jitted one step itself.
+    """
     one_step = make_one_step(loop)
     jac = jax.jit(jax.vmap(jax.jacfwd(one_step), in_axes=(0, 0, 0, 0, None)))
     return jac, jax.jit(one_step)
@@ -114,7 +117,8 @@ def one_step_comparison(loop: Loop, jac, log: dict, idx, v_tc, touched, m) -> di
 
 def jacobian_fd_error(one_step, jac_exact: np.ndarray, log: dict, k: int, m, h=1e-3) -> float:
     """Max relative error of one exact Jacobian (4, 2) at step ``k`` against central differences
-    in F_o with step ``h`` [N] (one step is affine in F_o away from saturation and contact onset)."""
+    in F_o with step ``h`` [N] (one step is affine in F_o away from saturation and contact onset).
+    """
     f_prev = np.concatenate([np.zeros((1, 3)), log["f_contact"][:-1]])
     rest = (jnp.asarray(log["qpos"][k]), jnp.asarray(log["qvel"][k]), jnp.asarray(f_prev[k]), m)
     f_o = jnp.asarray(log["f_o"][k])
@@ -127,7 +131,8 @@ def jacobian_fd_error(one_step, jac_exact: np.ndarray, log: dict, k: int, m, h=1
 
 def _paper_rule_policy(loop: Loop):
     """``loop.policy`` with the weights held fixed; logs the learner's own weight step as
-    ``g_paper`` (the loop's eta: build it with eta = 1) and its X_r'(t_c) and touched flag."""
+    ``g_paper`` (the loop's eta: build it with eta = 1) and its X_r'(t_c) and touched flag.
+    """
 
     def policy(ps, m, step):
         w = ps.learner.params
@@ -227,7 +232,8 @@ class HorizonProbe:
 
     def horizon_samples(self, ls, log: dict, c: PendulumConditions, per_phase: int) -> list[dict]:
         """Exact vs paper dE/dw over each horizon from ``per_phase`` evenly spaced states of each
-        phase of the frozen swing ``log`` (replayed from the release)."""
+        phase of the frozen swing ``log`` (replayed from the release).
+        """
         ph = phases_of(log)
         last = self.steps - max(self.horizons) - 2
         picks = []
@@ -291,7 +297,8 @@ class HorizonProbe:
 def one_step_along_learning(loop: Loop, key, stride: int) -> dict:
     """The one-step comparison along the last of the task's learning swings (one network
     initialisation, ``jax.random.split(key, 1)``, learning on), at every ``stride``-th sample inside the sphere, phases split at the first
-    contact; plus ``fd_err``: :func:`jacobian_fd_error` at 4 evenly spaced samples."""
+    contact; plus ``fd_err``: :func:`jacobian_fd_error` at 4 evenly spaced samples.
+    """
     c = loop.config.pendulum.conditions()
     logs = make_episodes(loop)(jax.random.split(key, 1), switches("learned"), c)
     log = {k: np.asarray(v[0, -1]) for k, v in logs.items()}  # the last swing
@@ -311,7 +318,8 @@ def one_step_along_learning(loop: Loop, key, stride: int) -> dict:
 
 def phase_summary(res: dict) -> dict:
     """Per phase of :func:`one_step_along_learning`'s samples: count, median Jacobian error,
-    median and smallest cosine, median |paper| / |exact| (phases without such samples left out)."""
+    median and smallest cosine, median |paper| / |exact| (phases without such samples left out).
+    """
     ok = np.isfinite(res["cosine"])
     out = {}
     for k, name in enumerate(PHASES):
@@ -350,7 +358,8 @@ def horizon_comparison(
     """For each task: the one-step comparison along the frozen sampled swing under each of the
     named ``conditions`` (:data:`CONDITIONS`), and under "default" the horizon comparison from
     ``per_phase`` states per phase, with one float64 central-difference check. Returns
-    (metrics, {(task, condition): one-step arrays}, {task: horizon rows})."""
+    (metrics, {(task, condition): one-step arrays}, {task: horizon rows}).
+    """
     key, rng = jax.random.PRNGKey(seed), np.random.default_rng(seed)
     metrics, one_step_all, horizon_all = {"timing_s": {}}, {}, {}
     for name, config in tasks.items():

@@ -23,7 +23,8 @@ def _pyplot():
 
 def one_step_figure(folder: Path, res: dict, dt: float) -> None:
     """``one_step_gradients.png``: cosine and magnitude ratio of the paper's dE/dF_act to the
-    exact one-step one, and the exact dX_e'/dF_act per axis against the unit mass."""
+    exact one-step one, and the exact dX_e'/dF_act per axis against the unit mass.
+    """
     plt = _pyplot()
     t, exact, colors = res["step"] * dt, res["exact"], _COLORS[res["phase"]]
     fig, ax = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
@@ -45,7 +46,8 @@ def one_step_figure(folder: Path, res: dict, dt: float) -> None:
 
 def horizon_arrays(one_step_all: dict, horizon_all: dict) -> dict:
     """The per-sample arrays of :func:`hec_jax.loop.gradients.horizon_comparison` by name
-    (``<task>__one_step__<condition>__<field>``, ``<task>__horizons__<field>``)."""
+    (``<task>__one_step__<condition>__<field>``, ``<task>__horizons__<field>``).
+    """
     out = {}
     for (name, cname), res in one_step_all.items():
         for f in ("step", "phase", "cosine", "ratio"):
@@ -116,7 +118,8 @@ def horizon_figures(
     folder: Path, one_step_all: dict, horizon_all: dict, horizons, dt: float
 ) -> None:
     """``one_step_sweep.png`` (one-step cosine and ratio along the sampled swings, every
-    condition) and ``horizons.png`` (cosine and ratio against H per state)."""
+    condition) and ``horizons.png`` (cosine and ratio against H per state).
+    """
     plt = _pyplot()
     names = sorted({n for n, _ in one_step_all})
     fig, ax = plt.subplots(2, len(names), figsize=(6 * len(names), 6), squeeze=False)

@@ -82,7 +82,8 @@ def zoh_reference(m_e: float, b_e: float, k_e: float, f: np.ndarray, dt: float) 
     """Exact solution of m_e x'' + b_e x' + k_e x = f (one axis, Eq. 40) from rest, with ``f``
     [N] (T,) held over each step of ``dt`` [s] (the simulator's zero-order hold): (T, 2) rows
     (x [m], x' [m/s]) at the start of each step (matrix exponential; independent of the
-    controller)."""
+    controller).
+    """
     A = np.array([[0.0, 1.0], [-k_e / m_e, -b_e / m_e]])
     E = expm(np.block([[A, np.array([[0.0], [1.0 / m_e]])], [np.zeros((1, 3))]]) * dt)
     x = np.zeros(2)
@@ -95,7 +96,8 @@ def zoh_reference(m_e: float, b_e: float, k_e: float, f: np.ndarray, dt: float) 
 
 def contact_summary(traj: Trajectory, t: np.ndarray) -> dict:
     """First contact [s], peak contact force [N], largest hand retreat along +x [m] and smallest
-    hand-object distance |X_r| [m] of one plain run (NumPy trajectory, no batch axis)."""
+    hand-object distance |X_r| [m] of one plain run (NumPy trajectory, no batch axis).
+    """
     fc = np.linalg.norm(traj.f_contact, axis=1)
     hit = np.nonzero(fc > 0)[0]
     x_e = traj.aux["x_e"]

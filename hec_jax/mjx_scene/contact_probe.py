@@ -94,6 +94,7 @@ def probe_conditions(n: int, seed: int = 0, dtype=jnp.float64) -> PendulumCondit
         "release_speed": np.zeros(n),
         "hinge_damping": np.full(n, float(base.hinge_damping)),
         "arrival_phase": np.zeros(n),
+        "hinge_x": np.full(n, float(base.hinge_x)),
     }
     return PendulumConditions(**{k: jnp.asarray(v, dtype) for k, v in fields.items()})
 
