@@ -42,6 +42,8 @@ SETTINGS = (("f64_iters10", np.float64, 10), ("f32_iters5", np.float32, 5))
 
 @dataclass(frozen=True)
 class EyePipeline:
+    """What the benchmark draws and measures, and where it writes."""
+
     out: Path = Path("runs/eye_pipeline")  # run folder
     seed: int = 0  # draws the synthetic problems and the swing's release angle
     scenes: int = 1000  # synthetic two-frame problems
@@ -58,7 +60,8 @@ class EyePipeline:
 def synthetic(rng, n: int, batches: tuple[int, ...], transfer: bool = False) -> dict:
     """Accuracy against IPPE_SQUARE and per-problem cost of the batched JAX core against the
     OpenCV loop, in one run (the top-level timings are the first batch size's; all are under
-    ``sweep`` when there are several or ``transfer``)."""
+    ``sweep`` when there are several or ``transfer``).
+    """
     sweep = {str(b): {} for b in batches}
     cfg = SceneConfig()
     k = cfg.intrinsics
@@ -104,6 +107,7 @@ def synthetic(rng, n: int, batches: tuple[int, ...], transfer: bool = False) -> 
 
 
 def rendered(seed: int, seconds: float) -> dict:
+    """Accuracy and per-frame time of ``track_box`` on a rendered swing of ``seconds``."""
     from hec_jax.geometry import track_box
     from hec_jax.mjx_scene import CUBE_EDGE
     from hec_jax.mjx_scene.render import render_swing
@@ -119,6 +123,7 @@ def rendered(seed: int, seconds: float) -> dict:
 
 
 def table(metrics: dict) -> list[str]:
+    """The Markdown lines of the benchmark's table."""
     lines = report.metrics_table(metrics)
     syn = metrics["synthetic_two_frame_0.5px"]
     if "sweep" in syn:
@@ -136,6 +141,7 @@ def table(metrics: dict) -> list[str]:
 
 
 def main(argv=None) -> dict:
+    """Runs the benchmark (flags: ``--help``); returns its metrics."""
     a = parse(EyePipeline(), argv, __doc__)
     jax.config.update("jax_enable_x64", True)
     settings = {"scenes": a.scenes, "batch": a.batch[0] if len(a.batch) == 1 else a.batch}

@@ -28,6 +28,8 @@ GREEN, RED = (0, 255, 0), (255, 0, 0)  # RGB: segments of a valid / rejected fra
 
 @dataclass(frozen=True)
 class EyeExperiment:
+    """The swing to render and track, and where the run writes."""
+
     out: Path = Path("runs/eye")  # run folder
     seed: int = 0  # draws the release angle unless --release is given
     seconds: float = 5.0  # length of the swing [s]
@@ -50,6 +52,7 @@ def overlay(frames: np.ndarray, track):
 
 
 def plot(folder: Path, seq, tr, phi: np.ndarray) -> None:
+    """Tracked against true centre, velocity and rotation over the swing (PNGs)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -86,6 +89,7 @@ def plot(folder: Path, seq, tr, phi: np.ndarray) -> None:
 
 
 def main(argv=None) -> dict:
+    """Renders, tracks and writes the run folder (flags: ``--help``); returns the metrics."""
     a = parse(EyeExperiment(), argv, __doc__)
     import jax
 

@@ -125,6 +125,7 @@ def task_metrics(loop: Loop, logs: dict) -> dict:
         "hand_follow_ratio": "X_e' . X_o' / |X_o'|^2 one sample before the first contact (0: the"
         " hand waits, 1: it moves with the object); target: > 0.3",
     }
+
     def ratio(a: float, b: float) -> float | None:
         return a / b if b > 0 else None  # None: the baseline never touched the object
 

@@ -7,7 +7,7 @@ of the solution of the constraint problem. That derivative is inexact (the line 
 tests are discrete; one iteration is not converged) and, in float32, non-finite: the line search's
 Newton update ``alpha - deriv_0 / deriv_1`` is differentiated where ``deriv_1`` (the curvature of
 the cost along the search direction) is tiny or exactly ``mjMINVAL`` (search direction ~ 0), whose
-derivative ``deriv_0 / deriv_1**2`` overflows float32 (see ``experiments/nan_diagnosis.py`` and
+derivative ``deriv_0 / deriv_1**2`` overflows float32 (see ``docs/probes.md`` and
 ``docs/gradients.md``).
 
 Here the solve is differentiated implicitly instead. The constraint problem is
