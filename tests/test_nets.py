@@ -467,3 +467,26 @@ def test_learning_with_the_kernel_follows_the_reference_world():
             *(jax.tree_util.tree_leaves(s.params) for s in (ls_ker, ls_ref)), strict=True
         ):
             np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+
+
+def test_configs_and_apply_refuse_what_they_cannot_handle():
+    for bad in (
+        dict(mu=-1.0),
+        dict(contact_stiffness=-1.0),
+        dict(radius=float("inf")),
+        dict(eta=(0.1, float("nan"), 0.1)),
+        dict(f_desired=float("nan")),
+    ):
+        with pytest.raises(ValueError, match=next(iter(bad)) if "eta" not in bad else "eta"):
+            LearnerConfig(**bad)
+    with pytest.raises(ValueError, match="input_scale"):
+        NetConfig(input_scale=(0.0, 1.0, 1.0, 1.0))
+    with pytest.raises(ValueError, match="hidden"):
+        NetConfig(hidden=())
+    cfg = NetConfig()
+    params = nets.init_params(jax.random.PRNGKey(0), cfg, jnp.float64)
+    u = nets.u_max(cfg, jnp.ones(2), 40.0 * jnp.ones(2), 400.0 * jnp.ones(2))
+    assert nets.apply(params, cfg, jnp.zeros((2, 4)), u).shape == (2, 3)
+    for shape in ((2, 3), (1, 4), (4,)):  # wrong width; a width-1 axis is not broadcast
+        with pytest.raises(ValueError, match="inputs must have shape"):
+            nets.apply(params, cfg, jnp.zeros(shape), u)

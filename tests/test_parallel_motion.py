@@ -435,6 +435,12 @@ def test_mismatched_dtype_raises():
         estimate_motion(np.zeros((4, 2), np.float32), np.zeros((4, 2)))
 
 
+@pytest.mark.parametrize("steps", [2.5, -1, True, "3"])
+def test_polish_steps_must_be_a_count(steps):
+    with pytest.raises(ValueError, match="polish_steps"):
+        estimate_motion(np.zeros((4, 2)), np.zeros((4, 2)), polish_steps=steps)
+
+
 # --- properties ---------------------------------------------------------------------------------
 
 

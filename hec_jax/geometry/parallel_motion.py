@@ -844,7 +844,11 @@ def estimate_motion(
             raise ValueError("before/after contain non-finite values")
         if not np.all(np.isfinite(np.asarray(length))) or np.any(np.asarray(length) <= 0):
             raise ValueError("length must be finite and positive")
-    est = _estimate_jit(before, after, length, prior_rotation, polish_steps=polish_steps)
+    if isinstance(polish_steps, bool) or not isinstance(polish_steps, int | np.integer):
+        raise ValueError(f"polish_steps must be an integer >= 0, got {polish_steps!r}")
+    if polish_steps < 0:
+        raise ValueError(f"polish_steps must be an integer >= 0, got {polish_steps}")
+    est = _estimate_jit(before, after, length, prior_rotation, polish_steps=int(polish_steps))
     if residual_tol is not None:
         est = est._replace(valid=consistency_check(est, residual_tol))
     return est

@@ -86,3 +86,18 @@ def sweep_main(doc: str | None = None, argv=None) -> dict:
         return merge(run.out, run.sweep)
     given = {"argv_given": None if argv is None else list(argv)}
     return run_sweep(run.sweep, run.out, run.shard_index, run.num_shards, given)
+
+
+def catching_main() -> None:
+    """Console entry point ``hec-catching`` (``experiments/catching.py``)."""
+    main_for("catching", "Catching (Sec. 6.2, Fig. 6): the catching preset's fields as flags.")
+
+
+def hitting_main() -> None:
+    """Console entry point ``hec-hitting`` (``experiments/hitting.py``)."""
+    main_for("hitting", "Hitting (Sec. 6.3, Fig. 7): the hitting preset's fields as flags.")
+
+
+def sweep_entry() -> None:
+    """Console entry point ``hec-sweep`` (``experiments/sweep.py``)."""
+    sweep_main("Catching over a grid of pendulum conditions and seeds (resumable, shardable).")

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 KINDS = ("k", "b", "m")  # order of the parameter-kind axis: VSN, VVN, VIN
@@ -71,6 +72,22 @@ class NetConfig:
     input_scale: tuple[float, float, float, float] = (0.25, 1.0, 10.0, 10.0)
     init_output_std: float = 0.01
     margin: float = 0.01
+
+    def __post_init__(self):
+        if not (isinstance(self.n_axes, int) and self.n_axes >= 1):
+            raise ValueError(f"NetConfig.n_axes must be an integer >= 1, got {self.n_axes}")
+        if not self.hidden or not all(isinstance(h, int) and h >= 1 for h in self.hidden):
+            raise ValueError(f"NetConfig.hidden must be widths >= 1, got {self.hidden}")
+        if len(self.input_scale) != 4 or not all(
+            np.isfinite(s) and s > 0 for s in self.input_scale
+        ):
+            raise ValueError(
+                f"NetConfig.input_scale must be 4 finite values > 0, got {self.input_scale}"
+            )
+        if not (np.isfinite(self.theta) and np.isfinite(self.init_output_std)):
+            raise ValueError("NetConfig.theta and init_output_std must be finite")
+        if not 0 <= self.margin < 1:
+            raise ValueError(f"NetConfig.margin must be in [0, 1), got {self.margin}")
 
 
 class FlaxMlp(nn.Module):
@@ -183,7 +200,13 @@ def apply(params: dict, config: NetConfig, inputs: Array, u: Array) -> Array:
         config: the networks' structure (threshold theta of Eq. 51).
         inputs: (n_axes, 4) normalised inputs of each axis (:func:`normalise_inputs`).
         u: (n_axes, 3) maximum outputs U (:func:`u_max`).
+
+    Raises:
+        ValueError: ``inputs`` not (..., n_axes, 4) (no silent broadcasting of a width-1 input).
     """
+    shape = jnp.shape(inputs)
+    if len(shape) < 2 or shape[-2:] != (config.n_axes, 4):
+        raise ValueError(f"inputs must have shape (..., {config.n_axes}, 4), got {shape}")
     return output_unit(pre_activation(params, inputs), u, config.theta)
 
 

@@ -46,6 +46,7 @@ paper's choice, kept and flagged).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
@@ -118,8 +119,14 @@ class LearnerConfig:
             raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
         if not (0.0 <= self.r_b < self.radius):
             raise ValueError(f"need 0 <= R_b < r, got R_b={self.r_b}, r={self.radius}")
-        if len(self.eta) != 3 or min(self.eta) < 0:
-            raise ValueError(f"eta must be 3 non-negative rates (VSN, VVN, VIN), got {self.eta}")
+        if len(self.eta) != 3 or not all(math.isfinite(e) and e >= 0 for e in self.eta):
+            raise ValueError(f"eta must be 3 finite rates >= 0 (VSN, VVN, VIN), got {self.eta}")
+        if not (math.isfinite(self.radius) and math.isfinite(self.r_b)):
+            raise ValueError(f"radius and r_b must be finite, got {self.radius}, {self.r_b}")
+        for name in ("mu", "f_desired", "contact_stiffness", "contact_damping"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"LearnerConfig.{name} must be finite and >= 0, got {v}")
 
 
 class SphereGeometry(NamedTuple):
