@@ -87,8 +87,18 @@ def test_virtual_lines_eqs25_28_and_k3_k4_eqs29_33(scenes):
     t1_a, _, _ = pm.parallel_t(after)
     k1 = pa[:, 1, 2] / pb[:, 1, 2]
     np.testing.assert_allclose(pm.virtual_k3(t1, t1_a, jnp.asarray(k1)), k3_true, rtol=1e-9)
-    # Eq. 33: K4 = (Z_B' / Z_B) (end of l4 is B) = K1.
-    np.testing.assert_allclose(pa[:, 1, 2] / pb[:, 1, 2], k1)
+    # Eq. 33: K4 = K1. K4 from l4's own image points (D -> B) and its true t4 = (Z_B - Z_D) / Z_B
+    # through Eq. 13, against K1 as the code forms it from l1 (image points and Eq. 20's t1).
+    _, _, b4, d4 = pm.segment_parameters(v)
+    _, _, b4_a, d4_a = pm.segment_parameters(pm.virtual_lines(after))
+    t4 = (pb[:, 1, 2] - pb[:, 3, 2]) / pb[:, 1, 2]
+    t4_a = (pa[:, 1, 2] - pa[:, 3, 2]) / pa[:, 1, 2]
+    k4 = pm.length_ratio(pm.direction_vector(b4, d4, t4), pm.direction_vector(b4_a, d4_a, t4_a))
+    a, ab, _, _ = pm.segment_parameters(before)
+    a_a, ab_a, _, _ = pm.segment_parameters(after)
+    k1_code = pm.length_ratio(pm.direction_vector(a, ab, t1), pm.direction_vector(a_a, ab_a, t1_a))
+    np.testing.assert_allclose(k4, k1_code, rtol=1e-9)
+    np.testing.assert_allclose(k4, k1, rtol=1e-9)  # both the end point's depth ratio Z_B'/Z_B
 
 
 def test_eqs37_38_true_t3_is_one_of_the_two_roots(scenes):
