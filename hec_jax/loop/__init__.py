@@ -10,7 +10,11 @@ Modules: ``config`` (configs and named presets), ``observation`` (simulator -> t
 ``object_state`` (eye + touch), ``policy`` (one control step; :func:`build_loop`), ``episodes``
 (swings in ``lax.scan``, seeds and conditions ``vmap``-ed), ``camera_loop`` (render -> mask ->
 tracker -> jitted segment, at the NumPy boundary), ``metrics``, ``experiment``
-(:func:`run_experiment`), ``report`` (run folders), ``sweep``, ``devices`` (several GPUs).
+(:func:`run_experiment`), ``report`` (run folders), ``sweep``, ``devices`` (several GPUs),
+``cli`` (the task scripts' command line), ``plain`` (plain impedance rollouts, MJX and C),
+``exact`` (exact one-step gradients and the learner that uses them), ``gradients`` and
+``gradients_report`` (the paper's dE/dF against exact sensitivities), ``bptt`` (offline training
+through the rollout).
 """
 
 from hec_jax.loop.camera_loop import run_camera, run_conditions_camera
@@ -27,6 +31,7 @@ from hec_jax.loop.config import (
 )
 from hec_jax.loop.devices import OnDevices, Sharded
 from hec_jax.loop.episodes import make_episodes, make_seed_run, make_sweep, run_conditions
+from hec_jax.loop.exact import build_exact_loop
 from hec_jax.loop.experiment import ExperimentResult, run_experiment, task_metrics
 from hec_jax.loop.object_state import (
     TOUCH_DISTANCE,
@@ -38,6 +43,7 @@ from hec_jax.loop.object_state import (
     truth_eye,
 )
 from hec_jax.loop.observation import observe, observe_c
+from hec_jax.loop.plain import make_plain_run, plain_scene
 from hec_jax.loop.policy import (
     CONDITIONS,
     Loop,
@@ -70,6 +76,7 @@ __all__ = [
     "TargetImpedance",
     "TaskConfig",
     "TouchMemory",
+    "build_exact_loop",
     "build_loop",
     "catching",
     "eye_object_state",
@@ -78,12 +85,14 @@ __all__ = [
     "make_c_policy",
     "make_episodes",
     "make_mjx_policy",
+    "make_plain_run",
     "make_seed_run",
     "make_sweep",
     "merge",
     "no_touch",
     "observe",
     "observe_c",
+    "plain_scene",
     "print_summary",
     "replace",
     "run_camera",
