@@ -166,3 +166,27 @@ def test_networks_inside_the_sphere_only_give_the_same_sweep(sharded_by_process)
         out["peak_per_swing"], first["peak_learned_per_swing"], rtol=1e-9, atol=1e-9
     )
     np.testing.assert_allclose(out["settle_force"], first["settle_force"], rtol=1e-9, atol=1e-9)
+
+
+def test_damaged_chunks_and_a_folder_with_nothing_computed(tmp_path):
+    """A truncated chunk file is not 'done' (and the merge names it); a folder whose first call
+    stopped before any chunk was written does not hold a corrected call to its settings."""
+    from hec_jax.loop import sweep
+    from hec_jax.runs import write_npz
+
+    good = tmp_path / "chunks" / "chunk_00000.npz"
+    write_npz(good, **{k: np.zeros(3) for k in sweep.CHUNK_KEYS})
+    assert sweep.chunk_is_complete(good, 3) and not sweep.chunk_is_complete(good, 4)
+    damaged = tmp_path / "chunks" / "chunk_00001.npz"
+    damaged.write_bytes(good.read_bytes()[:100])
+    assert not sweep.chunk_is_complete(damaged)
+    config = _tiny_sweep()
+    sweep.check_same_sweep(tmp_path / "chunks", config)
+    with pytest.raises(SystemExit, match="damaged chunk files.*chunk_00001"):
+        sweep.merge(tmp_path, config)
+    fresh = tmp_path / "fresh" / "chunks"
+    sweep.check_same_sweep(fresh, _tiny_sweep("--chunk", "3"))  # the first call's settings
+    sweep.check_same_sweep(fresh, config)  # no chunk yet: the corrected call is not refused
+    write_npz(fresh / "chunk_00000.npz", **{k: np.zeros(1) for k in sweep.CHUNK_KEYS})
+    with pytest.raises(SystemExit, match="other settings"):
+        sweep.check_same_sweep(fresh, _tiny_sweep("--chunk", "3"))

@@ -206,6 +206,8 @@ def check_same_sweep(chunk_dir: Path, config: SweepConfig) -> None:
     """
     settings = config.settings()
     path = chunk_dir / "sweep_settings.json"
+    if path.exists() and not any(chunk_dir.glob("chunk_*.npz")):
+        path.unlink()  # nothing computed under those settings yet: a corrected call may start over
     if path.exists():
         before = json.loads(path.read_text())
         if before != settings:
@@ -220,6 +222,22 @@ def check_same_sweep(chunk_dir: Path, config: SweepConfig) -> None:
             )
     else:
         write_json(path, settings)
+
+
+CHUNK_KEYS = ("index", "seed_index", "peak_plain", "peak_learned", "min_margin", "settle_force")
+
+
+def chunk_is_complete(path: Path, n_runs: int | None = None) -> bool:
+    """Whether ``path`` is a readable chunk file with every array the merge needs (and
+    ``n_runs`` runs when given); a damaged or truncated file is not.
+    """
+    try:
+        with np.load(path) as data:
+            arrays = {k: data[k] for k in CHUNK_KEYS}
+    except Exception:  # noqa: BLE001 (any failure to read means: not done)
+        return False
+    n = len(arrays["index"])
+    return all(len(v) == n for v in arrays.values()) and (n_runs is None or n == n_runs)
 
 
 def run_sweep(
@@ -272,10 +290,12 @@ def run_sweep(
     done, compile_s = 0, 0.0
     for c in mine:
         path = chunk_dir / f"chunk_{c:05d}.npz"
-        if path.exists():
+        index = np.arange(c * config.chunk, min((c + 1) * config.chunk, n_runs))
+        if path.exists() and chunk_is_complete(path, len(index)):
             print(f"chunk {c + 1}/{n_chunks}: already there, skipped", flush=True)
             continue
-        index = np.arange(c * config.chunk, min((c + 1) * config.chunk, n_runs))
+        if path.exists():
+            print(f"chunk {c + 1}/{n_chunks}: {path} is damaged, computed again", flush=True)
         padded = np.concatenate([index, np.full(config.chunk - len(index), index[-1])])
         t0 = time.perf_counter()
         inputs, rows_plain = chunk_inputs(
@@ -323,12 +343,17 @@ def run_sweep(
 def merge(folder: Path, config: SweepConfig) -> dict:
     """Merges whatever chunk files exist into ``metrics.json`` and ``peak_ratio_map.png`` (the
     settings are checked first). A run counts as diverged when any of its forces is not finite;
-    "never reaches the hand" needs a finite plain run whose peak stays at or below 1 N.
+    "never reaches the hand" needs a finite plain run whose peak stays at or below 1 N; a
+    success needs the learned peak at most half the plain one and the learned hand touching the
+    cube (peak above 1 N). Damaged chunk files are named and refused.
     """
     chunk_dir = folder / "chunks"
     check_same_sweep(chunk_dir, config)
     _, seed_index = config.runs()
     files = sorted(chunk_dir.glob("chunk_*.npz"))
+    damaged = [str(f) for f in files if not chunk_is_complete(f)]
+    if damaged:
+        raise SystemExit(f"damaged chunk files (run the sweep again to recompute them): {damaged}")
     if not files:
         print("no chunk files yet")
         return {}
@@ -341,7 +366,8 @@ def merge(folder: Path, config: SweepConfig) -> dict:
     ratio = np.where(
         reached, data["peak_learned"] / np.where(reached, data["peak_plain"], 1.0), np.nan
     )
-    success = ratio[reached] <= 0.5
+    touched = data["peak_learned"] > 1.0  # [N]: the learned hand met the cube (not avoided it)
+    success = (ratio <= 0.5)[reached] & touched[reached]
     metrics = {
         "runs_done": int(len(order)),
         "runs_total": int(len(seed_index)),
@@ -349,6 +375,7 @@ def merge(folder: Path, config: SweepConfig) -> dict:
         "chunks_total": config.settings()["n_chunks"],
         "runs_diverged": int((~finite).sum()),
         "runs_without_contact_in_plain": int((finite & ~reached).sum()),
+        "runs_learned_never_touching": int((reached & ~touched).sum()),
         "success_rate_peak_at_most_half_plain": float(success.mean()) if success.size else None,
         "peak_ratio_learned_over_plain": mean_std(ratio[reached]) if reached.any() else None,
         "strictly_stable_every_run": bool(np.all(data["min_margin"][finite] > 0)),
