@@ -61,3 +61,19 @@ def test_scripts_do_not_edit_sys_path():
     for folder in SCRIPTS:
         for path in folder.glob("*.py"):
             assert "sys.path" not in path.read_text(), path
+
+
+def test_headless_rendering_is_the_default_backend():
+    """Importing the world sets MUJOCO_GL=egl unless the user chose one (a camera run on a
+    machine without a display must not fall back to GLFW and fail)."""
+    import os
+    import subprocess
+    import sys
+
+    code = "import os, hec_jax.loop; print(os.environ['MUJOCO_GL'])"
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.stdout.strip() == "egl", out.stderr[-2000:]
+    env["MUJOCO_GL"] = "glfw"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.stdout.strip() == "glfw", out.stderr[-2000:]

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -27,7 +26,6 @@ def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
 
     Returns the metrics.
     """
-    os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering for the camera
     default = TaskRun(experiment=PRESETS[preset](), out=Path(f"runs/{preset}"))
     run = parse(default, argv, doc)
     import jax
