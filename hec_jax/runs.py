@@ -219,6 +219,7 @@ def write_video(path: str | os.PathLike, frames, fps: float) -> str:
         write(tmp, _even_frames(itertools.chain([head], frames), shape), size, float(fps))
         with open(tmp, "rb") as f:
             os.fsync(f.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; results are shared
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

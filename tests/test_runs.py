@@ -51,6 +51,7 @@ def test_h264(tmp_path):
     assert runs.write_video(path, list(frames), 30.0) == "h264"
     _check(path, frames)
     assert b"avc1" in path.read_bytes()[:4096]  # H.264, index (moov) at the front
+    assert path.stat().st_mode & 0o044  # readable by group and others, as every run file
 
 
 def test_mp4v_without_imageio_ffmpeg(tmp_path, monkeypatch):
