@@ -140,3 +140,24 @@ def test_config_fields_are_validated():
         tl.replace(tl.catching(), nonexistent=1.0)
     exp = tl.replace(tl.catching(), swings=3, mu=2e-3)
     assert exp.task.swings == 3 and exp.task.learner.mu == 2e-3
+
+
+def test_catching_metrics_of_a_seed_without_contact_are_values_not_errors():
+    """A learned hand that never touches the cube in one seed: the metrics say so (None values,
+    a count), the others are averaged over the seeds that have them, and the targets compute."""
+    seeds, swings, steps = 2, 2, 1000
+    f = np.zeros((seeds, swings, steps, 3))
+    f[0, :, 300:, 0] = 2.0  # seed 0 caught and holds with 2 N; seed 1 never touches
+    f[0, :, 300:310, 0] = 50.0
+    logs = {
+        "f_contact": f,
+        "inside": np.ones((seeds, swings, steps), bool),
+        "xd_o": np.ones((seeds, swings, steps, 2)),
+        "xd_e": np.zeros((seeds, swings, steps, 2)),
+        "margins": np.ones((seeds, swings, steps, 2, 3)),
+    }
+    m = mt.catching_condition_metrics(logs, "learned", 2.0, 200, 1e-3, 1e-3)
+    assert m["seeds_without_contact"] == 1
+    assert m["per_seed"][1]["relative_speed_at_contact"] is None
+    np.testing.assert_allclose(m["relative_speed_at_contact"]["mean"], np.sqrt(2.0))
+    assert not m["held_every_seed"]
