@@ -32,7 +32,7 @@ from hec_jax.geometry.accuracy import METHODS, motion_errors
 from hec_jax.geometry.baselines import frontal_face, opencv_pnp
 from hec_jax.geometry.parallel_motion import estimate_motion_core
 from hec_jax.report import call_times, error_table, fmt, markdown_table, tile_batch
-from hec_jax.runs import save_figure, start_run, write_json, write_text
+from hec_jax.runs import run_folder, save_figure, write_json, write_text
 
 NOISE_PX = (0.0, 0.25, 0.5, 1.0, 2.0)
 
@@ -42,6 +42,8 @@ class EyeBenchmark:
     """What the benchmark draws and measures, and where it writes."""
 
     out: Path = Path("runs/eye_benchmark")  # run folder
+
+    overwrite: bool = False  # replace an existing non-empty out (else refused up front)
     seed: int = 0  # draws the scenes
     scenes: int = 2000  # scenes per noise level
     batch: int = 10000  # batch size for throughput
@@ -132,28 +134,28 @@ def main(argv=None) -> dict:
     config = SceneConfig()
     settings = {"scenes_per_noise": args.scenes, "noise_px": NOISE_PX, "batch": args.batch}
     settings |= {"repeats": args.repeats, "scene_config": asdict(config), "dtype": "float64"}
-    folder = start_run(args.out, args.seed, settings)
-    rng = np.random.default_rng(args.seed)
-    metrics = {}
-    for noise in NOISE_PX:
-        scenes = make_cube_scenes(rng, args.scenes, config, motion="mixed", noise_px=noise)
-        metrics[str(noise)] = motion_errors(scenes, config)
-        summary = ", ".join(
-            f"{m} {fmt(v['rotation_median_deg'])} deg ({v['failure_rate']:.0%} failed)"
-            for m, v in metrics[str(noise)].items()
-        )
-        print(f"noise {noise} px: {summary}", flush=True)
-    scenes = make_cube_scenes(rng, args.scenes, config, motion="mixed", noise_px=0.5)
-    timings = timing(scenes, config, args.batch, args.repeats)
-    text = table(metrics, timings, args.scenes)
-    write_json(folder / "metrics.json", {"accuracy": metrics, "timing": timings})
-    write_text(folder / "table.md", text)
-    plot(metrics, folder / "rotation_error.png")
-    if args.docs is not None:
-        command = f"python benchmarks/eye.py --out {args.out} --seed {args.seed}"
-        write_text(args.docs, f"# Eye benchmark\n\nCommand: `{command}`\n\n" + text)
-    print(text)
-    return {"accuracy": metrics, "timing": timings}
+    with run_folder(args.out, args.seed, settings, args.overwrite) as folder:
+        rng = np.random.default_rng(args.seed)
+        metrics = {}
+        for noise in NOISE_PX:
+            scenes = make_cube_scenes(rng, args.scenes, config, motion="mixed", noise_px=noise)
+            metrics[str(noise)] = motion_errors(scenes, config)
+            summary = ", ".join(
+                f"{m} {fmt(v['rotation_median_deg'])} deg ({v['failure_rate']:.0%} failed)"
+                for m, v in metrics[str(noise)].items()
+            )
+            print(f"noise {noise} px: {summary}", flush=True)
+        scenes = make_cube_scenes(rng, args.scenes, config, motion="mixed", noise_px=0.5)
+        timings = timing(scenes, config, args.batch, args.repeats)
+        text = table(metrics, timings, args.scenes)
+        write_json(folder / "metrics.json", {"accuracy": metrics, "timing": timings})
+        write_text(folder / "table.md", text)
+        plot(metrics, folder / "rotation_error.png")
+        if args.docs is not None:
+            command = f"python benchmarks/eye.py --out {args.out} --seed {args.seed}"
+            write_text(args.docs, f"# Eye benchmark\n\nCommand: `{command}`\n\n" + text)
+        print(text)
+        return {"accuracy": metrics, "timing": timings}
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ from hec_jax.cli import parse
 from hec_jax.geometry import SceneConfig, make_cube_scenes, rotation_error_deg, two_frame_motion
 from hec_jax.geometry.accuracy import track_errors
 from hec_jax.geometry.baselines import pnp_rotation_errors
-from hec_jax.runs import start_run, write_json, write_text
+from hec_jax.runs import run_folder, write_json, write_text
 
 FPS = 30.0
 # the JAX core's two settings: float64 with the default 10 LM iterations, float32 with 5 (the same
@@ -45,6 +45,8 @@ class EyePipeline:
     """What the benchmark draws and measures, and where it writes."""
 
     out: Path = Path("runs/eye_pipeline")  # run folder
+
+    overwrite: bool = False  # replace an existing non-empty out (else refused up front)
     seed: int = 0  # draws the synthetic problems and the swing's release angle
     scenes: int = 1000  # synthetic two-frame problems
     batch: tuple[int, ...] = (10000,)  # batch sizes of the JAX timing (the first is reported)
@@ -151,19 +153,19 @@ def main(argv=None) -> dict:
         "cpu": report.cpu_model(),
         "os_cpu_count": os.cpu_count(),
     }
-    folder = start_run(a.out, a.seed, settings)
-    syn = synthetic(np.random.default_rng(a.seed), a.scenes, a.batch, a.transfer)
-    print("synthetic:", syn, flush=True)
-    metrics = {"synthetic_two_frame_0.5px": syn}
-    if not a.synthetic_only:
-        ren = rendered(a.seed, a.seconds)
-        print("rendered:", ren, flush=True)
-        metrics["rendered_swing"] = ren
-    write_json(folder / "metrics.json", metrics)
-    lines = table(metrics)
-    write_text(folder / "table.md", "\n".join(lines) + "\n")
-    print("\n".join(lines))
-    return metrics
+    with run_folder(a.out, a.seed, settings, a.overwrite) as folder:
+        syn = synthetic(np.random.default_rng(a.seed), a.scenes, a.batch, a.transfer)
+        print("synthetic:", syn, flush=True)
+        metrics = {"synthetic_two_frame_0.5px": syn}
+        if not a.synthetic_only:
+            ren = rendered(a.seed, a.seconds)
+            print("rendered:", ren, flush=True)
+            metrics["rendered_swing"] = ren
+        write_json(folder / "metrics.json", metrics)
+        lines = table(metrics)
+        write_text(folder / "table.md", "\n".join(lines) + "\n")
+        print("\n".join(lines))
+        return metrics
 
 
 if __name__ == "__main__":

@@ -37,6 +37,7 @@ class AvoidanceRun:
     release_range: tuple[float, float] = (0.45, 0.6)  # [rad] |release angle| drawn from this
     duration: float = 1.5  # [s]
     out: Path = Path("runs/avoidance")  # run folder
+    overwrite: bool = False  # replace an existing non-empty out (else refused up front)
     seed: int = 0  # draws the release angle
 
 
@@ -53,71 +54,73 @@ def main(argv=None) -> dict:
     from hec_jax.loop.plain import contact_summary, make_plain_run, plain_scene
     from hec_jax.mjx_scene import TASK_AXES, default_conditions
     from hec_jax.report import timed
-    from hec_jax.runs import save_figure, start_run, write_json, write_npz
+    from hec_jax.runs import run_folder, save_figure, write_json, write_npz
 
     release = -float(np.random.default_rng(run.seed).uniform(*run.release_range))
     cond = default_conditions(release_angle=release)
     settings = {k: v for k, v in dataclasses.asdict(run).items() if k != "seed"}
     settings.update(experiment="avoidance", release_angle=release, conditions=cond._asdict())
-    folder = start_run(run.out, run.seed, settings)
-    scene = plain_scene()
-    dt = scene.ids.timestep
-    n = int(round(run.duration / dt))
-    imp = run.impedance
-    params = impedance_params(imp.m_e, imp.b_e, imp.k_e)
-    vp_on = virtual_params(run.m_o, run.b_o, run.k_o, run.radius)
-    vp_on = project_stable(vp_on, params.m_e, params.b_e, params.k_e)  # Eq. 49
-    vp_off = virtual_params(0.0, 0.0, 0.0, run.radius)
-    vps = jax.tree.map(lambda a, b: jnp.stack([a, b]), vp_on, vp_off)
-    plain_run = make_plain_run(scene, run.controller)
-    fn = jax.jit(jax.vmap(lambda vp: plain_run(params, vp, cond, jnp.zeros((n, 3)))[0]))
-    compiled, t_compile = timed(lambda: fn.lower(vps).compile())
-    traj, t_run = timed(lambda: jax.tree.map(np.asarray, jax.block_until_ready(compiled(vps))))
-    print(f"compile {t_compile:.1f} s, run {t_run:.3f} s (2 x {n} steps)")
+    with run_folder(run.out, run.seed, settings, run.overwrite) as folder:
+        scene = plain_scene()
+        dt = scene.ids.timestep
+        n = int(round(run.duration / dt))
+        imp = run.impedance
+        params = impedance_params(imp.m_e, imp.b_e, imp.k_e)
+        vp_on = virtual_params(run.m_o, run.b_o, run.k_o, run.radius)
+        vp_on = project_stable(vp_on, params.m_e, params.b_e, params.k_e)  # Eq. 49
+        vp_off = virtual_params(0.0, 0.0, 0.0, run.radius)
+        vps = jax.tree.map(lambda a, b: jnp.stack([a, b]), vp_on, vp_off)
+        plain_run = make_plain_run(scene, run.controller)
+        fn = jax.jit(jax.vmap(lambda vp: plain_run(params, vp, cond, jnp.zeros((n, 3)))[0]))
+        compiled, t_compile = timed(lambda: fn.lower(vps).compile())
+        traj, t_run = timed(lambda: jax.tree.map(np.asarray, jax.block_until_ready(compiled(vps))))
+        print(f"compile {t_compile:.1f} s, run {t_run:.3f} s (2 x {n} steps)")
 
-    t = np.arange(n) * dt
-    summary = {
-        name: contact_summary(jax.tree.map(lambda x, i=i: x[i], traj), t)
-        for i, name in enumerate(RUNS)
-    }
-    print(summary)
-    write_json(
-        folder / "metrics.json",
-        dict(summary, m_o=vp_on.m_o, b_o=vp_on.b_o, k_o=vp_on.k_o, dt=dt, compile_s=t_compile,
-             run_s=t_run),
-    )  # fmt: skip
-    write_npz(
-        folder / "trajectory.npz",
-        t=t,
-        x_e=traj.aux["x_e"],
-        xd_e=traj.aux["xd_e"],
-        x_o=traj.aux["x_o"],
-        f_o=traj.aux["f_o"],
-        f_int=traj.f_contact[:, :, list(TASK_AXES)],
-        rho=traj.aux["rho"],
-        run_names=np.array(RUNS),
-    )
-    import matplotlib
+        t = np.arange(n) * dt
+        summary = {
+            name: contact_summary(jax.tree.map(lambda x, i=i: x[i], traj), t)
+            for i, name in enumerate(RUNS)
+        }
+        print(summary)
+        write_json(
+            folder / "metrics.json",
+            dict(summary, m_o=vp_on.m_o, b_o=vp_on.b_o, k_o=vp_on.k_o, dt=dt, compile_s=t_compile,
+                 run_s=t_run),
+        )  # fmt: skip
+        write_npz(
+            folder / "trajectory.npz",
+            t=t,
+            x_e=traj.aux["x_e"],
+            xd_e=traj.aux["xd_e"],
+            x_o=traj.aux["x_o"],
+            f_o=traj.aux["f_o"],
+            f_int=traj.f_contact[:, :, list(TASK_AXES)],
+            rho=traj.aux["rho"],
+            run_names=np.array(RUNS),
+        )
+        import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(3, 1, figsize=(7, 8), sharex=True)
-    for i, (name, ls) in enumerate((("virtual sphere", "-"), ("F_o = 0", "--"))):
-        axes[0].plot(t, traj.aux["x_e"][i][:, 0], ls, label=f"hand x ({name})")
-        axes[1].plot(t, traj.aux["rho"][i], ls, label=f"|X_r| ({name})")
-        axes[2].plot(t, np.linalg.norm(traj.f_contact[i], axis=1), ls, label=f"|F_int| ({name})")
-    axes[0].plot(t, traj.aux["x_o"][1][:, 0], ":", label="cube x")
-    axes[0].set_ylabel("x [m]")
-    axes[1].axhline(run.radius, color="k", lw=0.5, label="r")
-    axes[1].set_ylabel("distance [m]")
-    axes[2].set(ylabel="contact force [N]", xlabel="t [s]")
-    for a in axes:
-        a.legend(fontsize=8)
-    save_figure(fig, folder / "avoidance.png")
-    plt.close(fig)
-    print(f"wrote {folder}")
-    return summary
+        fig, axes = plt.subplots(3, 1, figsize=(7, 8), sharex=True)
+        for i, (name, ls) in enumerate((("virtual sphere", "-"), ("F_o = 0", "--"))):
+            axes[0].plot(t, traj.aux["x_e"][i][:, 0], ls, label=f"hand x ({name})")
+            axes[1].plot(t, traj.aux["rho"][i], ls, label=f"|X_r| ({name})")
+            axes[2].plot(
+                t, np.linalg.norm(traj.f_contact[i], axis=1), ls, label=f"|F_int| ({name})"
+            )
+        axes[0].plot(t, traj.aux["x_o"][1][:, 0], ":", label="cube x")
+        axes[0].set_ylabel("x [m]")
+        axes[1].axhline(run.radius, color="k", lw=0.5, label="r")
+        axes[1].set_ylabel("distance [m]")
+        axes[2].set(ylabel="contact force [N]", xlabel="t [s]")
+        for a in axes:
+            a.legend(fontsize=8)
+        save_figure(fig, folder / "avoidance.png")
+        plt.close(fig)
+        print(f"wrote {folder}")
+        return summary
 
 
 if __name__ == "__main__":

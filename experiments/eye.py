@@ -20,7 +20,7 @@ from hec_jax.cli import parse  # noqa: E402
 from hec_jax.geometry import rotation_error_deg  # noqa: E402
 from hec_jax.geometry.accuracy import track_errors  # noqa: E402
 from hec_jax.report import timed  # noqa: E402
-from hec_jax.runs import save_figure, start_run, write_json, write_npz, write_video  # noqa: E402
+from hec_jax.runs import run_folder, save_figure, write_json, write_npz, write_video  # noqa: E402
 
 FPS = 30.0
 GREEN, RED = (0, 255, 0), (255, 0, 0)  # RGB: segments of a valid / rejected frame
@@ -31,6 +31,8 @@ class EyeExperiment:
     """The swing to render and track, and where the run writes."""
 
     out: Path = Path("runs/eye")  # run folder
+
+    overwrite: bool = False  # replace an existing non-empty out (else refused up front)
     seed: int = 0  # draws the release angle unless --release is given
     seconds: float = 5.0  # length of the swing [s]
     release: float | None = None  # release angle [rad]; None: drawn from the seed in [0.3, 0.6]
@@ -100,39 +102,41 @@ def main(argv=None) -> dict:
 
     rng = np.random.default_rng(a.seed)
     angle = a.release if a.release is not None else float(rng.uniform(0.3, 0.6))
-    folder = start_run(a.out, a.seed, {"seconds": a.seconds, "release_rad": angle, "fps": FPS})
-    seq = render_swing(angle, int(round(a.seconds * FPS)), FPS)
-    # the first call compiles (tens of seconds on 2 cores): track twice and report the latency of
-    # the warm second pass, as benchmarks/eye_pipeline.py does
-    _, first_call_s = timed(lambda: track_box(seq.frames, seq.intrinsics, CUBE_EDGE, FPS))
-    tr = track_box(seq.frames, seq.intrinsics, CUBE_EDGE, FPS)
-    phi = seq.rotation @ seq.rotation[0].T
-    metrics = track_errors(tr, seq) | {"first_call_s": first_call_s}
-    write_json(folder / "metrics.json", metrics)
-    write_npz(
-        folder / "track.npz",
-        position=tr.position,
-        velocity=tr.velocity,
-        acceleration=tr.acceleration,
-        rotation=tr.rotation,
-        valid=tr.valid,
-        true_position=seq.position,
-        true_velocity=seq.velocity,
-        true_acceleration=seq.acceleration,
-        true_rotation=phi,
-        causal_position=tr.causal_position,
-        causal_velocity=tr.causal_velocity,
-        causal_acceleration=tr.causal_acceleration,
-        causal_rotation=tr.causal_rotation,
-    )
-    plot(folder, seq, tr, phi)
-    try:
-        metrics["video"] = write_video(folder / "eye.mp4", overlay(seq.frames, tr), FPS)
-    except RuntimeError as e:  # no video writer on this machine: the rest of the run stands
-        print(f"no video: {e}")
-        metrics["video"] = False
-    print(metrics)
-    return metrics
+    with run_folder(
+        a.out, a.seed, {"seconds": a.seconds, "release_rad": angle, "fps": FPS}, a.overwrite
+    ) as folder:
+        seq = render_swing(angle, int(round(a.seconds * FPS)), FPS)
+        # the first call compiles (tens of seconds on 2 cores): track twice and report the latency of
+        # the warm second pass, as benchmarks/eye_pipeline.py does
+        _, first_call_s = timed(lambda: track_box(seq.frames, seq.intrinsics, CUBE_EDGE, FPS))
+        tr = track_box(seq.frames, seq.intrinsics, CUBE_EDGE, FPS)
+        phi = seq.rotation @ seq.rotation[0].T
+        metrics = track_errors(tr, seq) | {"first_call_s": first_call_s}
+        write_json(folder / "metrics.json", metrics)
+        write_npz(
+            folder / "track.npz",
+            position=tr.position,
+            velocity=tr.velocity,
+            acceleration=tr.acceleration,
+            rotation=tr.rotation,
+            valid=tr.valid,
+            true_position=seq.position,
+            true_velocity=seq.velocity,
+            true_acceleration=seq.acceleration,
+            true_rotation=phi,
+            causal_position=tr.causal_position,
+            causal_velocity=tr.causal_velocity,
+            causal_acceleration=tr.causal_acceleration,
+            causal_rotation=tr.causal_rotation,
+        )
+        plot(folder, seq, tr, phi)
+        try:
+            metrics["video"] = write_video(folder / "eye.mp4", overlay(seq.frames, tr), FPS)
+        except RuntimeError as e:  # no video writer on this machine: the rest of the run stands
+            print(f"no video: {e}")
+            metrics["video"] = False
+        print(metrics)
+        return metrics
 
 
 if __name__ == "__main__":

@@ -48,6 +48,7 @@ class GradientsRun:
     conditions: tuple[Condition, ...] = ("default", "rod_0.57", "cube_0.9kg", "release_-0.6")
     per_phase: int = 3  # horizon states per phase of the frozen swing
     out: Path = Path("runs/gradients")  # run folder
+    overwrite: bool = False  # replace an existing non-empty out (else refused up front)
     seed: int = 0  # network initialisation (and the central differences' random direction)
 
 
@@ -65,47 +66,47 @@ def main(argv=None) -> dict:
     from hec_jax.loop import gradients as gr
     from hec_jax.loop import gradients_report as report
     from hec_jax.mjx_scene import load_mj_model
-    from hec_jax.runs import enable_compile_cache, start_run, write_json, write_npz, write_text
+    from hec_jax.runs import enable_compile_cache, run_folder, write_json, write_npz, write_text
 
     enable_compile_cache()
     settings = {k: v for k, v in dataclasses.asdict(run).items() if k != "seed"}
-    folder = start_run(run.out, run.seed, settings)
-    presets = {"catching": sweep_catching(), "hitting": hitting().task}
-    tasks = {name: replace(presets[name], swings=run.swings) for name in run.tasks}
-    if run.horizons:
-        metrics, one_step_all, horizon_all = gr.horizon_comparison(
-            tasks, run.conditions, run.seed, run.stride, run.horizons, run.per_phase
-        )
-        table = report.horizon_table(metrics, run.stride, one_step_all, horizon_all)
-        write_text(folder / "table.md", table)
-        write_json(folder / "metrics.json", metrics)
-        write_npz(folder / "samples.npz", **report.horizon_arrays(one_step_all, horizon_all))
-        dt = float(load_mj_model().opt.timestep)
-        report.horizon_figures(folder, one_step_all, horizon_all, metrics["horizons"], dt)
-        print(table)
-        print(f"run folder: {folder}")
-        return metrics
+    with run_folder(run.out, run.seed, settings, run.overwrite) as folder:
+        presets = {"catching": sweep_catching(), "hitting": hitting().task}
+        tasks = {name: replace(presets[name], swings=run.swings) for name in run.tasks}
+        if run.horizons:
+            metrics, one_step_all, horizon_all = gr.horizon_comparison(
+                tasks, run.conditions, run.seed, run.stride, run.horizons, run.per_phase
+            )
+            table = report.horizon_table(metrics, run.stride, one_step_all, horizon_all)
+            write_text(folder / "table.md", table)
+            write_json(folder / "metrics.json", metrics)
+            write_npz(folder / "samples.npz", **report.horizon_arrays(one_step_all, horizon_all))
+            dt = float(load_mj_model().opt.timestep)
+            report.horizon_figures(folder, one_step_all, horizon_all, metrics["horizons"], dt)
+            print(table)
+            print(f"run folder: {folder}")
+            return metrics
 
-    t0 = time.perf_counter()
-    loop = build_loop(tasks["catching"])
-    res = gr.one_step_along_learning(loop, jax.random.PRNGKey(run.seed), run.stride)
-    metrics = {
-        "samples": int(len(res["step"])),
-        "wall_s": time.perf_counter() - t0,
-        "finite": bool(np.all(np.isfinite(res["exact"]))),
-        "autodiff_vs_central_differences_max_rel_err": max(res["fd_err"]),
-        **gr.phase_summary(res),
-    }
-    write_json(folder / "metrics.json", metrics)
-    arrays = ("step", "phase", "exact", "cosine", "ratio", "jac_rel_err")
-    paper = gr.unit_mass_jacobian(loop.ids.timestep)
-    write_npz(folder / "samples.npz", paper=paper, **{k: res[k] for k in arrays})
-    report.one_step_figure(folder, res, loop.ids.timestep)
-    print(f"run folder: {folder}")
-    for name in gr.PHASES:
-        if name in metrics:
-            print(name, metrics[name])
-    return metrics
+        t0 = time.perf_counter()
+        loop = build_loop(tasks["catching"])
+        res = gr.one_step_along_learning(loop, jax.random.PRNGKey(run.seed), run.stride)
+        metrics = {
+            "samples": int(len(res["step"])),
+            "wall_s": time.perf_counter() - t0,
+            "finite": bool(np.all(np.isfinite(res["exact"]))),
+            "autodiff_vs_central_differences_max_rel_err": max(res["fd_err"]),
+            **gr.phase_summary(res),
+        }
+        write_json(folder / "metrics.json", metrics)
+        arrays = ("step", "phase", "exact", "cosine", "ratio", "jac_rel_err")
+        paper = gr.unit_mass_jacobian(loop.ids.timestep)
+        write_npz(folder / "samples.npz", paper=paper, **{k: res[k] for k in arrays})
+        report.one_step_figure(folder, res, loop.ids.timestep)
+        print(f"run folder: {folder}")
+        for name in gr.PHASES:
+            if name in metrics:
+                print(name, metrics[name])
+        return metrics
 
 
 if __name__ == "__main__":
