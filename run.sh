@@ -34,7 +34,7 @@ case "$cmd" in
     install
     # Two worker processes, one test file each at a time (module fixtures and their compiles
     # stay in one process); HEC_TEST_WORKERS=0 or `-n 0` runs serially.
-    exec "$VENV/bin/python" -m pytest -n "${HEC_TEST_WORKERS:-2}" --dist loadfile "$@"
+    exec "$VENV/bin/python" -m pytest -n "${HEC_TEST_WORKERS:-2}" --dist loadfile --durations=12 "$@"
     ;;
   *) echo "usage: bash run.sh {main|test|install} [ARGS]" >&2; exit 2 ;;
 esac

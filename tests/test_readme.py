@@ -17,8 +17,8 @@ def test_five_line_library_example(capsys):
     exec(compile(code, "README.md", "exec"), namespace)  # noqa: S102
     result, x_hand = namespace["result"], namespace["x_hand"]
     exp = result.config
-    assert exp.seeds == 3 and exp.task.swings == 3 and exp.task.learner.mu == 2e-3
-    assert x_hand.shape == (3, 3, 3000, 2)  # (seeds, swings, steps, 2)
+    assert exp.seeds == 3 and exp.task.swings == 2 and exp.task.learner.mu == 2e-3
+    assert x_hand.shape == (3, 2, 3000, 2)  # (seeds, swings, steps, 2)
     peaks = {c: result.metrics[c]["peak_force"]["mean"] for c in ("plain", "learned")}
     assert peaks["learned"] < peaks["plain"]  # what the figure shows
     assert np.all(np.isfinite(x_hand))
