@@ -33,7 +33,9 @@ def _summary(logs: dict, final: bool) -> dict:
     return out
 
 
-@pytest.mark.parametrize("task", ["catching", "hitting"])
+@pytest.mark.parametrize(
+    "task", ["catching", pytest.param("hitting", marks=pytest.mark.slow)]
+)  # hitting (1 min on the 2 CI cores) with -m slow, to keep the default suite under its budget
 def test_presets_give_the_pre_redesign_numbers(task):
     preset = loop.PRESETS[task]().task
     changes = dict(swings=2, swing_s=1.0) | ({"final_s": 3.0} if task == "hitting" else {})
