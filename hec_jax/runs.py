@@ -77,13 +77,25 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
+
+    def write(tmp: str) -> None:
+        with open(tmp, "wb") as f:
             f.write(data)
-            f.flush()
+
+    _publish(path, write, suffix=".tmp")
+
+
+def _publish(path: Path, write, suffix: str) -> None:
+    """``write(tmp)`` a temporary file beside ``path``, sync it, make it group-readable (mkstemp
+    makes 0600; results are shared) and rename it to ``path``; on any failure remove it.
+    """
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=suffix)
+    os.close(fd)
+    try:
+        write(tmp)
+        with open(tmp, "rb") as f:
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; results are shared
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -213,18 +225,8 @@ def write_video(path: str | os.PathLike, frames, fps: float) -> str:
         write, codec = _write_mp4v, "mp4v"
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp.mp4")
-    os.close(fd)
-    try:
-        write(tmp, _even_frames(itertools.chain([head], frames), shape), size, float(fps))
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp makes 0600; results are shared
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    stream = _even_frames(itertools.chain([head], frames), shape)
+    _publish(path, lambda tmp: write(tmp, stream, size, float(fps)), suffix=".tmp.mp4")
     return codec
 
 
