@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hec_jax import benchmarking as bench
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse, require
 from hec_jax.control import ControllerConfig, impedance_params, virtual_params
 from hec_jax.loop import TargetImpedance
 from hec_jax.mjx_scene import (
@@ -52,7 +52,14 @@ class ControlBenchmark:
     batches: tuple[int, ...] = (1, 64, 1024)  # vmapped environments, one row each
     float32: bool = False  # MJX in float32 (default float64)
 
+    def __post_init__(self):
+        require(self, "count", "steps", "batches")
+        require(self, "non_negative", "virtual")
+        if not self.virtual[3] > 0:
+            raise ValueError(f"--virtual: the sphere radius must be > 0, got {self.virtual[3]}")
 
+
+@command
 def main(argv=None):
     """Runs the benchmark on the flags in ``argv`` (None: the command line); prints its table."""
     cfg = parse(ControlBenchmark(), argv, __doc__)

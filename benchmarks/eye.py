@@ -26,7 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse, require
 from hec_jax.geometry import SceneConfig, make_cube_scenes
 from hec_jax.geometry.accuracy import METHODS, motion_errors
 from hec_jax.geometry.baselines import frontal_face, opencv_pnp
@@ -51,8 +51,8 @@ class EyeBenchmark:
     docs: Path | None = None  # also write the table here
 
     def __post_init__(self):
-        if min(self.scenes, self.batch, self.repeats) < 1:
-            raise ValueError("--scenes, --batch and --repeats must be at least 1")
+        require(self, "count", "scenes", "batch", "repeats")
+        require(self, "seed", "seed")
 
 
 def timing(scenes, config: SceneConfig, batch: int, repeats: int) -> dict:
@@ -127,6 +127,7 @@ def plot(metrics: dict, path: Path) -> None:
     plt.close(fig)
 
 
+@command
 def main(argv=None) -> dict:
     """Runs the benchmark (flags: ``--help``); returns its metrics."""
     args = parse(EyeBenchmark(), argv, __doc__)

@@ -28,7 +28,7 @@ import jax
 import numpy as np
 
 from hec_jax import report
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse, require
 from hec_jax.geometry import SceneConfig, make_cube_scenes, rotation_error_deg, two_frame_motion
 from hec_jax.geometry.accuracy import track_errors
 from hec_jax.geometry.baselines import pnp_rotation_errors
@@ -55,8 +55,9 @@ class EyePipeline:
     transfer: bool = False  # also time with host<->device copies
 
     def __post_init__(self):
-        if not self.batch or min(self.batch) < 1 or self.scenes < 1:
-            raise ValueError("--scenes and every --batch size must be at least 1")
+        require(self, "count", "scenes", "batch")
+        require(self, "positive", "seconds")
+        require(self, "seed", "seed")
 
 
 def synthetic(rng, n: int, batches: tuple[int, ...], transfer: bool = False) -> dict:
@@ -142,6 +143,7 @@ def table(metrics: dict) -> list[str]:
     return lines
 
 
+@command
 def main(argv=None) -> dict:
     """Runs the benchmark (flags: ``--help``); returns its metrics."""
     a = parse(EyePipeline(), argv, __doc__)

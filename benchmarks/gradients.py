@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 
 from hec_jax import benchmarking as bench
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse, require
 from hec_jax.loop import TaskConfig, sweep_catching
 from hec_jax.report import markdown_table
 from hec_jax.runs import enable_compile_cache
@@ -49,7 +49,12 @@ class GradientsBenchmark:
     skip: tuple[str, ...] = ()  # gradient variants to skip, by name (e.g. "implicit+remat")
     float32: bool = False  # float32 (default float64)
 
+    def __post_init__(self):
+        require(self, "count", "steps", "batch", "repeat")
+        require(self, "given", "cases")
 
+
+@command
 def main(argv=None):
     """Runs the benchmark on the flags in ``argv`` (None: the command line); returns its rows."""
     cfg = parse(GradientsBenchmark(), argv, __doc__)

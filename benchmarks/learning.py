@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 
 from hec_jax import benchmarking as bench
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse, require
 from hec_jax.loop import TaskConfig, build_loop, sweep_catching
 from hec_jax.report import markdown_table
 from hec_jax.runs import run_folder, write_json, write_text
@@ -61,6 +61,10 @@ class LearningBenchmark:
     repeats: int = 2000  # calls for the latency timing
     float32: bool = False  # float32 (default float64)
 
+    def __post_init__(self):
+        require(self, "count", "steps", "batches", "repeats")
+        require(self, "seed", "seed")
+
 
 def measure(cfg: LearningBenchmark, dtype) -> tuple[dict, list]:
     """({row: latency [s]}, [(batch, {rollout: (steps/s, compile [s])})]) of one run."""
@@ -87,6 +91,7 @@ def measure(cfg: LearningBenchmark, dtype) -> tuple[dict, list]:
     return lat, rows
 
 
+@command
 def main(argv=None):
     """Runs the benchmark on the flags in ``argv`` (None: the command line); returns metrics."""
     cfg = parse(LearningBenchmark(), argv, __doc__)

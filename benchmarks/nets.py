@@ -26,7 +26,7 @@ import jax.numpy as jnp
 
 from hec_jax import benchmarking as bench
 from hec_jax import nets
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse, require
 from hec_jax.loop import TargetImpedance
 
 
@@ -42,6 +42,11 @@ class NetsBenchmark:
     float64: bool = False  # float64 (default float32)
     repeats: int = 3  # timed calls (the best counts)
     seed: int = 0  # PRNG seed of the weights
+
+    def __post_init__(self):
+        require(self, "count", "batch", "steps", "repeats")
+        require(self, "non_negative", "eta")
+        require(self, "seed", "seed")
 
 
 def _synthetic_sample(t, run, n_axes, dtype):
@@ -71,6 +76,7 @@ def make_rollout(forward, n_axes, eta, steps, dtype):
     return jax.jit(jax.vmap(one_run))
 
 
+@command
 def main(argv=None):
     """Runs the benchmark on the flags in ``argv`` (None: the command line); prints its table."""
     cfg = parse(NetsBenchmark(), argv, __doc__)

@@ -43,7 +43,7 @@ import jax
 import numpy as np
 
 from hec_jax import benchmarking as bench
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse, require
 from hec_jax.loop import TaskConfig, sweep_catching
 from hec_jax.mjx_scene import load_mj_model, set_solver_options
 
@@ -66,7 +66,13 @@ class SweepBenchmark:
     grad_steps: int = 1000  # gradient horizon [1 ms samples]
     warp: bool = False  # also time physics alone on MuJoCo Warp (needs warp-lang)
 
+    def __post_init__(self):
+        require(self, "count", "batch", "steps", "c_repeats", "grad_steps")
+        if not (isinstance(self.grad_batch, int) and self.grad_batch >= 0):
+            raise ValueError(f"--grad-batch must be an integer >= 0, got {self.grad_batch}")
 
+
+@command
 def main(argv=None):
     """Runs the benchmark on the flags in ``argv`` (None: the command line); prints its table."""
     cfg = parse(SweepBenchmark(), argv, __doc__)

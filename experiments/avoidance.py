@@ -14,10 +14,11 @@ distance per run), ``trajectory.npz`` (t, x_e, xd_e, x_o, f_o, f_int, rho per ru
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse, require
 from hec_jax.control import ControllerConfig
 from hec_jax.loop import TargetImpedance, catching
 
@@ -40,7 +41,18 @@ class AvoidanceRun:
     overwrite: bool = False  # replace an existing non-empty out (else refused up front)
     seed: int = 0  # draws the release angle
 
+    def __post_init__(self):
+        require(self, "non_negative", "k_o", "b_o", "m_o")
+        require(self, "positive", "radius", "duration")
+        require(self, "seed", "seed")
+        lo, hi = self.release_range
+        if not (0 <= lo <= hi and hi < math.pi):
+            raise ValueError(
+                f"--release-range must be 0 <= low <= high < pi, got {self.release_range}"
+            )
 
+
+@command
 def main(argv=None) -> dict:
     """Runs both swings, writes the run folder; returns the metrics."""
     run = parse(AvoidanceRun(), argv, __doc__)

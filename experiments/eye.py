@@ -2,7 +2,9 @@
 and write a video with the associated segments drawn on the frames.
 
 Outputs in --out: config.json, metrics.json, track.npz, state.png, rotation_error.png, eye.mp4
-(``hec_jax.runs.write_video``: H.264 with imageio-ffmpeg installed, else OpenCV's mp4v).
+(``hec_jax.runs.write_video``: H.264 with imageio-ffmpeg installed, else OpenCV's mp4v). When no
+frame gives a valid fit there is no error to measure: ``metrics.json`` says so (``reason``, the
+error fields null) and the rest is written as usual.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering (before mujoco i
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from hec_jax.cli import parse  # noqa: E402
+from hec_jax.cli import command, parse, require  # noqa: E402
 from hec_jax.geometry import rotation_error_deg  # noqa: E402
 from hec_jax.geometry.accuracy import track_errors  # noqa: E402
 from hec_jax.report import timed  # noqa: E402
@@ -38,8 +40,43 @@ class EyeExperiment:
     release: float | None = None  # release angle [rad]; None: drawn from the seed in [0.3, 0.6]
 
     def __post_init__(self):
+        require(self, "seed", "seed")
+        require(self, "positive", "seconds")
         if not self.seconds * FPS >= 1:
             raise ValueError(f"--seconds must give at least one frame at {FPS} fps")
+        if self.release is not None and not abs(self.release) < np.pi:
+            raise ValueError(
+                f"--release must be a finite angle in (-pi, pi) [rad], got {self.release}"
+            )
+
+
+def metrics_of(track, seq) -> dict:
+    """The tracked sequence's errors against the truth (``track_errors``), or, when no frame
+    gave a valid fit, the frame counts with every error null and the reason.
+    """
+    if np.any(track.valid):
+        return track_errors(track, seq)
+    return {
+        "frames": int(len(track.valid)),
+        "valid_rate": 0.0,
+        "reason": "no frame gave a valid fit of the cube: there is no error to measure",
+        **{k: None for k in ERROR_KEYS},
+        "latency_ms": track.timing_ms,
+    }
+
+
+ERROR_KEYS = (  # track_errors' error fields (null without a valid frame)
+    "position_rms_mm",
+    "measured_position_rms_mm",
+    "velocity_rms_m_s",
+    "acceleration_rms_m_s2",
+    "rotation_median_deg",
+    "rotation_p90_deg",
+    "causal_position_rms_mm",
+    "causal_velocity_rms_m_s",
+    "causal_acceleration_rms_m_s2",
+    "causal_rotation_median_deg",
+)
 
 
 def overlay(frames: np.ndarray, track):
@@ -90,6 +127,7 @@ def plot(folder: Path, seq, tr, phi: np.ndarray) -> None:
     plt.close(fig)
 
 
+@command
 def main(argv=None) -> dict:
     """Renders, tracks and writes the run folder (flags: ``--help``); returns the metrics."""
     a = parse(EyeExperiment(), argv, __doc__)
@@ -111,7 +149,9 @@ def main(argv=None) -> dict:
         _, first_call_s = timed(lambda: track_box(seq.frames, seq.intrinsics, CUBE_EDGE, FPS))
         tr = track_box(seq.frames, seq.intrinsics, CUBE_EDGE, FPS)
         phi = seq.rotation @ seq.rotation[0].T
-        metrics = track_errors(tr, seq) | {"first_call_s": first_call_s}
+        metrics = metrics_of(tr, seq) | {"first_call_s": first_call_s}
+        if "reason" in metrics:
+            print(f"warning: {metrics['reason']} ({metrics['frames']} frames)", flush=True)
         write_json(folder / "metrics.json", metrics)
         write_npz(
             folder / "track.npz",

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse, require
 
 Condition = Literal["default", "rod_0.57", "cube_0.9kg", "release_-0.6"]
 
@@ -51,7 +51,15 @@ class GradientsRun:
     overwrite: bool = False  # replace an existing non-empty out (else refused up front)
     seed: int = 0  # network initialisation (and the central differences' random direction)
 
+    def __post_init__(self):
+        require(self, "count", "swings", "stride", "per_phase")
+        require(self, "given", "tasks", "conditions")
+        if self.horizons:
+            require(self, "count", "horizons")
+        require(self, "seed", "seed")
 
+
+@command
 def main(argv=None) -> dict:
     """Runs the comparison and writes the run folder; returns the metrics."""
     run = parse(GradientsRun(), argv, __doc__)

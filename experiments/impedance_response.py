@@ -18,7 +18,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse, require
 from hec_jax.control import ControllerConfig
 from hec_jax.loop import TargetImpedance, catching
 from hec_jax.mjx_scene import PendulumConfig
@@ -39,7 +39,17 @@ class ResponseRun:
     overwrite: bool = False  # replace an existing non-empty out (else refused up front)
     seed: int = 0  # draws the step's direction in the task plane (x, z)
 
+    def __post_init__(self):
+        require(self, "positive", "force", "duration")
+        require(self, "non_negative", "t_step")
+        require(self, "seed", "seed")
+        if not self.t_step < self.duration:
+            raise ValueError(
+                f"--t-step ({self.t_step}) must come before --duration ({self.duration})"
+            )
 
+
+@command
 def main(argv=None) -> dict:
     """Runs the step response, writes the run folder; returns the metrics."""
     run = parse(ResponseRun(), argv, __doc__)

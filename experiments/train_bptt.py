@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse, require
 from hec_jax.loop import TaskConfig, replace, sweep_catching
 
 
@@ -50,7 +50,14 @@ class TrainRun:
     overwrite: bool = False  # replace an existing non-empty out (else refused up front)
     seed: int = 0  # network initialisation and the draw of the conditions
 
+    def __post_init__(self):
+        require(self, "count", "batch")
+        require(self, "given", "arms")
+        require(self, "positive", "lr", "clip")
+        require(self, "seed", "seed")
 
+
+@command
 def main(argv=None) -> dict:
     """Runs the arms and writes the run folder; returns the metrics."""
     run = parse(TrainRun(), argv, __doc__)

@@ -15,6 +15,10 @@ import os
 from collections.abc import Callable, Sequence
 from typing import Literal, NamedTuple, get_args
 
+# first: mujoco.mjx without its warp-not-installed lines (hec_jax.mjx_scene._quiet_import)
+from hec_jax.mjx_scene import _quiet_import  # noqa: F401
+
+# isort: split
 import jax
 import jax.numpy as jnp
 import mujoco

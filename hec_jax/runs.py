@@ -16,6 +16,7 @@ import platform
 import shutil
 import sys
 import tempfile
+import threading
 import time
 import warnings
 from importlib import metadata
@@ -73,6 +74,33 @@ def _default(obj):
     raise TypeError(f"not JSON serialisable: {type(obj)}")
 
 
+_MAX_NULL_REASONS = 100  # paths listed in ``non_finite_as_null`` (the count is always exact)
+
+
+def json_safe(obj: Any) -> tuple[Any, dict[str, str]]:
+    """``obj`` with every value JSON can hold (NumPy and JAX arrays as lists) and every non-finite
+    number (NaN, inf: not JSON) as None, and ``{path: "nan" | "inf" | "-inf"}`` of what became
+    None (paths like ``learned.peak_force.mean`` or ``per_run.3.peak_plain``).
+    """
+    nulls: dict[str, str] = {}
+
+    def walk(x, path):
+        if isinstance(x, dict):
+            return {k: walk(v, f"{path}.{k}" if path else str(k)) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [walk(v, f"{path}.{i}" if path else str(i)) for i, v in enumerate(x)]
+        if isinstance(x, (bool, str, int)) or x is None:
+            return x
+        if isinstance(x, float):
+            if not np.isfinite(x):
+                nulls[path] = "nan" if np.isnan(x) else ("inf" if x > 0 else "-inf")
+                return None
+            return x
+        return walk(_default(x), path)
+
+    return walk(obj, ""), nulls
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` atomically (temporary file in the same folder, then rename)."""
     path = Path(path)
@@ -110,8 +138,19 @@ def _umask() -> int:
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:
-    """Atomic JSON write (NumPy arrays and scalars allowed)."""
-    atomic_write_bytes(path, (json.dumps(obj, indent=2, default=_default) + "\n").encode())
+    """Atomic JSON write (NumPy and JAX arrays and scalars allowed); strict JSON.
+
+    JSON has no NaN or infinity: a non-finite number is written as ``null`` and, when ``obj`` is
+    a dict, the top-level ``non_finite_as_null`` says where and what it was (``{"count": n,
+    "paths": {"learned.peak_force.mean": "nan", ...}}``, the first 100 paths; a NaN is e.g. a
+    diverged run or a mean over nothing).
+    """
+    safe, nulls = json_safe(obj)
+    if nulls and isinstance(safe, dict):
+        listed = dict(itertools.islice(nulls.items(), _MAX_NULL_REASONS))
+        safe["non_finite_as_null"] = {"count": len(nulls), "paths": listed}
+    text = json.dumps(safe, indent=2, allow_nan=False)
+    atomic_write_bytes(path, (text + "\n").encode())
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:
@@ -264,6 +303,52 @@ def _set_status(folder: Path, status: str, error: str | None = None) -> None:
     write_json(folder / "config.json", config)
 
 
+def check_out(out: str | os.PathLike, overwrite: bool = False) -> None:
+    """Refuses a run folder ``out`` that exists and is not empty (unless ``overwrite``).
+
+    Raises:
+        FileExistsError: with a one-line message naming ``--out`` and ``--overwrite``.
+    """
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
+        raise FileExistsError(
+            f"{out} exists and is not empty: choose another --out, or pass --overwrite"
+        )
+
+
+# The run folders open in this process (``run_folder`` blocks), innermost last, for
+# ``fail_active_run`` (a signal handler at the command-line boundary, ``hec_jax.cli``). The lock
+# makes a run's last steps (status, renames) and a failure from another thread exclusive.
+_ACTIVE: list[dict[str, Path]] = []
+_LOCK = threading.RLock()
+
+
+def _failed_name(out: Path) -> Path:
+    return out.with_name(f"{out.name}.failed-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}")
+
+
+def _fail(run: dict[str, Path], error: str) -> Path:
+    """Marks the partial folder of ``run`` failed and renames it ``<name>.failed-<UTC time>``."""
+    partial, out = run["partial"], run["out"]
+    for tmp in partial.glob(".*.tmp*"):  # a file being written when the run stopped
+        tmp.unlink(missing_ok=True)
+    _set_status(partial, "failed", error)
+    failed = _failed_name(out)
+    os.replace(partial, failed)
+    return failed
+
+
+def fail_active_run(error: str) -> Path | None:
+    """Ends the innermost open :func:`run_folder` as failed (``error`` recorded in its
+    ``config.json``) and returns the failed folder; None when no run folder is open or its run
+    has just completed. For a handler that then ends the process (``os._exit``), e.g. on Ctrl-C.
+    """
+    with _LOCK:
+        if not _ACTIVE or not _ACTIVE[-1]["partial"].exists():
+            return None
+        return _fail(_ACTIVE.pop(), error)
+
+
 @contextlib.contextmanager
 def run_folder(
     out: str | os.PathLike, seed: int, settings: dict[str, Any], overwrite: bool = False
@@ -275,39 +360,44 @@ def run_folder(
     ``"status": "running"``; when the block ends normally the status becomes ``complete`` and
     the folder is renamed to ``out`` (replacing an old one only with ``overwrite``). If the block
     raises (Ctrl-C included) the status becomes ``failed`` with the error, and the folder is
-    renamed to ``<name>.failed-<UTC time>``; a killed process leaves only the hidden partial
-    folder. Either way ``out`` never holds a mix of two runs or a run that did not finish.
+    renamed to ``<name>.failed-<UTC time>``; so does :func:`fail_active_run` (the scripts'
+    SIGINT/SIGTERM handler); a killed process leaves only the hidden partial folder. Either way
+    ``out`` never holds a mix of two runs or a run that did not finish.
 
     Raises:
         FileExistsError: ``out`` exists, is not empty and ``overwrite`` is False (checked
             before anything is computed).
     """
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
-        raise FileExistsError(
-            f"{out} exists and is not empty: choose another --out, or pass --overwrite"
-        )
+    check_out(out, overwrite)
     partial = out.with_name(f".{out.name}.partial-{os.getpid()}")
     if partial.exists():
         shutil.rmtree(partial)
     start_run(partial, seed, dict(settings, status="running"))
+    run = {"partial": partial, "out": out}
+    with _LOCK:
+        _ACTIVE.append(run)
     try:
         yield partial
     except BaseException as e:
-        _set_status(partial, "failed", f"{type(e).__name__}: {e}")
-        stamp = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
-        failed = out.with_name(f"{out.name}.failed-{stamp}")
-        os.replace(partial, failed)
-        print(f"run failed; what it wrote is in {failed}", file=sys.stderr)
+        with _LOCK:
+            if run in _ACTIVE:  # else a signal handler has failed it already
+                _ACTIVE.remove(run)
+                failed = _fail(run, f"{type(e).__name__}: {e}")
+                print(f"run failed; what it wrote is in {failed}", file=sys.stderr)
         raise
-    _set_status(partial, "complete")
-    if out.exists():
-        old = out.with_name(f".{out.name}.replaced-{os.getpid()}")
-        os.replace(out, old)
-        os.replace(partial, out)
-        shutil.rmtree(old) if old.is_dir() else old.unlink()
-    else:
-        os.replace(partial, out)
+    with _LOCK:  # the last steps, not to be cut by fail_active_run from another thread
+        if run not in _ACTIVE:
+            raise RuntimeError(f"the run was ended as failed while it ran: {out}")
+        _ACTIVE.remove(run)
+        _set_status(partial, "complete")
+        if out.exists():
+            old = out.with_name(f".{out.name}.replaced-{os.getpid()}")
+            os.replace(out, old)
+            os.replace(partial, out)
+            shutil.rmtree(old) if old.is_dir() else old.unlink()
+        else:
+            os.replace(partial, out)
 
 
 def enable_compile_cache() -> None:

@@ -250,13 +250,26 @@ def test_eq49_projection(vals, target):
 
 
 def test_eq49_printed_condition_not_sufficient():
-    """K_o = -K_e alone satisfies the printed '>=' but leaves a pole at s = 0: not strictly stable."""
+    """K_o = -K_e alone satisfies the printed '>=' but leaves a pole at s = 0: not strictly stable.
+    The strict form agrees with the poles of (M_o + M_e) s^2 + (B_o + B_e) s + (K_o + K_e)
+    (NumPy's roots) on random virtual impedances, about half of them unstable."""
     one = jnp.ones(2)
     assert not np.any(
         np.asarray(C.is_stable(one, 40 * one, 400 * one, 0 * one, 0 * one, -400 * one))
     )
-    roots = np.roots([1.0, 40.0, 0.0])
-    assert np.isclose(roots.max(), 0.0)
+    rng = np.random.default_rng(9)
+    m_e, b_e, k_e = 1.0, 40.0, 400.0
+    m_o = rng.uniform(-0.9, 1.0, 400)  # M_o + M_e > 0: a positive mass, Eq. 48 as written
+    b_o, k_o = rng.uniform(-60.0, 20.0, 400), rng.uniform(-600.0, 200.0, 400)
+    poles_left = [
+        bool(np.all(np.roots([m + m_e, b + b_e, k + k_e]).real < 0))
+        for m, b, k in zip(m_o, b_o, k_o, strict=True)
+    ]
+    got = np.asarray(
+        C.is_stable(m_e, b_e, k_e, jnp.asarray(m_o), jnp.asarray(b_o), jnp.asarray(k_o))
+    )
+    np.testing.assert_array_equal(got, poles_left)
+    assert 0.2 < np.mean(poles_left) < 0.8
 
 
 def test_validation_errors():
@@ -307,9 +320,11 @@ def test_controller_jit_vmap_grad():
     t_vmap = jax.vmap(tau_of)(jnp.stack([400.0 * jnp.ones(2), 200.0 * jnp.ones(2)]))
     np.testing.assert_allclose(np.asarray(t_vmap[0]), np.asarray(t_jit), rtol=1e-12)
     g = jax.jacfwd(tau_of)(400.0 * jnp.ones(2))
-    # d tau / d K_e = J^T M_x M_e^-1 (-dX) (Eq. 42), independent of everything else
-    Mx, _ = C.operational_inertia(obs.M, obs.J, 1e-3)
-    expected = np.asarray(obs.J).T @ np.asarray(Mx) @ np.diag(-np.asarray(obs.x_e))
+    # d tau / d K_e = J^T M_x M_e^-1 (-dX) (Eq. 42), independent of everything else; M_x the
+    # damped inverse of Eq. 44 (default damping 1e-3) from NumPy's eigh, not the code's
+    J, M = np.asarray(obs.J), np.asarray(obs.M)
+    Mx, _ = _damped_inverse_by_eigh(J @ np.linalg.solve(M, J.T), C.ControllerConfig().mx_damping)
+    expected = J.T @ Mx @ np.diag(-np.asarray(obs.x_e))
     np.testing.assert_allclose(np.asarray(g), expected, rtol=1e-9)
 
 

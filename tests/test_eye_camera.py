@@ -57,9 +57,12 @@ def test_mujoco_camera_to_pinhole():
     r, p = scene_camera.camera_pose_world(m, d, "eye")
     np.testing.assert_array_equal(r, G.pinhole_rotation_from_mujoco(d.cam_xmat[cam]))
     np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
-    centre = G.project_to_pixels(np.asarray(r.T @ (2.0 * r[:, 2])), k)
+    np.testing.assert_allclose(p, d.cam_xpos[cam], atol=1e-12)
+    # a point 2 m along MuJoCo's viewing direction (its camera's -z axis): the image centre
+    ahead = d.cam_xpos[cam] - 2.0 * d.cam_xmat[cam].reshape(3, 3)[:, 2]
+    centre = G.project_to_pixels(np.asarray(r.T @ (ahead - p)), k)
     np.testing.assert_allclose(np.asarray(centre), [160.0, 120.0], atol=1e-9)
-    up = G.project_to_pixels(np.asarray(r.T @ (2.0 * r[:, 2] + [0.0, 0.0, 0.1])), k)
+    up = G.project_to_pixels(np.asarray(r.T @ (ahead + [0.0, 0.0, 0.1] - p)), k)
     assert float(up[1]) < 120.0
     # a body: its camera-frame pose is the world pose seen through the same rotation
     pos, rot = body_in_camera(m, d, "cube", "eye")

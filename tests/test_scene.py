@@ -215,12 +215,16 @@ def test_camera_intrinsics_and_pose(scene):
     R, p = S.camera_pose_world(mm, d, ids.camera)
     np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-12)
     assert np.isclose(np.linalg.det(R), 1.0)
-    # a point on the optical axis projects to the image centre
-    uv, z = S.project(K, R, p, p + 2.0 * R[:, 2])
+    # MuJoCo's own camera frame as the reference: it looks along its -z axis, y up
+    np.testing.assert_allclose(p, d.cam_xpos[ids.camera], atol=1e-12)
+    mj = d.cam_xmat[ids.camera].reshape(3, 3)
+    # a point on MuJoCo's optical axis projects to the image centre
+    uv, z = S.project(K, R, p, p - 2.0 * mj[:, 2])
     np.testing.assert_allclose(uv[0], [320.0, 240.0], atol=1e-9)
-    # a point at half the vertical field of view above the axis (world +z is "up" = -y_cam)
+    np.testing.assert_allclose(z[0], 2.0, atol=1e-12)
+    # a point at half the vertical field of view above the axis: the top edge of the image
     half = np.radians(mm.cam_fovy[ids.camera]) / 2
-    up = p + np.cos(half) * R[:, 2] - np.sin(half) * R[:, 1]
+    up = p - np.cos(half) * mj[:, 2] + np.sin(half) * mj[:, 1]
     uv, _ = S.project(K, R, p, up)
     np.testing.assert_allclose(uv[0], [320.0, 0.0], atol=1e-9)
     # world +x appears to the right, world +z upwards (smaller v)

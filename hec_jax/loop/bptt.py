@@ -96,7 +96,28 @@ def train_bptt(
     Raises:
         FloatingPointError: a non-finite gradient.
     """
-    ls0 = loop.learner_init(key, dtype)
+    params0 = loop.learner_init(key, dtype).params
+    _, hist = train_bptt_params(loop, conditions, params0, loop.config.swings, lr, clip, progress)
+    return hist
+
+
+def train_bptt_params(
+    loop: Loop,
+    conditions: PendulumConditions,
+    params0: dict,
+    epochs: int,
+    lr: float,
+    clip: float,
+    progress: Callable[[int, dict], None] | None = None,
+) -> tuple[dict, dict]:
+    """:func:`train_bptt` from the networks ``params0`` for ``epochs`` Adam steps; returns (the
+    trained networks, the history).
+
+    Raises:
+        FloatingPointError: a non-finite gradient.
+    """
+    dtype = jax.tree_util.tree_leaves(params0)[0].dtype
+    ls0 = loop.learner_init(jax.random.PRNGKey(0), dtype)._replace(params=params0)
     opt = optax.chain(optax.clip_by_global_norm(clip), optax.adam(lr))
     grad_fn = jax.jit(jax.value_and_grad(make_batch_loss(loop, conditions, ls0), has_aux=True))
 
@@ -105,9 +126,8 @@ def train_bptt(
         updates, opt_state = opt.update(grad, opt_state, params)
         return optax.apply_updates(params, updates), opt_state
 
-    params, opt_state = ls0.params, opt.init(ls0.params)
+    params, opt_state = params0, opt.init(params0)
     hist = {"loss": [], "peak": [], "min_margin": [], "grad_norm": [], "finite": []}
-    epochs = loop.config.swings
     for epoch in range(epochs + 1):
         (loss, (loss_b, peak_b, margin_b)), grad = grad_fn(params)
         finite = all(bool(np.all(np.isfinite(g))) for g in jax.tree_util.tree_leaves(grad))
@@ -126,7 +146,7 @@ def train_bptt(
             raise FloatingPointError(f"non-finite gradient at epoch {epoch}")
         if epoch < epochs:
             params, opt_state = apply(params, opt_state, grad)
-    return hist
+    return params, hist
 
 
 def online_metrics(logs: dict, peak_plain: np.ndarray, reach: np.ndarray) -> dict:

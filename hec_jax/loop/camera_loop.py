@@ -38,6 +38,7 @@ from hec_jax.loop.object_state import EyeInput
 from hec_jax.loop.policy import Loop, PolicyState, Switches, switches
 from hec_jax.mjx_scene import CUBE_EDGE, PendulumConditions, load_mj_model, rollout
 from hec_jax.mjx_scene.render import SceneCamera, render_model_like
+from hec_jax.progress import ProgressBar
 
 _AX = np.array([0, 2])  # task axes (x, z) of the world frame
 
@@ -50,6 +51,14 @@ def steps_per_frame(cam: CameraConfig, dt: float) -> int:
 def frame_steps(cam: CameraConfig, dt: float, steps: int) -> np.ndarray:
     """Simulation steps at which the frames' exposures end (state at the start of that step)."""
     return np.arange(0, steps, steps_per_frame(cam, dt))
+
+
+def frames_per_condition(loop: Loop, cam: CameraConfig | None = None) -> int:
+    """Frames of one seed under one condition: every swing's, and the continuous run's."""
+    cam = CameraConfig() if cam is None else cam
+    dt = loop.ids.timestep
+    n = loop.config.swings * len(frame_steps(cam, dt, loop.swing_steps))
+    return n + (len(frame_steps(cam, dt, loop.final_steps)) if loop.final_steps else 0)
 
 
 class _Estimate:
@@ -230,6 +239,10 @@ def _draw_overlay(frame: np.ndarray, step, k: np.ndarray, r_cam_world, t_cam_wor
     return img
 
 
+def _first_segment_line(ms: float) -> str:
+    return f"camera loop: compile and first control segment {ms / 1e3:.1f} s"
+
+
 def run_camera(
     loop: Loop,
     conditions: PendulumConditions,
@@ -237,7 +250,7 @@ def run_camera(
     condition: str,
     cam: CameraConfig | None = None,
     video_swing: int | str | None = None,
-    progress: bool = True,
+    progress: bool | ProgressBar = True,
     corrupt=None,
     compiled: tuple | None = None,
 ):
@@ -251,7 +264,9 @@ def run_camera(
         cam: camera timing and resolution.
         video_swing: swing whose frames of seed 0 are kept with overlays ("final": the
             continuous run; None: none).
-        progress: print one line per swing.
+        progress: True: a progress bar over this condition's frames (:class:`~hec_jax.progress.
+            ProgressBar`: elapsed and remaining time); an open bar: advanced by each frame of each
+            seed (one bar across conditions, :func:`run_conditions_camera`); False: none.
         corrupt: optional ``(seed, swing, frame, image) -> image`` applied to each rendered frame
             before the eye sees it (occluders, dropped frames, noise: robustness tests).
         compiled: ``(make_start(loop), make_segment(loop))`` to reuse across calls (one compile).
@@ -290,7 +305,12 @@ def run_camera(
     trackers = [
         BoxTracker(camera.intrinsics, CUBE_EDGE, fps, cam.track, background) for _ in range(n_seeds)
     ]
-    t_wall = time.perf_counter()
+    own_bar = not isinstance(progress, ProgressBar)
+    if own_bar:
+        total = n_seeds * frames_per_condition(loop, cam)
+        bar = ProgressBar(total, "frames", enabled=bool(progress))
+    else:
+        bar = progress
 
     def episode(ls, steps: int, index, keep_video: bool):
         """One release: ``steps`` control steps, the tracker reset at the release."""
@@ -319,6 +339,8 @@ def run_camera(
         qpos_hist = np.zeros((n_seeds, steps, m_c.nq))
         rows_all = []
         d_qpos = np.asarray(d.qpos)
+        swing = "final run" if index == "final" else f"swing {index + 1}/{config.swings}"
+        bar.update(description=f"{condition} {swing}")
         for j, s in enumerate(fs):
             s_img = max(s - e_off, 0)  # mid-exposure
             for i in range(n_seeds):
@@ -379,24 +401,24 @@ def run_camera(
             )
             rows = jax.tree_util.tree_map(lambda x, n=n: x[:, :n], jax.device_get(rows))
             rec["sim_ms"][j] = 1e3 * (time.perf_counter() - t0)
+            if j == 0 and index == 0 and compiled is None:  # compiled by this first call
+                bar.log(_first_segment_line(rec["sim_ms"][0]))
             f_prev = rows["f_contact"][:, -1]
             qpos_hist[:, s : bounds[j + 1]] = rows["qpos"]
             d_qpos = np.asarray(d.qpos)
             rows_all.append(rows)
+            bar.update(n_seeds)
         ls = ls._replace(was_inside=jnp.zeros_like(ls.was_inside))
         logs = {k: np.concatenate([r[k] for r in rows_all], axis=1) for k in rows_all[0]}
         rec["wall_s"] = time.perf_counter() - t_ep
-        if progress:
-            print(
-                f"  {condition:8s} {index!s:>5s}: {100 * rec['valid'].mean():5.1f}% frames valid,"
-                f" {time.perf_counter() - t_wall:6.1f} s",
-                flush=True,
-            )
+        bar.log(f"{condition} {swing}: {100 * rec['valid'].mean():5.1f}% frames valid")
         return ls, logs, rec, frames_out
 
     video: list[np.ndarray] = []
     runs = []
     try:
+        if own_bar:
+            bar.start()
         for swing in range(config.swings):
             ls, lg, rec, frames = episode(ls, loop.swing_steps, swing, swing == video_swing)
             runs.append((lg, rec))
@@ -418,6 +440,8 @@ def run_camera(
             video += frames
     finally:
         camera.close()
+        if own_bar:
+            bar.stop()
     eye["fps"] = fps
     return logs, eye, video
 
@@ -437,28 +461,37 @@ def run_conditions_camera(
     truth run; ``frozen`` and ``learned`` run :func:`run_camera` (one compile for both). Returns
     ``(camera_logs, truth_logs, timing, eye_by_condition, video)``: logs per condition as
     :func:`~hec_jax.loop.episodes.run_conditions`; ``video``: seed 0 of ``video_condition``, its
-    last swing (or the continuous run when the task has one).
+    last swing (or the continuous run when the task has one). ``progress``: one bar over the
+    frames of both camera conditions (:class:`~hec_jax.progress.ProgressBar`), the ground-truth
+    runs' compile and run times on their own line.
     """
-    truth, timing = run_conditions(loop, conditions, seed, n_seeds)
-    keys = jax.random.split(jax.random.PRNGKey(seed), n_seeds)
-    camera_logs, eyes, video = {"plain": truth["plain"]}, {}, []
-    shown = "final" if loop.final_steps else loop.config.swings - 1
-    compiled = (make_start(loop), make_segment(loop))
-    for condition in ("frozen", "learned"):
-        want = condition == video_condition
-        logs, eye, frames = run_camera(
-            loop,
-            conditions,
-            keys,
-            condition,
-            cam,
-            shown if want else None,
-            progress,
-            compiled=compiled,
-        )
-        camera_logs[condition], eyes[condition] = logs, eye
-        timing[f"{condition}_camera"] = float(
-            np.sum(eye["wall_s"]) + (np.sum(eye["final"]["wall_s"]) if "final" in eye else 0.0)
-        )
-        video = frames if want else video
+    total = 2 * n_seeds * frames_per_condition(loop, cam)
+    with ProgressBar(total, "frames", enabled=progress) as bar:
+        bar.update(description="ground truth (compiling, then 3 conditions)")
+        truth, timing = run_conditions(loop, conditions, seed, n_seeds)
+        run_s = sum(timing[c] for c in ("plain", "frozen", "learned"))
+        bar.log(f"ground truth: compile {timing['compile']:.1f} s, run {run_s:.1f} s")
+        keys = jax.random.split(jax.random.PRNGKey(seed), n_seeds)
+        camera_logs, eyes, video = {"plain": truth["plain"]}, {}, []
+        shown = "final" if loop.final_steps else loop.config.swings - 1
+        compiled = (make_start(loop), make_segment(loop))
+        for condition in ("frozen", "learned"):
+            want = condition == video_condition
+            logs, eye, frames = run_camera(
+                loop,
+                conditions,
+                keys,
+                condition,
+                cam,
+                shown if want else None,
+                bar,
+                compiled=compiled,
+            )
+            camera_logs[condition], eyes[condition] = logs, eye
+            if condition == "frozen":  # the first call of the shared functions compiled them
+                bar.log(_first_segment_line(float(eye["sim_ms"][0, 0])))
+            timing[f"{condition}_camera"] = float(
+                np.sum(eye["wall_s"]) + (np.sum(eye["final"]["wall_s"]) if "final" in eye else 0.0)
+            )
+            video = frames if want else video
     return camera_logs, truth, timing, eyes, video

@@ -6,7 +6,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from hec_jax.cli import parse
+from hec_jax.cli import command, parse
 from hec_jax.loop.config import PRESETS, ExperimentConfig
 from hec_jax.loop.sweep import SweepConfig
 
@@ -19,12 +19,19 @@ class TaskRun:
     out: Path = Path("runs/experiment")  # run folder (written complete or not at all)
     overwrite: bool = False  # replace an existing non-empty --out (else refused up front)
     float32: bool = False  # float32 (default float64, as every number in the docs)
+    # run on the wall clock (``hec_jax.realtime``, its default settings, one seed: the 1 kHz
+    # controller + learner, camera and eye in their own processes, and the same run in simulated
+    # time beside it; every real-time setting is a flag of experiments/realtime.py)
+    realtime: bool = False
 
 
+@command
 def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
     """Parses ``argv`` over the named preset, runs the experiment and writes its run folder.
 
-    Returns the metrics.
+    Returns the metrics. Bad arguments (a used ``--out`` included) end in one line and exit
+    code 2 before anything is compiled; Ctrl-C or SIGTERM in a failed run folder and exit code
+    130 or 143 (:func:`hec_jax.cli.command`).
     """
     default = TaskRun(experiment=PRESETS[preset](), out=Path(f"runs/{preset}"))
     run = parse(default, argv, doc)
@@ -43,6 +50,15 @@ def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
         float32=run.float32,
         argv_given=None if argv is None else list(argv),
     )
+    if run.realtime:
+        from hec_jax.realtime import print_report, run_realtime, write_report
+
+        with run_folder(run.out, exp.seed, dict(settings, realtime=True), run.overwrite) as folder:
+            rt_result = run_realtime(exp)
+            write_report(folder, rt_result)
+        print(f"run folder: {run.out}")
+        print_report(rt_result)
+        return rt_result.report
     with run_folder(run.out, exp.seed, settings, run.overwrite) as folder:
         result = run_experiment(exp)
         write_experiment(folder, result)
@@ -68,6 +84,7 @@ class SweepRun:
             )
 
 
+@command
 def sweep_main(doc: str | None = None, argv=None) -> dict:
     """Parses ``argv`` into a :class:`SweepRun`, runs (or merges) the sweep; returns the merged
     metrics.
@@ -80,6 +97,13 @@ def sweep_main(doc: str | None = None, argv=None) -> dict:
     from hec_jax.runs import enable_compile_cache
 
     enable_compile_cache()
+    from hec_jax.cli import usage_error
+    from hec_jax.loop.sweep import check_same_sweep
+
+    try:  # a folder of another sweep: refused as a bad --out, before anything is compiled
+        check_same_sweep(run.out / "chunks", run.sweep)
+    except SystemExit as e:
+        raise usage_error(str(e.code)) from None
     if run.merge_only:
         return merge(run.out, run.sweep)
     given = {"argv_given": None if argv is None else list(argv)}

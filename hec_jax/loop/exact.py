@@ -106,11 +106,17 @@ def build_exact_loop(config: TaskConfig) -> Loop:
     eta = jnp.asarray(lc.eta)
     step_world = make_control_step(base, differentiable.dynamics_stages)
 
+    accel_decay = np.exp(-dt / config.object_accel_tau_s) if config.object_accel_tau_s else 0.0
+
     def policy(ps, m, step: SimStep):
-        cs, ls, sw, touch = ps
+        cs, ls, sw, touch, xdd_o_lowpass = ps
         obs = observe(m, ids, step)
         xdd_e = (obs.xd_e - cs.xd_e_prev) / dt
         xdd_o = (obs.xd_o - cs.xd_o_prev) / dt
+        if xdd_o_lowpass is not None:  # as build_loop's policy
+            xdd_o_lowpass = accel_decay * xdd_o_lowpass + (1.0 - accel_decay) * xdd_o
+            xdd_o = xdd_o_lowpass
+        obs = obs._replace(xdd_o=xdd_o)
         in_contact = jnp.sqrt(jnp.sum(obs.f_int**2)) > config.contact_threshold
         sk = sphere_kinematics(obs.x_o - obs.x_e, obs.xd_o - obs.xd_e, xdd_o - xdd_e, lc.radius)
         geo = SphereGeometry(sk.dx_o, sk.dxd_o, sk.dxdd_o)
@@ -152,8 +158,13 @@ def build_exact_loop(config: TaskConfig) -> Loop:
             xd_e=obs.xd_e,
             x_o=obs.x_o,
             xd_o=obs.xd_o,
+            x_o_true=obs.x_o,  # the simulator's object state (no eye)
+            xd_o_true=obs.xd_o,
             f_int=obs.f_int,
             f_o=info.f_o,
+            k_o=o[:, 0],
+            b_o=o[:, 1],
+            m_o=o[:, 2],
             margins=out.margins,
             energy=out.energy,
             inside=out.inside,
@@ -162,6 +173,7 @@ def build_exact_loop(config: TaskConfig) -> Loop:
             de_df_exact=cot,
             de_df_paper=jnp.where(out.learning, out.de_df_act, 0.0),
         )
-        return tau, PolicyState(cs_new, ls_new._replace(params=new_params), sw, touch), aux
+        ps_new = PolicyState(cs_new, ls_new._replace(params=new_params), sw, touch, xdd_o_lowpass)
+        return tau, ps_new, aux
 
     return base._replace(policy=policy)

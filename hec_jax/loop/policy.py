@@ -19,6 +19,7 @@ from hec_jax.control import (
     ControllerConfig,
     ImpedanceParams,
     Target,
+    TaskObs,
     VirtualParams,
     make_impedance_controller,
     sphere_kinematics,
@@ -61,15 +62,21 @@ class Switches(NamedTuple):
         use_virtual: () 0.0: plain impedance (F_o = 0); 1.0: the virtual impedance acts.
         learn: () 0.0: frozen networks; 1.0: online learning.
         eye: the object's state source (:func:`~hec_jax.loop.object_state.truth_eye`: simulator).
+        fixed: None: the networks give the virtual impedance; else (2, 3) a constant
+            (K_o [N/m], B_o [N s/m], M_o [kg]) per task axis (x, z) used instead of the
+            networks' output (the fixed-impedance baseline; a pytree leaf, so a search over
+            constant impedances is one ``vmap``).
     """
 
     use_virtual: jax.Array
     learn: jax.Array
     eye: EyeInput
+    fixed: jax.Array | None = None
 
 
-def switches(condition: str, eye: EyeInput | None = None) -> Switches:
-    """The :class:`Switches` of ``condition`` ("plain", "frozen" or "learned").
+def switches(condition: str, eye: EyeInput | None = None, fixed=None) -> Switches:
+    """The :class:`Switches` of ``condition`` ("plain", "frozen" or "learned"); ``fixed``: a
+    constant virtual impedance (2, 3) in place of the networks (``Switches.fixed``).
 
     Raises:
         ValueError: an unknown condition.
@@ -80,6 +87,7 @@ def switches(condition: str, eye: EyeInput | None = None) -> Switches:
         use_virtual=jnp.asarray(0.0 if condition == "plain" else 1.0),
         learn=jnp.asarray(1.0 if condition == "learned" else 0.0),
         eye=truth_eye() if eye is None else eye,
+        fixed=None if fixed is None else jnp.asarray(fixed),
     )
 
 
@@ -90,6 +98,9 @@ class PolicyState(NamedTuple):
     learner: Any  # LearnerState (weights, latched t_c, ...)
     switches: Switches
     touch: TouchMemory  # used by camera runs only
+    # [m/s^2] (2,) the low-passed object acceleration (``TaskConfig.object_accel_tau_s`` > 0 and
+    # the simulator's object state); None: no filter (X_o'' a 1 kHz backward difference)
+    xdd_o_lowpass: Any = None
 
 
 class Loop(NamedTuple):
@@ -105,6 +116,11 @@ class Loop(NamedTuple):
         policy: ``(policy_state, m, SimStep) -> (tau, policy_state, aux)``.
         initial_policy_state: ``(m, data, learner_state, switches) -> PolicyState``.
         learner_init: ``(key, dtype) -> LearnerState``.
+        policy_obs: ``(policy_state, TaskObs, t) -> (tau, policy_state, aux)``: ``policy`` on an
+            observation however computed (``policy`` is ``observe`` (MJX) then this; the
+            real-time loop computes it with MuJoCo C from a plant's joint state,
+            :mod:`hec_jax.realtime`); ``t`` [s] the observation's time.
+        initial_policy_state_obs: ``(TaskObs, learner_state, switches) -> PolicyState``.
     """
 
     config: TaskConfig
@@ -117,6 +133,8 @@ class Loop(NamedTuple):
     policy: Any
     initial_policy_state: Any
     learner_init: Any
+    policy_obs: Any
+    initial_policy_state_obs: Any
 
     def model_for(self, conditions: PendulumConditions):
         """The MJX model under ``conditions`` (pure, vmappable)."""
@@ -154,6 +172,18 @@ def hold_point(f_cd: float, pendulum: PendulumConditions, k_e: float, m_c=None) 
     return cube + (CUBE_EDGE / 2 + HAND_RADIUS - f_cd / k_e) * normal
 
 
+def rest_touch_point(pendulum: PendulumConditions, m_c=None) -> np.ndarray:
+    """X_d (x, z) [m] where the hand just touches the hanging cube at the pendulum's rest, on the
+    +x side (the cube comes from -x): the cube centre plus half a cube and the hand radius along
+    +x. ``pendulum``: scalar conditions (rod, hinge x); ``m_c``: the MuJoCo model (hinge height).
+    """
+    m_c = load_mj_model() if m_c is None else m_c
+    ids = scene_ids(m_c)
+    ceiling = m_c.body_pos[int(m_c.body_parentid[ids.rod_body])]
+    l_c = float(pendulum.rod_length) + CUBE_EDGE / 2
+    return np.array([float(pendulum.hinge_x) + CUBE_EDGE / 2 + HAND_RADIUS, ceiling[2] - l_c])
+
+
 def with_contact(mx, config: TaskConfig):
     """The MJX model with the task's hand-cube contact parameters (every pair of the scene: there
     is one, ``hand_cube``); unchanged where the config leaves them at None.
@@ -183,11 +213,12 @@ def build_loop(config: TaskConfig) -> Loop:
     dt = ids.timestep
     mx = with_contact(load_mjx_model(m_c), config)
     imp = config.impedance
-    x_home = (
-        hold_point(lc.f_desired, config.pendulum.conditions(), imp.k_e[0], m_c)
-        if config.x_home is None
-        else np.asarray(config.x_home, dtype=float)
-    )
+    if config.x_home is not None:
+        x_home = np.asarray(config.x_home, dtype=float)
+    elif config.home == "rest_touch":
+        x_home = rest_touch_point(config.pendulum.conditions(), m_c)
+    else:
+        x_home = hold_point(lc.f_desired, config.pendulum.conditions(), imp.k_e[0], m_c)
     q_home = jnp.asarray(solve_posture(m_c, ids, tuple(float(v) for v in x_home)))
     c_init, c_apply = make_impedance_controller(dt, ids.torque_limit, config.controller)
     l_init, l_update = make_online_learner(lc, dt, imp.m_e, imp.b_e, imp.k_e)
@@ -196,19 +227,26 @@ def build_loop(config: TaskConfig) -> Loop:
     )
     target = Target(x_d=jnp.asarray(x_home), xd_d=jnp.zeros(2), xdd_d=jnp.zeros(2))
 
+    accel_decay = np.exp(-dt / config.object_accel_tau_s) if config.object_accel_tau_s else 0.0
+
     def policy(ps: PolicyState, m, step: SimStep):
-        cs, ls, sw, touch = ps
-        obs = observe(m, ids, step)
+        return policy_obs(ps, observe(m, ids, step), step.t)
+
+    def policy_obs(ps: PolicyState, obs: TaskObs, t):
+        cs, ls, sw, touch, xdd_o_lowpass = ps
         x_o_true, xd_o_true = obs.x_o, obs.xd_o
         xdd_e = (obs.xd_e - cs.xd_e_prev) / dt  # one sample old, as the controller's
         xdd_o = (obs.xd_o - cs.xd_o_prev) / dt
+        if xdd_o_lowpass is not None:  # first-order low-pass, time constant object_accel_tau_s
+            xdd_o_lowpass = accel_decay * xdd_o_lowpass + (1.0 - accel_decay) * xdd_o
+            xdd_o = xdd_o_lowpass
         in_contact = jnp.sqrt(jnp.sum(obs.f_int**2)) > config.contact_threshold
         # the object as the eye sees it (camera runs) or as simulated (sw.eye.use == 0), with
         # touch over vision (``TouchMemory``): a 30 fps eye with a constant-acceleration filter
         # learns of an impact only some frames after it.
         use_eye = sw.eye.use > 0
         x_eye, xd_eye, xdd_eye, known, touch_new = touch_object_state(
-            sw.eye, touch, step.t, obs.x_e, obs.xd_e, xdd_e, obs.f_int, in_contact, TOUCH_DISTANCE
+            sw.eye, touch, t, obs.x_e, obs.xd_e, xdd_e, obs.f_int, in_contact, TOUCH_DISTANCE
         )
         touch = jax.tree_util.tree_map(
             lambda new, old: jnp.where(use_eye, new, old), touch_new, touch
@@ -235,7 +273,8 @@ def build_loop(config: TaskConfig) -> Loop:
         )
         keep = (sw.learn > 0) & seen
         ls_new, out = l_update(ls, inputs, keep)
-        o = out.impedance * (sw.use_virtual * seen)  # (2, 3): K_o, B_o, M_o per axis
+        o = out.impedance if sw.fixed is None else sw.fixed.astype(out.impedance.dtype)
+        o = o * (sw.use_virtual * seen)  # (2, 3): K_o, B_o, M_o per axis
         vp = VirtualParams(m_o=o[:, 2], b_o=o[:, 1], k_o=o[:, 0], r=jnp.asarray(lc.radius))
         tau, cs, info = c_apply(params, vp, target, cs, obs)
         aux = dict(
@@ -259,11 +298,16 @@ def build_loop(config: TaskConfig) -> Loop:
             in_contact=in_contact,
             saturated=info.saturated,
         )
-        return tau, PolicyState(cs, ls_new, sw, touch), aux
+        return tau, PolicyState(cs, ls_new, sw, touch, xdd_o_lowpass), aux
 
     def initial_policy_state(m, d0, ls, sw):
-        cs0 = c_init(observe(m, ids, SimStep(d=d0, f_int=jnp.zeros(3), t=d0.time)))
-        return PolicyState(cs0, ls, sw, no_touch(d0.qpos.dtype))
+        obs = observe(m, ids, SimStep(d=d0, f_int=jnp.zeros(3), t=d0.time))
+        return initial_policy_state_obs(obs, ls, sw)
+
+    def initial_policy_state_obs(obs: TaskObs, ls, sw):
+        dtype = obs.q.dtype
+        lowpass = jnp.zeros(2, dtype) if config.object_accel_tau_s else None
+        return PolicyState(c_init(obs), ls, sw, no_touch(dtype), lowpass)
 
     return Loop(
         config=config,
@@ -276,6 +320,8 @@ def build_loop(config: TaskConfig) -> Loop:
         policy=policy,
         initial_policy_state=initial_policy_state,
         learner_init=l_init,
+        policy_obs=policy_obs,
+        initial_policy_state_obs=initial_policy_state_obs,
     )
 
 

@@ -27,12 +27,35 @@ def _pyplot():
     return plt
 
 
+def diverged_seeds(logs: dict) -> dict:
+    """{condition: seeds whose simulation went non-finite (hand position or contact force NaN or
+    inf anywhere)}; ``logs`` as :attr:`ExperimentResult.logs` (a continuous run included).
+    """
+    out = {}
+    for condition, lg in logs.items():
+        parts = [lg, lg["final"]] if "final" in lg else [lg]
+        bad = np.zeros(len(lg["x_e"]), bool)
+        for part in parts:
+            for key in ("x_e", "f_contact"):
+                x = np.asarray(part[key])
+                bad |= ~np.all(np.isfinite(x.reshape(len(x), -1)), axis=1)
+        out[condition] = int(bad.sum())
+    return out
+
+
 def write_experiment(folder: Path, result: ExperimentResult) -> None:
-    """Trajectories, ``metrics.json``, figures and (camera runs) the video of ``result``."""
+    """Trajectories, ``metrics.json``, figures and (camera runs) the video of ``result``.
+
+    ``metrics.json`` holds the metrics and ``diverged_seeds`` (:func:`diverged_seeds`); a value
+    that is not finite (e.g. the peak force of a diverged seed) is written as null and named in
+    ``non_finite_as_null`` (:func:`hec_jax.runs.write_json`).
+    """
     final = result.config.task.final_s > 0
     logs = {c: lg["final"] for c, lg in result.logs.items()} if final else result.logs
     save_trajectories(folder, logs, result.dt)
-    write_json(folder / "metrics.json", result.metrics)
+    write_json(
+        folder / "metrics.json", {**result.metrics, "diverged_seeds": diverged_seeds(result.logs)}
+    )
     if result.config.task.learner.task == "hitting":
         hitting_figures(folder, result)
     else:
@@ -42,8 +65,25 @@ def write_experiment(folder: Path, result: ExperimentResult) -> None:
         write_video(folder / "hand_eye.mp4", (f[..., ::-1] for f in result.video), fps)
 
 
+def timing_line(timing: dict) -> str:
+    """Compile time apart from run time, from ``metrics["timing_s"]`` [s]."""
+    parts = []
+    if "compile" in timing:
+        parts.append(f"compile {timing['compile']:.1f} s")
+    run = sum(timing.get(c, 0.0) for c in ("plain", "frozen", "learned"))
+    parts.append(f"run {run:.1f} s")
+    camera = sum(timing.get(f"{c}_camera", 0.0) for c in ("frozen", "learned"))
+    if camera:
+        parts.append(f"camera loop {camera:.1f} s")
+    if "total" in timing:
+        parts.append(f"total {timing['total']:.1f} s")
+    return "time: " + ", ".join(parts)
+
+
 def print_summary(result: ExperimentResult) -> None:
-    """One line per condition, the eye's summary for camera runs, and the targets."""
+    """One line per condition, the eye's summary for camera runs, the targets and the time
+    (compile apart).
+    """
     m = result.metrics
     for c in ("plain", "frozen", "learned"):
         mc = m[c]
@@ -77,6 +117,8 @@ def print_summary(result: ExperimentResult) -> None:
         ratios = ", ".join(f"{c} {r:.2f}" for c, r in camera["camera_over_truth_peak"].items())
         print(f"peak force camera / ground truth: {ratios}")
     print("targets:", m["targets"])
+    if "timing_s" in m:
+        print(timing_line(m["timing_s"]))
 
 
 def save_trajectories(folder, logs_by_condition: dict, dt: float) -> None:

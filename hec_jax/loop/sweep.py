@@ -31,6 +31,7 @@ from hec_jax.loop.metrics import mean_std
 from hec_jax.loop.policy import build_loop, switches
 from hec_jax.mjx_scene import PendulumConditions, PendulumConfig, validate_conditions
 from hec_jax.mjx_scene.model import scene_hinge_x
+from hec_jax.progress import ProgressBar, format_seconds
 from hec_jax.runs import save_figure, start_run, write_json, write_npz
 
 FIELDS = PendulumConditions._fields
@@ -207,9 +208,14 @@ def check_same_sweep(chunk_dir: Path, config: SweepConfig) -> None:
     settings = config.settings()
     path = chunk_dir / "sweep_settings.json"
     if path.exists() and not any(chunk_dir.glob("chunk_*.npz")):
-        path.unlink()  # nothing computed under those settings yet: a corrected call may start over
-    if path.exists():
-        before = json.loads(path.read_text())
+        # nothing computed under those settings yet: a corrected call may start over (shards
+        # starting together may race here: another may have removed or rewritten it already)
+        path.unlink(missing_ok=True)
+    try:
+        before = json.loads(path.read_text())  # written atomically: whole or absent
+    except FileNotFoundError:
+        before = None
+    if before is not None:
         if before != settings:
             diff = {
                 k: (before.get(k), settings.get(k))
@@ -246,11 +252,14 @@ def run_sweep(
     shard_index: int = 0,
     num_shards: int = 1,
     run_settings: dict | None = None,
+    progress: bool = True,
 ) -> dict:
     """Computes this shard's missing chunks into ``folder/chunks`` and merges what exists.
 
     Returns the merged metrics (:func:`merge`). ``run_settings``: recorded in the shard's
-    ``config.json`` beside the sweep's settings (e.g. the command line).
+    ``config.json`` beside the sweep's settings (e.g. the command line). ``progress``: a bar over
+    the runs still to compute (:class:`~hec_jax.progress.ProgressBar`: elapsed and remaining
+    time), the compile time on its own line.
     """
     if not 0 <= shard_index < num_shards:
         raise ValueError(f"need 0 <= shard_index < num_shards, got {shard_index}, {num_shards}")
@@ -286,45 +295,62 @@ def run_sweep(
     )
     all_keys = jax.random.split(jax.random.PRNGKey(config.seed), config.seeds)
     mine = [c for c in range(n_chunks) if c % num_shards == shard_index]
-    t_start = time.perf_counter()
-    done, compile_s = 0, 0.0
+
+    def runs_of(c: int) -> np.ndarray:
+        return np.arange(c * config.chunk, min((c + 1) * config.chunk, n_runs))
+
+    todo = []
     for c in mine:
         path = chunk_dir / f"chunk_{c:05d}.npz"
-        index = np.arange(c * config.chunk, min((c + 1) * config.chunk, n_runs))
-        if path.exists() and chunk_is_complete(path, len(index)):
-            print(f"chunk {c + 1}/{n_chunks}: already there, skipped", flush=True)
+        if path.exists() and chunk_is_complete(path, len(runs_of(c))):
             continue
         if path.exists():
             print(f"chunk {c + 1}/{n_chunks}: {path} is damaged, computed again", flush=True)
-        padded = np.concatenate([index, np.full(config.chunk - len(index), index[-1])])
-        t0 = time.perf_counter()
-        inputs, rows_plain = chunk_inputs(
-            all_keys[seed_index[padded]], {k: v[padded] for k, v in conditions.items()}, n_plain
-        )
-        placed = run.place(*inputs)
-        if not done:  # compile ahead of time (every chunk has the same shapes), timed apart
-            run.compile(placed)
-            compile_s = time.perf_counter() - t0
-        res = run_chunk(run, placed, rows_plain)
-        res = {k: v[: len(index)] for k, v in res.items()}
-        write_npz(
-            path,
-            index=index,
-            seed_index=seed_index[index],
-            **res,
-            **{k: v[index] for k, v in conditions.items()},
-        )
-        done += 1
-        elapsed = time.perf_counter() - t_start
-        left = sum(not (chunk_dir / f"chunk_{k:05d}.npz").exists() for k in mine)
+        todo.append(c)
+    if len(todo) < len(mine):
         print(
-            f"chunk {c + 1}/{n_chunks} ({len(index)} runs) in {time.perf_counter() - t0:.1f} s;"
-            f" {left} left in this shard, about {elapsed / done * left:.0f} s",
+            f"{len(mine) - len(todo)} of this shard's {len(mine)} chunks already there, skipped",
             flush=True,
         )
+    t_start = time.perf_counter()
+    done, compile_s = 0, 0.0
+    total = max(sum(len(runs_of(c)) for c in todo), 1)
+    with ProgressBar(total, "runs", enabled=progress and bool(todo)) as bar:
+        for c in todo:
+            path = chunk_dir / f"chunk_{c:05d}.npz"
+            index = runs_of(c)
+            bar.update(
+                description=f"chunk {c + 1}/{n_chunks}" + (" (compiling)" if not done else "")
+            )
+            padded = np.concatenate([index, np.full(config.chunk - len(index), index[-1])])
+            t0 = time.perf_counter()
+            inputs, rows_plain = chunk_inputs(
+                all_keys[seed_index[padded]], {k: v[padded] for k, v in conditions.items()}, n_plain
+            )
+            placed = run.place(*inputs)
+            if not done:  # compile ahead of time (every chunk has the same shapes), timed apart
+                run.compile(placed)
+                compile_s = time.perf_counter() - t0
+                bar.log(f"compiled in {compile_s:.1f} s")
+                bar.update(description=f"chunk {c + 1}/{n_chunks}")
+            res = run_chunk(run, placed, rows_plain)
+            res = {k: v[: len(index)] for k, v in res.items()}
+            write_npz(
+                path,
+                index=index,
+                seed_index=seed_index[index],
+                **res,
+                **{k: v[index] for k, v in conditions.items()},
+            )
+            done += 1
+            bar.update(len(index))
     if done:
         wall = time.perf_counter() - t_start
-        print(f"{done} chunks in {wall:.1f} s, compilation ({compile_s:.1f} s) included")
+        print(
+            f"{done} chunks in {format_seconds(wall)}: compile {compile_s:.1f} s, run"
+            f" {wall - compile_s:.1f} s",
+            flush=True,
+        )
         write_json(
             folder / f"shard_{shard_index}" / "timing.json",
             {

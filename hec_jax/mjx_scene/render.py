@@ -147,6 +147,17 @@ class RenderedSequence(NamedTuple):
     acceleration: np.ndarray
 
 
+def sampled_motion(track: np.ndarray, steps: int, n_frames: int, dt: float) -> tuple:
+    """(position, velocity, acceleration) at frames 0 .. n_frames - 1 of a per-step track
+    (T, 3) [m] sampled every ``steps`` steps of ``dt`` [s] from step 1 (central differences).
+    """
+    at = 1 + steps * np.arange(n_frames)
+    pos = track[at]
+    vel = (track[at + 1] - track[at - 1]) / (2 * dt)
+    acc = (track[at + 1] - 2 * pos + track[at - 1]) / (dt * dt)
+    return pos, vel, acc
+
+
 def body_in_camera(
     model: mujoco.MjModel, data: mujoco.MjData, body: str, camera: int | str
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -206,10 +217,7 @@ def render_rollout(
             mujoco.mj_forward(model, data)
     finally:
         renderer.close()
-    at = 1 + steps * np.arange(n_frames)
-    pos = track[at]
-    vel = (track[at + 1] - track[at - 1]) / (2 * dt)
-    acc = (track[at + 1] - 2 * pos + track[at - 1]) / (dt * dt)
+    pos, vel, acc = sampled_motion(track, steps, n_frames, dt)
     return RenderedSequence(frames, k, np.arange(n_frames) / fps, pos, rot, vel, acc)
 
 

@@ -64,6 +64,10 @@ class NetConfig:
         input_scale: normalisation of (X_r [m], X_r' [m/s], X_r'' [m/s^2], F_int [N]).
         init_output_std: std of the initial output-layer weights (small: near-zero initial output).
         margin: stability margin of the output range (see the module docstring).
+        neutral_init: start the output unit's bias at ``theta``, so that the initial networks
+            output O = 0 up to the small random output weights (a neutral virtual impedance);
+            False: bias 0, Eq. 51's unit as printed, whose initial output is
+            (U/2) tanh(-theta/2) (about -0.05 U/2: a slightly attractive virtual spring).
     """
 
     n_axes: int = 2
@@ -72,6 +76,7 @@ class NetConfig:
     input_scale: tuple[float, float, float, float] = (0.25, 1.0, 10.0, 10.0)
     init_output_std: float = 0.01
     margin: float = 0.01
+    neutral_init: bool = False
 
     def __post_init__(self):
         if not (isinstance(self.n_axes, int) and self.n_axes >= 1):
@@ -151,7 +156,11 @@ def init_params(key: Array, config: NetConfig, dtype=jnp.float32) -> dict:
     params = jax.tree_util.tree_map(
         lambda p: p.reshape((config.n_axes, 3) + p.shape[1:]).astype(dtype), params
     )
-    return from_flax(params, len(config.hidden))
+    params = from_flax(params, len(config.hidden))
+    if config.neutral_init:
+        out = params["output"]
+        params["output"] = dict(out, bias=jnp.full_like(out["bias"], config.theta))
+    return params
 
 
 def normalise_inputs(

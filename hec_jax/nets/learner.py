@@ -84,6 +84,11 @@ class LearnerConfig:
             only before it (see the module docstring).
         contact_damping: nominal b_c [N s/m] of the contact for dF_int/dX_e' = -b_c n n^T in
             contact (its gradient enters with dt instead of dt^2); 0: stiffness only.
+        gain: "paper": the gains alpha (Eq. 62) and beta (Eq. 66) shape the desired velocity
+            with the distance |X_r|; "off" (an ablation): constant gains, alpha = 0 and beta = -1
+            at every distance (catching: the relative velocity is driven to 0 as soon as the
+            object is inside the sphere; hitting: the hand's desired velocity is -X_o'
+            throughout); the latched X_r'(t_c) then plays no part.
         net: network structure.
         kernel: implementation of the network step (forward, backpropagation, Eq. 52 update):
             "xla" (reference) or "triton" (one Pallas Triton kernel per sample under ``vmap`` on
@@ -108,6 +113,7 @@ class LearnerConfig:
     gate_receding: bool = True
     velocity_after_contact: bool = False
     contact_damping: float = 0.0
+    gain: Literal["paper", "off"] = "paper"
     net: nets.NetConfig = field(default_factory=nets.NetConfig)
     kernel: Literal["xla", "triton", "interpret"] = "xla"
     nets_outside: bool = True
@@ -115,6 +121,8 @@ class LearnerConfig:
     def __post_init__(self):
         if self.kernel not in KERNELS:
             raise ValueError(f"kernel must be one of {KERNELS}, got {self.kernel!r}")
+        if self.gain not in ("paper", "off"):
+            raise ValueError(f"gain must be 'paper' or 'off', got {self.gain!r}")
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
         if not (0.0 <= self.r_b < self.radius):
@@ -228,12 +236,12 @@ def task_energy(
     f_int = f_int - contact * config.contact_damping * n0 * jnp.dot(n0, xd_e - inputs.xd_e)
     e_force = 0.5 * jnp.sum((f_d - f_int) ** 2)
     if config.task == "catching":
-        alpha = gain_alpha(rho, config.radius, config.r_b)
+        alpha = gain_alpha(rho, config.radius, config.r_b) if config.gain == "paper" else 0.0
         e_vel = 0.5 * jnp.sum((alpha * xd_r_tc - (inputs.xd_o - xd_e)) ** 2)  # Eq. 60
         if not config.velocity_after_contact:
             e_vel = jnp.where(touched, 0.0, e_vel)  # before contact only (Sec. 6.2)
     else:
-        beta = gain_beta(rho, config.radius, config.r_b)
+        beta = gain_beta(rho, config.radius, config.r_b) if config.gain == "paper" else -1.0
         e_vel = 0.5 * jnp.sum((beta * inputs.xd_o - xd_e) ** 2)  # Eq. 64
     return e_vel + config.mu * e_force
 

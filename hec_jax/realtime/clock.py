@@ -1,0 +1,129 @@
+"""Clocks of the control loop: the wall clock at 1 kHz, or none (un-timed, as fast as possible).
+
+Both give times [s] since the start of an episode. :class:`WallClock` waits for a tick with a
+sleep/busy-wait hybrid: ``time.sleep`` until ``spin_s`` before the tick (the kernel's timer slack
+and the scheduler's wake-up latency are tens of microseconds on Linux), then spins on the
+monotonic clock, so the CPU is free for the camera and eye most of each period and the tick
+still starts within a few microseconds. :class:`FreeClock` has no wall time at all: its time is
+the tick last waited for, so nothing is ever late and a run is a deterministic function of its
+inputs (the un-timed mode of :mod:`hec_jax.realtime.runner`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+from typing import Protocol
+
+
+def monotonic_s() -> float:
+    """[s] the system-wide monotonic clock (CLOCK_MONOTONIC: the same in every process)."""
+    return time.clock_gettime(time.CLOCK_MONOTONIC)
+
+
+class Clock(Protocol):
+    """A control loop's clock (times [s] since :meth:`start`)."""
+
+    def start(self, lead_s: float = 0.0) -> float:
+        """Starts the episode's time ``lead_s`` from now; returns its origin (monotonic [s])."""
+        ...
+
+    def now(self) -> float:
+        """[s] time since the origin."""
+        ...
+
+    def wait_until(self, t: float) -> float:
+        """Returns at time ``t`` [s] or at once if it has passed; returns :meth:`now`."""
+        ...
+
+
+class WallClock:
+    """The monotonic wall clock; :meth:`wait_until` sleeps, then spins the last ``spin_s``.
+
+    Args:
+        spin_s: [s] busy-wait before each tick (longer: fewer late wake-ups, more CPU).
+    """
+
+    def __init__(self, spin_s: float = 2e-4):
+        if not spin_s >= 0:
+            raise ValueError(f"spin_s must be >= 0, got {spin_s}")
+        self.spin_s = float(spin_s)
+        self.origin = monotonic_s()
+
+    def start(self, lead_s: float = 0.0) -> float:
+        """Starts the time ``lead_s`` [s] from now; returns the origin (monotonic [s])."""
+        self.origin = monotonic_s() + lead_s
+        return self.origin
+
+    def now(self) -> float:
+        """[s] since the origin."""
+        return monotonic_s() - self.origin
+
+    def wait_until(self, t: float) -> float:
+        """Sleeps until ``spin_s`` before ``t`` [s], spins to ``t``; returns :meth:`now`."""
+        target = self.origin + t
+        rest = target - monotonic_s() - self.spin_s
+        if rest > 0:
+            time.sleep(rest)
+        now = monotonic_s()
+        while now < target:
+            now = monotonic_s()
+        return now - self.origin
+
+
+class FreeClock:
+    """No wall time: the time is the last tick waited for (un-timed runs)."""
+
+    def __init__(self):
+        self.origin = 0.0
+        self._t = 0.0
+
+    def start(self, lead_s: float = 0.0) -> float:
+        """Resets the time to 0; returns the origin (0)."""
+        self._t = 0.0
+        return self.origin
+
+    def now(self) -> float:
+        """[s] the tick last waited for."""
+        return self._t
+
+    def wait_until(self, t: float) -> float:
+        """Sets the time to ``t`` [s] (never goes back) and returns it."""
+        self._t = max(self._t, t)
+        return self._t
+
+
+class realtime_priority:
+    """Context manager: every thread of this process under ``SCHED_FIFO`` at ``priority``
+    (1-99; 0: leave the scheduling alone), normal scheduling again on exit.
+
+    A real-time control loop runs so (a robot's controller on a PREEMPT_RT kernel): ordinary
+    processes on the same cores no longer preempt it. Needs CAP_SYS_NICE (root); the kernel's
+    real-time throttling (``sched_rt_runtime_us``, 95% by default) still leaves the other
+    processes some time if the loop spins. Threads started inside the block inherit it.
+
+    Raises:
+        PermissionError: not allowed to change the scheduling.
+    """
+
+    def __init__(self, priority: int):
+        if not 0 <= priority <= 99:
+            raise ValueError(f"priority must be in 0..99, got {priority}")
+        self.priority = int(priority)
+
+    def __enter__(self):
+        if self.priority:
+            set_scheduling(os.SCHED_FIFO, self.priority)
+        return self
+
+    def __exit__(self, *exc):
+        if self.priority:
+            set_scheduling(os.SCHED_OTHER, 0)
+
+
+def set_scheduling(policy: int, priority: int) -> None:
+    """``sched_setscheduler`` for every thread of this process (Linux)."""
+    for tid in os.listdir("/proc/self/task"):
+        with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
+            os.sched_setscheduler(int(tid), policy, os.sched_param(priority))

@@ -1,0 +1,83 @@
+"""Settings of a real-time run (frozen; the CLI's flags come from here and the experiment's)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+
+@dataclass(frozen=True)
+class RealtimeConfig:
+    """How the loop runs on the clock; the task, eye and camera are the experiment's.
+
+    The real-time loop runs one world (one network initialisation: seed 0 of a one-seed
+    experiment with the experiment's ``seed``) under one condition.
+    """
+
+    condition: Literal["plain", "frozen", "learned"] = "learned"
+    # [s] of real time: sets the number of swings to ceil(duration_s / swing_s) (training swings
+    # of hitting; its continuous run comes on top); None: the preset's swings
+    duration_s: float | None = None
+    timed: bool = True  # False: no clock, as fast as possible (equivalence tests; eye truth only)
+    spin_us: float = 200.0  # [us] busy-wait before each tick (sleep before that)
+    lead_ms: float = 20.0  # [ms] from the start of an episode's clock to its first tick
+    gc_off: bool = True  # no Python garbage collection during an episode (collected between)
+    pin_cpus: bool = False  # control loop on CPU 0, camera and eye on the others
+    # SCHED_FIFO priority of the control loop while it runs (1-99); 0: normal scheduling (other
+    # processes on the machine may preempt the loop)
+    rt_priority: int = 0
+    # SCHED_FIFO priority of the camera process once ready (below rt_priority); 0: normal
+    # scheduling. Its load is bounded (one render per frame time).
+    camera_priority: int = 0
+    # the same for the eye. Its load is not bounded: a search from scratch after a lost track
+    # takes 0.3-0.7 s of CPU; at real-time priority with the loop and the camera it can exhaust
+    # the kernel's real-time budget (95% of each second), which then stalls all of them for the
+    # rest of the second.
+    eye_priority: int = 0
+    # multisample anti-aliasing of the rendered camera (MuJoCo's offsamples); None: the scene's
+    # (4, as the simulated camera loop). 0 makes software rendering about 3x cheaper (13 -> 4 ms
+    # at 320x240) at the price of aliased edges: a real camera costs the computer nothing, the
+    # simulated one competes with the eye and the loop for the CPU
+    camera_msaa: int | None = None
+    # nice value of the camera and eye processes (-20..19; below 0 needs root): under normal
+    # scheduling a lower value gives them a larger share of the CPU than other processes
+    child_nice: int = 0
+    # [s] how long the loop waits, before each release, for the eye's answer on the release
+    # frame (its search from scratch, ~0.4 s on one core): the cube is held in view until the
+    # eye has it, then released (the simulated camera loop's first estimate arrives 1 frame
+    # latency after the release instead)
+    acquire_timeout_s: float = 10.0
+    # the same run in simulated time beside the real-time one: "auto" (the eye's source: the
+    # MJX episode for truth, the simulated camera loop for camera; the ground-truth MJX episode
+    # always), "truth" (MJX episode only), "none"
+    twin: Literal["auto", "truth", "none"] = "auto"
+    startup_timeout_s: float = 600.0  # [s] for the camera and eye processes to be ready
+
+    def __post_init__(self):
+        if self.duration_s is not None and not (
+            math.isfinite(self.duration_s) and self.duration_s > 0
+        ):
+            raise ValueError(f"duration_s must be finite and > 0 or None, got {self.duration_s}")
+        for name in ("spin_us", "lead_ms", "startup_timeout_s", "acquire_timeout_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"RealtimeConfig.{name} must be finite and >= 0, got {v}")
+        if not (isinstance(self.rt_priority, int) and 0 <= self.rt_priority <= 99):
+            raise ValueError(f"rt_priority must be an integer in 0..99, got {self.rt_priority}")
+        for name in ("camera_priority", "eye_priority"):
+            v = getattr(self, name)
+            if not (isinstance(v, int) and 0 <= v <= 99):
+                raise ValueError(f"RealtimeConfig.{name} must be an integer in 0..99, got {v}")
+            if self.rt_priority and v >= self.rt_priority:
+                raise ValueError(f"RealtimeConfig.{name} must be below rt_priority")
+        if not (isinstance(self.child_nice, int) and -20 <= self.child_nice <= 19):
+            raise ValueError(f"child_nice must be an integer in -20..19, got {self.child_nice}")
+        if self.camera_msaa is not None and not (
+            isinstance(self.camera_msaa, int) and 0 <= self.camera_msaa <= 16
+        ):
+            raise ValueError(
+                f"camera_msaa must be None or an integer in 0..16, got {self.camera_msaa}"
+            )
+        if self.condition not in ("plain", "frozen", "learned"):
+            raise ValueError(f"condition must be plain, frozen or learned, got {self.condition!r}")

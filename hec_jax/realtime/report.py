@@ -1,0 +1,396 @@
+"""Deadline report of a real-time run (NumPy boundary): control ticks, the eye, the task.
+
+* Control: per-tick latency from the tick's scheduled start (j dt) to the torques written,
+  percentiles p50/p99/p99.9/max and a histogram; the plant's physics steps split into fresh
+  (torque from their own sample in time), late (torque after the deadline (j + 1) dt: the held
+  one was applied) and skipped (no controller call at all: the loop fell behind); missed
+  deadlines = late + skipped. The late count is recomputed from the recorded write times and
+  must equal the plant's.
+* Eye: frames rendered (and exposed late or skipped by the camera), frames the eye processed and
+  dropped (latest-frame policy), the latency from a frame's exposure to the tick where its
+  estimate becomes the controller's object state, and the age of the state in force at each tick
+  (tick time minus the exposure of the estimate in force).
+* Task: the run's metrics beside the same run in simulated time (:func:`compare_metrics`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from hec_jax.report import markdown_table
+from hec_jax.runs import save_figure, write_json, write_npz
+
+# latency histogram bins [us]: log-spaced from 10 us to 1 s
+HIST_EDGES_US = np.concatenate([[0.0], np.logspace(1, 6, 101)])
+
+
+def percentiles(x, scale: float = 1.0) -> dict:
+    """{"p50", "p99", "p99_9", "max", "mean", "n"} of ``x`` * ``scale`` (NaNs dropped)."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)] * scale
+    if x.size == 0:
+        return {"p50": None, "p99": None, "p99_9": None, "max": None, "mean": None, "n": 0}
+    p = np.percentile(x, [50, 99, 99.9])
+    return {
+        "p50": float(p[0]),
+        "p99": float(p[1]),
+        "p99_9": float(p[2]),
+        "max": float(x.max()),
+        "mean": float(x.mean()),
+        "n": int(x.size),
+    }
+
+
+def tick_table(run) -> dict[str, np.ndarray]:
+    """The ticks of every episode in one table: ``episode``, ``index`` (sample j), ``t_sched``
+    [s] (= j dt), the recorded times, ``kind`` (plant: 0 fresh, 1 late, 2 skipped).
+    """
+    out: dict[str, list] = {}
+    for e, rec in enumerate(run.ticks):
+        n = len(rec["kind"])
+        cols = dict(rec, episode=np.full(n, e), index=np.arange(n))
+        for k, v in cols.items():
+            out.setdefault(k, []).append(np.asarray(v)[:n])
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def deadline_report(run, dt: float, fps: float | None, camera_log=None, eye_log=None) -> dict:
+    """The deadline report of a :class:`~hec_jax.realtime.runner.LoopRun` (module docstring).
+
+    Args:
+        run: the loop's records.
+        dt: [s] control period.
+        fps: [1/s] the camera's frame rate (None: no camera).
+        camera_log: the camera's per-frame log (None: no camera).
+        eye_log: the eye's per-frame log (None: no camera).
+    """
+    tt = tick_table(run)
+    t_sched = tt["index"] * dt
+    ticked = np.isfinite(tt["t_write"])
+    lat = (tt["t_write"] - t_sched)[ticked]
+    kind = tt["kind"]
+    # late: torques taken at or after the deadline (j + 1) dt (the plant's own comparison)
+    late_recorded = int(np.sum(tt["t_write"][ticked] >= (tt["index"][ticked] + 1) * dt))
+    counts = {
+        "steps": int(kind.size),
+        "ticks": int(ticked.sum()),
+        "fresh": int(np.sum(kind == 0)),
+        "late": int(np.sum(kind == 1)),
+        "skipped": int(np.sum(kind == 2)),
+    }
+    counts["missed"] = counts["late"] + counts["skipped"]
+    counts["late_from_recorded_times"] = late_recorded
+    counts["consistent"] = bool(
+        counts["fresh"] + counts["late"] + counts["skipped"] == counts["steps"]
+        and counts["fresh"] + counts["late"] == counts["ticks"]
+        and late_recorded == counts["late"]
+    )
+    hist, _ = np.histogram(lat * 1e6, HIST_EDGES_US)
+    control = {
+        "period_us": dt * 1e6,
+        "counts": counts,
+        "missed_fraction": counts["missed"] / max(counts["steps"], 1),
+        "latency_us": percentiles(lat, 1e6),
+        "wake_jitter_us": percentiles((tt["t_wake"] - t_sched)[ticked], 1e6),
+        "observe_us": percentiles((tt["t_obs"] - tt["t_wake"])[ticked], 1e6),
+        "step_us": percentiles((tt["t_step"] - tt["t_obs"])[ticked], 1e6),
+        "write_us": percentiles((tt["t_write"] - tt["t_step"])[ticked], 1e6),
+        "histogram": {"edges_us": HIST_EDGES_US.tolist(), "counts": hist.tolist()},
+    }
+    p999 = control["latency_us"]["p99_9"]
+    targets = {
+        "p99_9_latency_within_period": bool(p999 is not None and p999 < dt * 1e6),
+        "no_missed_deadline": counts["missed"] == 0,
+    }
+    report = {"control": control, "targets": targets}
+    if fps is not None:
+        report["eye"] = eye_report(run, tt, dt, fps, camera_log, eye_log)
+        age_max = report["eye"]["age_ms"]["max"]
+        targets["eye_age_within_two_frame_periods"] = bool(
+            age_max is not None and age_max <= 2e3 / fps
+        )
+    return report
+
+
+def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dict:
+    """The eye's part of :func:`deadline_report`."""
+    arr = {k: np.concatenate([a[k] for a in run.arrivals]) for k in run.arrivals[0]}
+    # latencies of the frames exposed after the release (frame 0 is answered before it)
+    seen = (arr["seen"] > 0) & (arr["number"] > 0)
+    period_steps = int(round(1.0 / (fps * dt)))
+    expected = int(sum(-(-len(rec["kind"]) // period_steps) for rec in run.ticks))
+    out = {
+        "fps": fps,
+        "frame_period_ms": 1e3 / fps,
+        "frames_expected": expected,
+        "estimates_taken": int(len(arr["tick"])),
+        "estimates_seen": int(seen.sum()),
+        # exposure (plant time) -> the tick whose control step first uses the estimate
+        "latency_ms": percentiles((arr["t_tick"] - arr["t_stamp"])[seen], 1e3),
+        # the same on the wall clock: exposure -> taken by the control loop
+        "latency_wall_ms": percentiles((arr["t_wall_taken"] - arr["t_wall_exposure"])[seen], 1e3),
+        # exposure -> the eye's estimate published (render + eye)
+        "pipeline_wall_ms": percentiles((arr["t_wall_done"] - arr["t_wall_exposure"])[seen], 1e3),
+        "age_ms": percentiles(tt["index"] * dt - tt["t_stamp"], 1e3),
+        "ticks_with_estimate": int(np.isfinite(tt["t_stamp"]).sum()),
+    }
+    if camera_log:
+        late = camera_log["step"] - camera_log["step_due"]
+        out["camera"] = {
+            "frames_rendered": int(len(camera_log["index"])),
+            "frames_exposed_late": int(np.sum(late > 0)),
+            "exposure_delay_ms": percentiles(late, 1e3 * dt),
+            "frame_times_skipped": int(camera_log["skipped"]),
+            "render_ms": percentiles(camera_log["render_ms"]),
+        }
+    if eye_log:
+        out["eye"] = {
+            "frames_processed": int(len(eye_log["index"])),
+            "frames_dropped": int(eye_log["dropped"]),
+            "frames_valid": int(np.sum(eye_log["valid"])),
+            # frames after the release; the release frames' search from scratch apart
+            "eye_ms": percentiles(eye_log["eye_ms"][eye_log["number"] > 0]),
+            "acquisition_ms": percentiles(eye_log["eye_ms"][eye_log["number"] == 0]),
+        }
+        if camera_log:
+            # accuracy of the eye at its frames against the rendered truth
+            truth = dict(zip(camera_log["index"].tolist(), camera_log["x_true"], strict=True))
+            err = [
+                x - truth[int(i)]
+                for i, x in zip(eye_log["index"], eye_log["x_est"], strict=True)
+                if int(i) in truth and np.all(np.isfinite(x))
+            ]
+            if err:
+                out["eye"]["position_rms_m"] = float(np.sqrt(np.mean(np.square(err))))
+    return out
+
+
+_COMPARED = ("peak_force", "settle_force", "hits", "periodic_hits")
+
+
+def compare_metrics(
+    realtime: dict, simulated: dict, tolerance: float = 0.2, scales: dict | None = None
+) -> dict:
+    """{metric: {"realtime", "simulated", "ratio", "rel_diff", "within"}} for the metrics both
+    have (means over seeds: peak and settle force for catching, hits for hitting).
+    ``rel_diff``: |real time - simulated| / ``scales[metric]`` where given (e.g. the settle
+    force against F_cd: a cube dropped in both runs settles at 0 in both), else / |simulated|;
+    ``within``: ``rel_diff`` <= ``tolerance``.
+    """
+    scales = {} if scales is None else scales
+    out = {}
+    for key in _COMPARED:
+        a, b = realtime.get(key), simulated.get(key)
+        if not (isinstance(a, dict) and isinstance(b, dict)):
+            continue
+        a, b = a["mean"], b["mean"]
+        scale = scales.get(key, abs(b))
+        rel = abs(a - b) / scale if scale else None
+        out[key] = {
+            "realtime": a,
+            "simulated": b,
+            "ratio": a / b if b else None,
+            "rel_diff": rel,
+            "within": bool(rel is not None and rel <= tolerance),
+        }
+    for key in ("held_every_seed",):
+        if key in realtime and key in simulated:
+            out[key] = {"realtime": realtime[key], "simulated": simulated[key]}
+    return out
+
+
+def deadline_table(report: dict) -> list[str]:
+    """Markdown lines of the deadline table (control latency, misses, eye)."""
+    c = report["control"]
+    lat, n = c["latency_us"], c["counts"]
+
+    def us(v):
+        return "-" if v is None else f"{v:.0f}"
+
+    rows = [
+        ("control ticks / physics steps", f"{n['ticks']} / {n['steps']}"),
+        (
+            "tick latency p50 / p99 / p99.9 / max [us]",
+            " / ".join(us(lat[k]) for k in ("p50", "p99", "p99_9", "max")),
+        ),
+        (
+            "missed 1 ms deadlines (late + skipped)",
+            f"{n['missed']} ({n['late']} + {n['skipped']}), "
+            f"{100 * c['missed_fraction']:.3f}% of steps",
+        ),
+        (
+            "  of which: wake jitter p99.9 / step p99.9 [us]",
+            f"{us(c['wake_jitter_us']['p99_9'])} / {us(c['step_us']['p99_9'])}",
+        ),
+    ]
+    eye = report.get("eye")
+    if eye:
+
+        def ms(d):
+            return " / ".join("-" if d[k] is None else f"{d[k]:.1f}" for k in ("p50", "p99", "max"))
+
+        rows += [
+            ("eye latency exposure -> state p50 / p99 / max [ms]", ms(eye["latency_ms"])),
+            (
+                f"eye state age p50 / p99 / max [ms] (2 frames = {2 * eye['frame_period_ms']:.1f})",
+                ms(eye["age_ms"]),
+            ),
+        ]
+        if "camera" in eye:
+            cam = eye["camera"]
+            rows += [
+                (
+                    "frames rendered / expected, exposed late, frame times skipped",
+                    f"{cam['frames_rendered']} / {eye['frames_expected']}, "
+                    f"{cam['frames_exposed_late']}, {cam['frame_times_skipped']}",
+                ),
+                ("render p50 / p99 / max [ms]", ms(cam["render_ms"])),
+            ]
+        if "eye" in eye:
+            e = eye["eye"]
+            rows += [
+                (
+                    "frames processed by the eye / dropped / valid",
+                    f"{e['frames_processed']} / {e['frames_dropped']} / {e['frames_valid']}",
+                ),
+                ("eye p50 / p99 / max [ms]", ms(e["eye_ms"])),
+            ]
+    return markdown_table(["quantity", "value"], rows)
+
+
+def comparison_table(comparison: dict) -> list[str]:
+    """Markdown lines: each compared metric, real time against each simulated twin."""
+    rows = []
+    for twin, comp in comparison.items():
+        for key, v in comp.items():
+            if "ratio" in v:
+                ratio = "-" if v["ratio"] is None else f"{v['ratio']:.3f}"
+                rel = "-" if v["rel_diff"] is None else f"{100 * v['rel_diff']:.1f}%"
+                rows.append(
+                    (
+                        f"{key} (vs {twin})",
+                        f"{v['realtime']:.4g}",
+                        f"{v['simulated']:.4g}",
+                        ratio,
+                        f"{rel} ({'within' if v['within'] else 'outside'} 20%)",
+                    )
+                )
+            else:
+                rows.append((f"{key} (vs {twin})", v["realtime"], v["simulated"], "-", "-"))
+    header = ["metric", "real time", "simulated time", "ratio", "difference"]
+    return markdown_table(header, rows)
+
+
+def write_report(folder: Path, result) -> None:
+    """``deadline.json``, ``metrics.json`` (the run's task metrics, the twins', the ratios),
+    ``deadline_histogram.png``, ``ticks.npz`` (every tick's recorded times, to recompute the
+    report), with the camera ``eye_frames.npz`` (per frame: camera, eye, estimates taken), and
+    ``trajectory_realtime.npz``/``trajectory_simulated_<twin>.npz``, into ``folder``.
+    """
+    from hec_jax.loop.report import save_trajectories
+
+    folder = Path(folder)
+    report = dict(result.report, load_average=result.load)
+    write_json(folder / "deadline.json", report)
+    write_json(
+        folder / "metrics.json",
+        {
+            "condition": result.realtime.condition,
+            "realtime": result.metrics,
+            "simulated": {k: v["metrics"] for k, v in result.twins.items()},
+            "simulated_wall_s": {k: v["wall_s"] for k, v in result.twins.items()},
+            "comparison": result.comparison,
+            "targets": dict(
+                report["targets"],
+                **{
+                    f"task_metrics_within_20pct_of_{twin}": all(
+                        v["within"] for v in comp.values() if "within" in v
+                    )
+                    for twin, comp in result.comparison.items()
+                },
+            ),
+        },
+    )
+    write_npz(folder / "ticks.npz", **tick_table(result.loop_run))
+    if result.eye_log:  # per frame: the camera's, the eye's, and the estimates the loop took
+        arrivals = result.loop_run.arrivals
+        write_npz(
+            folder / "eye_frames.npz",
+            **{f"camera_{k}": np.asarray(v) for k, v in result.camera_log.items()},
+            **{f"eye_{k}": np.asarray(v) for k, v in result.eye_log.items()},
+            **{f"taken_{k}": np.concatenate([a[k] for a in arrivals]) for k in arrivals[0]},
+        )
+    final = result.config.task.final_s > 0
+    logs = {
+        "realtime": result.logs,
+        **{f"simulated_{k}": v["logs"] for k, v in result.twins.items()},
+    }
+    if final:
+        logs = {k: v["final"] for k, v in logs.items()}
+    save_trajectories(folder, logs, result.dt)
+    histogram_figure(folder / "deadline_histogram.png", result)
+
+
+def histogram_figure(path: Path, result) -> None:
+    """Tick latency histogram (log counts, the 1 ms deadline marked) and, with the camera, the
+    eye's latency and the age of its state.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    tt = tick_table(result.loop_run)
+    dt = result.dt
+    ticked = np.isfinite(tt["t_write"])
+    lat_us = (tt["t_write"] - tt["index"] * dt)[ticked] * 1e6
+    eye = "eye" in result.report
+    fig, axes = plt.subplots(1, 2 if eye else 1, figsize=(11 if eye else 6, 4), squeeze=False)
+    ax = axes[0, 0]
+    ax.hist(lat_us, bins=HIST_EDGES_US[1:], color="C0")
+    ax.axvline(dt * 1e6, color="C3", ls="--", label=f"deadline {dt * 1e3:g} ms")
+    lat = result.report["control"]["latency_us"]
+    for k, ls in (("p50", ":"), ("p99_9", "-.")):
+        ax.axvline(lat[k], color="k", ls=ls, label=f"{k.replace('_', '.')} {lat[k]:.0f} us")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("tick latency: scheduled start -> torques written [us]")
+    ax.set_ylabel("ticks")
+    n = result.report["control"]["counts"]
+    ax.set_title(f"{n['ticks']} ticks, {n['missed']} missed deadlines")
+    ax.legend(fontsize=8)
+    if eye:
+        ax = axes[0, 1]
+        age = (tt["index"] * dt - tt["t_stamp"]) * 1e3
+        age = age[np.isfinite(age)]
+        arr = {k: np.concatenate([a[k] for a in result.loop_run.arrivals]) for k in ("t_tick",)}
+        arr["t_stamp"] = np.concatenate([a["t_stamp"] for a in result.loop_run.arrivals])
+        seen = np.concatenate([a["seen"] for a in result.loop_run.arrivals]) > 0
+        seen &= np.concatenate([a["number"] for a in result.loop_run.arrivals]) > 0
+        latency = (arr["t_tick"] - arr["t_stamp"])[seen] * 1e3
+        bins = np.logspace(0, np.log10(max(age.max(initial=10), latency.max(initial=10)) * 1.1), 80)
+        ax.hist(age, bins=bins, alpha=0.6, label="age of the state at each tick")
+        ax.hist(latency, bins=bins, alpha=0.6, label="exposure -> state (per frame)")
+        fp = result.report["eye"]["frame_period_ms"]
+        ax.axvline(2 * fp, color="C3", ls="--", label=f"two frame periods {2 * fp:.1f} ms")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("[ms]")
+        ax.set_ylabel("ticks / frames")
+        ax.set_title("the eye's state")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path)
+    plt.close(fig)
+
+
+def print_report(result) -> None:
+    """The deadline table, the task metrics against simulated time, the targets."""
+    print("\n".join(deadline_table(result.report)))
+    print()
+    print("\n".join(comparison_table(result.comparison)))
+    print()
+    print("targets:", result.report["targets"])
+    print("load average (1, 5, 15 min):", result.load)

@@ -1,0 +1,685 @@
+"""The hand-eye loop on the wall clock: controller + learner every 1 ms, the eye at 30 fps.
+
+Per tick j (plant time j dt, :class:`~hec_jax.realtime.clock.WallClock`):
+
+1. wait for the tick (sleep, then spin the last ``spin_us``);
+2. read the plant's sample j (:class:`~hec_jax.realtime.plant.Plant`: joint state, end-point
+   force, time); if the eye has published a newer estimate, it becomes the object's state source
+   (latest-estimate policy: the eye itself takes the newest frame, :mod:`.workers`);
+3. the observation of Eqs. 39-44 from the joint state by MuJoCo C
+   (:class:`~hec_jax.realtime.plant.ArmModel`), packed into one vector;
+4. one jitted call: :attr:`hec_jax.loop.policy.Loop.policy_obs`, the very function the simulated
+   loops run after their MJX observation (object state from eye and touch, online learning of
+   Eqs. 50-66, impedance law of Eqs. 41-49), on flat vectors (policy state, switches,
+   observation in; policy state, torques and the logged signals out), so each call passes
+   three arrays;
+5. write the torques; the plant applies them to step j if they came before its deadline
+   ((j + 1) dt), else holds the previous ones (:class:`~hec_jax.realtime.plant.MujocoPlant`).
+
+Episodes (swings) are as in :mod:`hec_jax.loop.episodes`: the world restarts at the release,
+the controller state restarts, the learner's weights carry over. Un-timed mode
+(:class:`~hec_jax.realtime.clock.FreeClock`) runs the same code with no clock: every torque is on
+time and the run is the simulated loop's step sequence in MuJoCo C (tests compare it with
+:func:`hec_jax.mjx_scene.rollout_c` and with the MJX episodes).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from hec_jax.control import TaskObs
+from hec_jax.loop.camera_loop import run_camera, steps_per_frame
+from hec_jax.loop.config import CameraConfig, ExperimentConfig
+from hec_jax.loop.episodes import make_episodes
+from hec_jax.loop.experiment import condition_metrics
+from hec_jax.loop.object_state import EyeInput
+from hec_jax.loop.policy import Loop, build_loop, switches
+from hec_jax.realtime import workers
+from hec_jax.realtime.clock import Clock, FreeClock, WallClock, monotonic_s, realtime_priority
+from hec_jax.realtime.config import RealtimeConfig
+from hec_jax.realtime.plant import ArmModel, MujocoPlant, Plant, PlantSample, plant_model
+from hec_jax.realtime.report import compare_metrics, deadline_report
+from hec_jax.realtime.shared import _CTX, Board, wait_for
+
+
+def float_dtype():
+    """The loop's float type: float64 with ``jax_enable_x64``, else float32."""
+    return jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+
+
+# ---------------------------------------------------------------------------------------------
+# Flat vectors at the jit boundary
+
+
+class Flat:
+    """A pytree <-> one flat vector, for a fixed structure (``template``'s).
+
+    Leaves of any dtype are stored as floats (bools and counters exactly) and cast back.
+    ``pack``/``unpack`` are jittable; ``pack_np``/``unpack_np`` are their NumPy forms
+    (``unpack_np`` of a stack of vectors, leading axis kept).
+    """
+
+    def __init__(self, template):
+        leaves, self.treedef = jax.tree_util.tree_flatten(template)
+        self.shapes = tuple(tuple(np.shape(x)) for x in leaves)
+        self.dtypes = tuple(np.dtype(x.dtype if hasattr(x, "dtype") else type(x)) for x in leaves)
+        self.sizes = tuple(int(np.prod(s, dtype=int)) for s in self.shapes)
+        self.offsets = tuple(int(o) for o in np.cumsum((0, *self.sizes))[:-1])
+        self.size = int(sum(self.sizes))
+
+    def pack(self, tree, dtype) -> jax.Array:
+        """(size,) vector of ``tree``'s leaves (jittable)."""
+        leaves = self.treedef.flatten_up_to(tree)
+        return jnp.concatenate([jnp.ravel(jnp.asarray(x)).astype(dtype) for x in leaves])
+
+    def pack_np(self, tree, dtype=np.float64) -> np.ndarray:
+        """NumPy form of :meth:`pack`."""
+        leaves = self.treedef.flatten_up_to(tree)
+        return np.concatenate([np.ravel(np.asarray(x)).astype(dtype) for x in leaves])
+
+    def unpack(self, vec):
+        """The pytree from a (size,) vector (jittable)."""
+        parts = zip(self.offsets, self.sizes, self.shapes, self.dtypes, strict=True)
+        return self.treedef.unflatten(
+            [vec[o : o + n].reshape(s).astype(dt) for o, n, s, dt in parts]
+        )
+
+    def unpack_np(self, rows: np.ndarray):
+        """The pytree of stacked leaves from (T, size) rows (NumPy)."""
+        parts = zip(self.offsets, self.sizes, self.shapes, self.dtypes, strict=True)
+        return self.treedef.unflatten(
+            [rows[:, o : o + n].reshape((-1, *s)).astype(dt) for o, n, s, dt in parts]
+        )
+
+
+# The observation vector: TaskObs's fields (task axes x, z) and the time [s].
+OBS_FIELDS = (
+    ("q", (3,)),
+    ("qd", (3,)),
+    ("M", (3, 3)),
+    ("h", (3,)),
+    ("x_e", (2,)),
+    ("xd_e", (2,)),
+    ("J", (2, 3)),
+    ("jdot_qdot", (2,)),
+    ("f_int", (2,)),
+    ("x_o", (2,)),
+    ("xd_o", (2,)),
+    ("t", ()),
+)
+_OBS_SLICES = {}
+_start = 0
+for _name, _shape in OBS_FIELDS:
+    _n = int(np.prod(_shape, dtype=int))
+    _OBS_SLICES[_name] = slice(_start, _start + _n)
+    _start += _n
+OBS_SIZE = _start
+del _start, _name, _shape, _n
+_XZ = np.array([0, 2])
+
+
+def fill_observation(vec: np.ndarray, sample: PlantSample, arm) -> None:
+    """Writes the observation of ``sample`` (with ``arm``, an
+    :class:`~hec_jax.realtime.plant.ArmObs`) into ``vec`` (OBS_SIZE,) in place. The object's
+    state is the plant's truth where it has it, else zeros (then only the eye's is used).
+    """
+    sl = _OBS_SLICES
+    vec[sl["q"]] = sample.q
+    vec[sl["qd"]] = sample.qd
+    vec[sl["M"]] = arm.M.ravel()
+    vec[sl["h"]] = arm.h
+    vec[sl["x_e"]] = arm.x_e
+    vec[sl["xd_e"]] = arm.xd_e
+    vec[sl["J"]] = arm.J.ravel()
+    vec[sl["jdot_qdot"]] = arm.jdot_qdot
+    vec[sl["f_int"]] = sample.f_int[_XZ]
+    vec[sl["x_o"]] = 0.0 if sample.x_o is None else sample.x_o
+    vec[sl["xd_o"]] = 0.0 if sample.xd_o is None else sample.xd_o
+    vec[sl["t"]] = sample.t
+
+
+def unpack_observation(vec: jax.Array) -> tuple[TaskObs, jax.Array]:
+    """(TaskObs, t [s]) from an observation vector (jittable)."""
+    parts = {name: vec[_OBS_SLICES[name]].reshape(shape) for name, shape in OBS_FIELDS}
+    t = parts.pop("t")
+    return TaskObs(**parts), t
+
+
+class StepFns(NamedTuple):
+    """The jitted functions of the control path and the layouts of their flat vectors.
+
+    Attributes:
+        step: ``(ps_vec, sw_vec, obs_vec) -> (ps_vec, out_vec)``; ``out_vec`` is the torques
+            [N m] (3,) followed by the policy's logged signals (``aux``).
+        init: ``(obs_vec, learner_state, switches) -> PolicyState`` at a release.
+        ps: layout of the policy state without its switches.
+        sw: layout of the :class:`~hec_jax.loop.policy.Switches`.
+        aux: layout of the logged signals.
+        dtype: the float type of the vectors.
+    """
+
+    step: Any
+    init: Any
+    ps: Flat
+    sw: Flat
+    aux: Flat
+    dtype: Any
+
+
+def make_step_fns(loop: Loop, learner_state, sw) -> StepFns:
+    """Jitted ``step`` and ``init`` of ``loop`` for policy states like the one built from
+    ``learner_state`` and switches ``sw`` (compiled on first call).
+    """
+    dtype = float_dtype()
+
+    def init(obs_vec, ls, sw):
+        obs, _ = unpack_observation(obs_vec.astype(dtype))
+        return loop.initial_policy_state_obs(obs, ls, sw)
+
+    obs0 = jnp.zeros(OBS_SIZE, dtype).at[_OBS_SLICES["M"]].set(jnp.eye(3, dtype=dtype).ravel())
+    ps0 = jax.eval_shape(init, obs0, learner_state, sw)
+    flat_ps = Flat(ps0._replace(switches=None))
+    flat_sw = Flat(sw)
+
+    def policy(ps_vec, sw_vec, obs_vec):
+        obs, t = unpack_observation(obs_vec.astype(dtype))
+        ps = flat_ps.unpack(ps_vec)._replace(switches=flat_sw.unpack(sw_vec))
+        return loop.policy_obs(ps, obs, t)
+
+    _, _, aux0 = jax.eval_shape(
+        policy, jnp.zeros(flat_ps.size, dtype), jnp.zeros(flat_sw.size, dtype), obs0
+    )
+    flat_aux = Flat(aux0)
+
+    def step(ps_vec, sw_vec, obs_vec):
+        tau, ps, aux = policy(ps_vec, sw_vec, obs_vec)
+        ps_vec = flat_ps.pack(ps._replace(switches=None), dtype)
+        return ps_vec, jnp.concatenate([tau.astype(dtype), flat_aux.pack(aux, dtype)])
+
+    return StepFns(jax.jit(step), jax.jit(init), flat_ps, flat_sw, flat_aux, dtype)
+
+
+# ---------------------------------------------------------------------------------------------
+# The eye's estimates -> the policy's switches
+
+
+def eye_timing(cam: CameraConfig, dt: float) -> tuple[float, float]:
+    """(touch_guard, touch_memory) [s] of :class:`~hec_jax.loop.object_state.EyeInput`, as the
+    simulated camera loop sets them.
+    """
+    period = steps_per_frame(cam, dt)
+    guard = cam.touch_guard_frames * period * dt
+    return guard, guard + cam.latency_s + cam.max_coast_frames * period * dt
+
+
+def eye_input(estimate: dict | None, guard: float, memory: float) -> EyeInput:
+    """The :class:`~hec_jax.loop.object_state.EyeInput` of the newest estimate (None or not
+    seen: the object is unseen), used from its arrival on (NumPy).
+    """
+    z = np.zeros((2, 2))
+    if estimate is None or not estimate["seen"] > 0:
+        return EyeInput(1.0, 0.0, np.zeros(2), np.inf, z, z, z, guard, memory)
+    t = float(estimate["t_stamp"])
+    return EyeInput(
+        use=1.0,
+        seen=1.0,
+        t_stamp=np.array([t, t]),
+        t_switch=np.inf,
+        x=np.stack([estimate["x"]] * 2),
+        xd=np.stack([estimate["xd"]] * 2),
+        xdd=np.stack([estimate["xdd"]] * 2),
+        touch_guard=guard,
+        touch_memory=memory,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# The loop
+
+
+@dataclass
+class LoopRun:
+    """What :func:`run_loop` returns (NumPy).
+
+    Attributes:
+        logs: per episode, the simulated loops' log names (``x_e``, ``f_contact``, ``t``,
+            ``qpos``, ...), one row per physics step (rows of steps without a controller call
+            repeat the last call's signals).
+        ticks: per episode, one row per physics step j: ``t_wake``, ``t_obs``, ``t_step``,
+            ``t_write`` [s] (clock times of the wake-up, the observation ready, the jitted step
+            done, the torques taken by the plant; NaN where the step had no tick; after a
+            catch-up the wake-up precedes j dt), ``kind`` (plant: 0 fresh, 1 late, 2 skipped),
+            ``t_stamp`` [s] (exposure of the eye's estimate in force, NaN: none).
+        arrivals: per episode, one row per eye estimate taken: ``tick``, ``t_tick`` [s],
+            ``t_stamp`` [s], ``frame``, ``number`` (in the episode; 0: the release frame,
+            answered before the release), ``seen``, ``t_wall_exposure``, ``t_wall_done``,
+            ``t_wall_taken`` [s] (monotonic).
+        counts: per episode, the plant's :class:`~hec_jax.realtime.plant.PlantCounts`.
+        learner: the learner state after the last episode.
+        wall_s: per episode, the clock time of its ticks [s].
+    """
+
+    logs: list = field(default_factory=list)
+    ticks: list = field(default_factory=list)
+    arrivals: list = field(default_factory=list)
+    counts: list = field(default_factory=list)
+    learner: Any = None
+    wall_s: list = field(default_factory=list)
+
+
+def run_loop(
+    loop: Loop,
+    plant: Plant,
+    clock: Clock,
+    key: jax.Array,
+    condition: str,
+    episode_steps: list[int],
+    arm: ArmModel,
+    estimates: Board | None = None,
+    cam: CameraConfig | None = None,
+    lead_s: float = 0.02,
+    gc_off: bool = True,
+    fns: StepFns | None = None,
+    progress: bool = False,
+    acquire_timeout_s: float = 10.0,
+) -> LoopRun:
+    """Episodes of the closed loop on ``plant`` at ``clock``'s ticks.
+
+    Args:
+        loop: the task's loop (:func:`~hec_jax.loop.policy.build_loop`).
+        plant: the robot or its simulation (``begin_episode``/``start``/``read``/``write``).
+        clock: :class:`~hec_jax.realtime.clock.WallClock` (real time) or
+            :class:`~hec_jax.realtime.clock.FreeClock` (un-timed).
+        key: PRNG key of the network initialisation.
+        condition: "plain", "frozen" or "learned".
+        episode_steps: control steps of each episode (swings, then the continuous run).
+        arm: the controller's model of the arm.
+        estimates: the eye's board (``workers.ESTIMATE_FIELDS``); None: the plant's object
+            state (``--eye truth``).
+        cam: the camera's settings (with ``estimates``).
+        lead_s: [s] from the start of each episode's clock to tick 0.
+        gc_off: no garbage collection during an episode.
+        fns: the jitted functions (:func:`make_step_fns`), to share across calls.
+        progress: print one line per episode.
+        acquire_timeout_s: [s] with the eye: before each release, how long to wait for its
+            answer on the release frame (the cube held in view until the eye has it).
+
+    Raises:
+        TimeoutError: the eye did not answer on a release frame in time.
+    """
+    dtype = float_dtype()
+    dt = plant.dt
+    ls = loop.learner_init(key, dtype)
+    guard = memory = 0.0
+    if estimates is not None:
+        guard, memory = eye_timing(cam, dt)
+        sw = switches(condition, jax.tree_util.tree_map(jnp.asarray, eye_input(None, 0.0, 0.0)))
+    else:
+        sw = switches(condition)
+    fns = make_step_fns(loop, ls, sw) if fns is None else fns
+    sw_base = sw
+    n_tau = 3
+    out = LoopRun()
+    obs_np = np.zeros(OBS_SIZE)
+    for e, n in enumerate(episode_steps):
+        plant.begin_episode(n)
+        clock.start(3600.0)  # held: tick 0 an hour away while the episode is prepared
+        plant.start(clock)
+        s0 = plant.read()
+        fill_observation(obs_np, s0, arm.observe(s0.q, s0.qd))
+        if estimates is not None:
+            sw = sw_base._replace(eye=eye_input(None, guard, memory))
+        sw_vec = jnp.asarray(fns.sw.pack_np(sw), fns.dtype)
+        ps = fns.init(jnp.asarray(obs_np), ls, sw)
+        ps_vec = jnp.asarray(fns.ps.pack_np(ps._replace(switches=None)), fns.dtype)
+        for _ in range(20):  # compiled and warm before the clock runs
+            np.asarray(fns.step(ps_vec, sw_vec, obs_np.copy())[1])
+        rec = {k: np.full(n, np.nan) for k in ("t_wake", "t_obs", "t_step", "t_write", "t_stamp")}
+        rows = np.zeros((n, n_tau + fns.aux.size))
+        ticked = np.zeros(n, bool)
+        arrivals: list[tuple] = []
+        seq = estimates.seq if estimates is not None else 0
+        if estimates is not None:  # the cube held in view until the eye has answered on it
+
+            def acquired(e=e):
+                written, est = estimates.read()
+                return written > 0 and int(est["episode"]) == e
+
+            wait_for(acquired, acquire_timeout_s, 1e-3, f"the eye's release frame {e}")
+            seq = -1  # its answer is taken at tick 0
+        stamp = np.nan
+        if gc_off:
+            gc.collect()
+            gc.disable()
+        clock.start(lead_s)
+        try:
+            j = 0
+            while j < n:
+                t_wake = clock.wait_until(j * dt)
+                s = plant.read()
+                j = s.index
+                if j >= n:
+                    break
+                if estimates is not None and estimates.seq != seq:
+                    seq, est = estimates.read()
+                    if int(est["episode"]) == e:
+                        sw_vec = jnp.asarray(
+                            fns.sw.pack_np(sw_base._replace(eye=eye_input(est, guard, memory))),
+                            fns.dtype,
+                        )
+                        stamp = float(est["t_stamp"]) if est["seen"] > 0 else np.nan
+                        arrivals.append(
+                            (
+                                j,
+                                j * dt,
+                                float(est["t_stamp"]),
+                                float(est["frame"]),
+                                float(est["number"]),
+                                float(est["seen"]),
+                                float(est["t_wall_exposure"]),
+                                float(est["t_wall_done"]),
+                                monotonic_s(),
+                            )
+                        )
+                fill_observation(obs_np, s, arm.observe(s.q, s.qd))
+                t_obs = clock.now()
+                ps_vec, row = fns.step(ps_vec, sw_vec, obs_np.copy())
+                row = np.asarray(row)
+                t_step = clock.now()
+                t_write = plant.write(row[:n_tau])
+                rows[j] = row
+                ticked[j] = True
+                rec["t_wake"][j], rec["t_obs"][j] = t_wake, t_obs
+                rec["t_step"][j], rec["t_write"][j], rec["t_stamp"][j] = t_step, t_write, stamp
+                j += 1
+        finally:
+            if gc_off:
+                gc.enable()
+        plog = plant.episode_log()
+        counts = plant.counts
+        # steps the controller never saw repeat the previous call's signals
+        idx = np.maximum.accumulate(np.where(ticked, np.arange(n), -1))
+        idx = np.where(idx < 0, int(np.argmax(ticked)), idx)
+        aux = fns.aux.unpack_np(rows[idx, n_tau:])
+        logs = dict(aux, f_contact=plog["f_contact"], t=plog["t"])
+        logs.update(qpos=plog["qpos"], qvel=plog["qvel"], ctrl=plog["ctrl"])
+        rec["kind"] = plog["kind"]
+        out.logs.append(logs)
+        out.ticks.append(rec)
+        names = ("tick", "t_tick", "t_stamp", "frame", "number", "seen", "t_wall_exposure")
+        names += ("t_wall_done", "t_wall_taken")
+        arr = np.asarray(arrivals, float).reshape(-1, len(names))
+        out.arrivals.append({k: arr[:, i] for i, k in enumerate(names)})
+        out.counts.append(counts)
+        out.wall_s.append(float(np.nanmax(rec["t_write"]) if ticked.any() else 0.0))
+        ls = fns.ps.unpack(ps_vec).learner._replace(was_inside=jnp.asarray(False))
+        if progress:
+            late = counts.late + counts.skipped
+            print(
+                f"  episode {e}: {n} steps, {late} missed, "
+                f"{len(arrivals)} eye estimates, {time.strftime('%H:%M:%S')}",
+                flush=True,
+            )
+    out.learner = ls
+    return out
+
+
+def stack_episodes(loop: Loop, run: LoopRun) -> dict:
+    """The loop's episodes as the simulated runs' logs: arrays (1, swings, steps, ...) and, with
+    a continuous run, ``final`` (1, 1, final_steps, ...).
+    """
+    swings = loop.config.swings
+    logs = {k: np.stack([lg[k] for lg in run.logs[:swings]])[None] for k in run.logs[0]}
+    if len(run.logs) > swings:
+        logs["final"] = {k: v[None, None] for k, v in run.logs[swings].items()}
+    return logs
+
+
+# ---------------------------------------------------------------------------------------------
+# The eye's process
+
+
+class EyeProcess:
+    """The eye in its own process (:func:`~hec_jax.realtime.workers.eye_main`), publishing to
+    :attr:`estimates`.
+
+    Args:
+        task: the task (the robot's geometry for its self-mask).
+        cam: the camera settings.
+        camera: the plant's camera (``MujocoPlant.camera()``).
+        dt: [s] control period.
+        q0: (nq,) qpos at the release (warm-up frame's arm posture).
+        priority: SCHED_FIFO priority once ready (0: normal scheduling).
+        nice: the eye process's nice value.
+    """
+
+    def __init__(
+        self, task, cam: CameraConfig, camera, dt: float, q0, priority: int = 0, nice: int = 0
+    ):
+        from hec_jax.realtime.plant import _child_env
+
+        self.estimates = Board(workers.ESTIMATE_FIELDS)
+        self._ready, self._stop, self._log = _CTX.Event(), _CTX.Event(), _CTX.Queue()
+        fps = 1.0 / (steps_per_frame(cam, dt) * dt)
+        cache = jax.config.jax_compilation_cache_dir
+        with _child_env():
+            self.proc = _CTX.Process(
+                target=workers.eye_main,
+                args=(task, cam, fps, q0, camera, self.estimates, jax.config.jax_enable_x64, cache),
+                kwargs=dict(
+                    ready=self._ready,
+                    stop=self._stop,
+                    log_queue=self._log,
+                    priority=priority,
+                    nice=nice,
+                ),
+                daemon=True,
+                name="hec-eye",
+            )
+            self.proc.start()
+
+    def wait_ready(self, timeout_s: float) -> None:
+        """Waits until the eye has compiled its tracker.
+
+        Raises:
+            RuntimeError: the eye process died (its traceback in the message).
+        """
+
+        def ok():
+            if not self.proc.is_alive():
+                raise RuntimeError(f"the eye process died: {self._log.get(timeout=5)}")
+            return self._ready.is_set()
+
+        wait_for(ok, timeout_s, 0.05, "the eye process")
+
+    def close(self) -> dict | None:
+        """Stops the eye; returns its per-frame log."""
+        if self.proc is None:
+            return None
+        self._stop.set()
+        try:
+            log = self._log.get(timeout=60)
+        except Exception:  # noqa: BLE001 - a dead eye leaves no log
+            log = None
+        self.proc.join(timeout=10)
+        if self.proc.is_alive():
+            self.proc.terminate()
+        self.proc = None
+        return log
+
+
+# ---------------------------------------------------------------------------------------------
+# An experiment in real time
+
+
+@dataclass
+class RealtimeResult:
+    """What :func:`run_realtime` returns.
+
+    Attributes:
+        config: the experiment as run (one seed; swings from ``duration_s``).
+        realtime: the real-time settings.
+        logs: the run's logs (arrays (1, swings, steps, ...), as the simulated runs').
+        metrics: the task's metrics of the run's condition.
+        report: the deadline report (:func:`~hec_jax.realtime.report.deadline_report`).
+        twins: {"truth" | "camera": {"logs", "metrics", "wall_s"}}: the same run in simulated
+            time.
+        comparison: {twin: real-time / simulated metric ratios}.
+        loop_run: the raw records (:class:`LoopRun`).
+        camera_log, eye_log: the camera's and the eye's per-frame logs (None without camera).
+        load: ``os.getloadavg()`` before and after the real-time part.
+        dt: [s] control period.
+    """
+
+    config: ExperimentConfig
+    realtime: RealtimeConfig
+    logs: dict
+    metrics: dict
+    report: dict
+    twins: dict
+    comparison: dict
+    loop_run: LoopRun
+    camera_log: dict | None
+    eye_log: dict | None
+    load: dict
+    dt: float
+
+
+def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> ExperimentConfig:
+    """``exp`` as the real-time loop runs it: one seed; swings from ``rt.duration_s``."""
+    task = exp.task
+    if rt.duration_s is not None:
+        swings = max(int(math.ceil(rt.duration_s / task.swing_s - 1e-9)), 1)
+        task = dataclasses.replace(task, swings=swings)
+    return dataclasses.replace(exp, task=task, seeds=1)
+
+
+def simulated_twins(exp: ExperimentConfig, loop: Loop, condition: str, which: str, progress=True):
+    """The same run in simulated time: {"truth": MJX episodes with the simulator's object
+    state, "camera": the simulated camera loop (``which`` "auto" and a camera run)}, each
+    {"logs", "metrics", "wall_s"}.
+    """
+    out = {}
+    if which == "none":
+        return out
+    conditions = exp.task.pendulum.conditions()
+    keys = jax.random.split(jax.random.PRNGKey(exp.seed), 1)
+    t0 = time.perf_counter()
+    logs = make_episodes(loop)(keys, switches(condition), conditions)
+    logs = jax.tree_util.tree_map(np.asarray, jax.block_until_ready(logs))
+    out["truth"] = {
+        "logs": logs,
+        "metrics": condition_metrics(loop, logs, condition),
+        "wall_s": time.perf_counter() - t0,
+    }
+    if which == "auto" and exp.eye == "camera":
+        t0 = time.perf_counter()
+        logs, _, _ = run_camera(loop, conditions, keys, condition, exp.camera, progress=progress)
+        out["camera"] = {
+            "logs": logs,
+            "metrics": condition_metrics(loop, logs, condition),
+            "wall_s": time.perf_counter() - t0,
+        }
+    return out
+
+
+def run_realtime(
+    exp: ExperimentConfig, rt: RealtimeConfig | None = None, progress: bool = True
+) -> RealtimeResult:
+    """``exp`` (its task, eye and camera; one seed) in real time on a MuJoCo C plant, its
+    deadline report, and the same run in simulated time.
+
+    Args:
+        exp: the experiment (e.g. ``hec_jax.loop.catching(eye="camera")``).
+        rt: the real-time settings (default :class:`~hec_jax.realtime.config.RealtimeConfig`).
+        progress: print one line per episode.
+
+    Raises:
+        ValueError: un-timed mode with the camera (the camera loop in simulated time is
+            :func:`hec_jax.loop.run_camera`).
+    """
+    rt = RealtimeConfig() if rt is None else rt
+    exp = realtime_experiment(exp, rt)
+    if exp.eye == "camera" and not rt.timed:
+        raise ValueError("un-timed mode runs with eye='truth' (simulated camera: loop.run_camera)")
+    task = exp.task
+    loop = build_loop(task)
+    key = jax.random.split(jax.random.PRNGKey(exp.seed), 1)[0]
+    cam = exp.camera if exp.eye == "camera" else None
+    episodes = [loop.swing_steps] * task.swings + ([loop.final_steps] if loop.final_steps else [])
+    arm = ArmModel(plant_model(task), loop.ids)
+    eye = None
+    load = {"before": os.getloadavg()}
+    nice = rt.child_nice if rt.timed else 0
+    with MujocoPlant(
+        task, loop.q_home, cam, True, rt.camera_priority, nice, rt.camera_msaa
+    ) as plant:
+        try:
+            if cam is not None:
+                plant.wait_camera(rt.startup_timeout_s)
+                eye = EyeProcess(
+                    task, cam, plant.camera(), plant.dt, plant.q_release, rt.eye_priority, nice
+                )
+                eye.wait_ready(rt.startup_timeout_s)
+            if rt.pin_cpus and hasattr(os, "sched_setaffinity"):
+                _pin(plant, eye)
+            clock = WallClock(rt.spin_us * 1e-6) if rt.timed else FreeClock()
+            load["start"] = os.getloadavg()
+            with realtime_priority(rt.rt_priority if rt.timed else 0):
+                run = run_loop(
+                    loop,
+                    plant,
+                    clock,
+                    key,
+                    rt.condition,
+                    episodes,
+                    arm,
+                    None if eye is None else eye.estimates,
+                    cam,
+                    rt.lead_ms * 1e-3,
+                    rt.gc_off,
+                    progress=progress,
+                    acquire_timeout_s=rt.acquire_timeout_s,
+                )
+            load["end"] = os.getloadavg()
+        finally:
+            eye_log = eye.close() if eye is not None else None
+            camera_log = plant.close()
+    for name, log in (("eye", eye_log), ("camera", camera_log)):
+        if isinstance(log, dict) and "error" in log:
+            raise RuntimeError(f"the {name} process failed:\n{log['error']}")
+    logs = stack_episodes(loop, run)
+    metrics = condition_metrics(loop, logs, rt.condition)
+    fps = None if cam is None else 1.0 / (steps_per_frame(cam, plant.dt) * plant.dt)
+    report = deadline_report(run, plant.dt, fps, camera_log, eye_log)
+    report["timed"] = rt.timed
+    if not rt.timed:  # no clock: latencies are not wall times, no timing target applies
+        report["targets"] = {}
+    twins = simulated_twins(exp, loop, rt.condition, rt.twin, progress)
+    scales = {"settle_force": task.learner.f_desired}  # [N] F_cd: the settle force's scale
+    comparison = {k: compare_metrics(metrics, v["metrics"], 0.2, scales) for k, v in twins.items()}
+    return RealtimeResult(
+        exp, rt, logs, metrics, report, twins, comparison, run, camera_log, eye_log, load, plant.dt
+    )
+
+
+def _pin(plant: MujocoPlant, eye: EyeProcess | None) -> None:
+    """The control loop on CPU 0, the camera and eye on the other CPUs."""
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        return
+    os.sched_setaffinity(0, {cpus[0]})
+    rest = set(cpus[1:])
+    for proc in (plant._camera_proc, None if eye is None else eye.proc):
+        if proc is not None:
+            os.sched_setaffinity(proc.pid, rest)

@@ -1,0 +1,317 @@
+"""The camera's and the eye's processes of a real-time run (started by ``spawn``).
+
+* :func:`camera_main` renders the plant's state (read from its shared board) whenever the plant
+  time reaches the next frame time, every ``period`` control steps from each release, into the
+  shared frame ring, stamped with the plant time of the state shown. If a frame cannot start on
+  time (rendering slower than the frame rate) it is exposed late, and frame times that passed
+  entirely are skipped; both are counted.
+* :func:`eye_main` is the eye: it takes the newest frame (frames that arrived while it was busy
+  are dropped and counted), masks the robot out of it from the arm's joint angles at the
+  exposure (as :mod:`hec_jax.loop.camera_loop`), runs the :class:`~hec_jax.geometry.BoxTracker`
+  and publishes the object's state in the world's task plane with the exposure's time stamp to
+  a shared board, which the control loop reads every tick.
+
+Each process keeps a per-frame log and puts it on its queue when told to stop.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import traceback
+
+import numpy as np
+
+from hec_jax.realtime.clock import set_scheduling
+
+ESTIMATE_FIELDS = {
+    "frame": (),
+    "episode": (),
+    "number": (),
+    "t_stamp": (),
+    "x": (2,),
+    "xd": (2,),
+    "xdd": (2,),
+    "seen": (),
+    "valid": (),
+    "initialised": (),
+    "t_wall_exposure": (),
+    "t_wall_done": (),
+}
+
+_POLL_S = 2e-4  # [s] how often an idle worker looks for new work
+
+
+def _stack(rows: list[dict]) -> dict[str, np.ndarray]:
+    if not rows:
+        return {}
+    return {k: np.asarray([r[k] for r in rows]) for k in rows[0]}
+
+
+def camera_main(
+    task,
+    cam,
+    period,
+    q0,
+    board,
+    frames,
+    calibration,
+    *,
+    stop,
+    log_queue,
+    priority=0,
+    nice=0,
+    msaa=None,
+):
+    """The camera process: calibration shots, then frames on the plant's clock until ``stop``.
+
+    Args:
+        task: the :class:`~hec_jax.loop.config.TaskConfig` (its world is rendered).
+        cam: the :class:`~hec_jax.loop.config.CameraConfig` (resolution, fast rendering).
+        period: control steps between frames.
+        q0: (nq,) qpos at the release (for the calibration shots).
+        board: the plant's state board (t, step, episode, t_wall, qpos).
+        frames: the :class:`~hec_jax.realtime.shared.FrameRing` to fill.
+        calibration: :class:`~hec_jax.realtime.shared.Images`: 0 background (pendulum hidden),
+            1 the release frame.
+        stop: event ending the loop.
+        log_queue: receives the per-frame log (or ``{"error": ...}``).
+        priority: SCHED_FIFO priority once the calibration shots are taken (0: none).
+        nice: the process's nice value (threads started later inherit it).
+        msaa: multisample anti-aliasing samples (None: the model's).
+    """
+    rows: list[dict] = []
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+        from hec_jax.mjx_scene import scene_ids
+        from hec_jax.mjx_scene.render import SceneCamera
+        from hec_jax.realtime.clock import monotonic_s
+        from hec_jax.realtime.plant import plant_model
+
+        m = plant_model(task)
+        if msaa is not None:
+            m.vis.quality.offsamples = msaa
+        ids = scene_ids(m)
+        arm = np.array(ids.arm_qpos)
+        with SceneCamera(m, "eye", cam.width, cam.height, cam.fast_render, ("cube", "rod")) as bg:
+            calibration.put(0, bg.render(q0))
+        camera = SceneCamera(m, "eye", cam.width, cam.height, cam.fast_render)
+        calibration.put(1, camera.render(q0))
+        if priority:
+            set_scheduling(os.SCHED_FIFO, priority)
+        # last_seq 0: the board before the plant first wrote it (zeros) is no state to show
+        episode, number, index, last_seq, skipped = -1, 0, 0, 0, 0
+        while not stop.is_set():
+            seq = board.seq
+            if seq == last_seq:
+                time.sleep(_POLL_S)
+                continue
+            last_seq, rec = board.read()
+            if int(rec["episode"]) != episode:
+                episode, number = int(rec["episode"]), 0
+            step = int(rec["step"])
+            if step < number * period:
+                time.sleep(_POLL_S)
+                continue
+            t0 = monotonic_s()
+            image = camera.render(rec["qpos"])
+            x_true = camera.data.site_xpos[ids.cube_site].copy()
+            t1 = monotonic_s()
+            frames.put(
+                index,
+                image,
+                episode=episode,
+                number=number,
+                t_exposure=rec["t"],
+                t_wall_exposure=rec["t_wall"],
+                t_wall_done=t1,
+                q_arm=rec["qpos"][arm],
+            )
+            rows.append(
+                dict(
+                    index=index,
+                    episode=episode,
+                    number=number,
+                    step_due=number * period,
+                    step=step,
+                    t_exposure=float(rec["t"]),
+                    t_wall_exposure=float(rec["t_wall"]),
+                    t_wall_start=t0,
+                    t_wall_done=t1,
+                    render_ms=1e3 * (t1 - t0),
+                    x_true=x_true[[0, 2]],
+                )
+            )
+            index += 1
+            # the next frame time; frame times that passed while rendering are skipped
+            _, now = board.read()
+            behind = int(now["step"]) // period if int(now["episode"]) == episode else 0
+            nxt = max(number + 1, behind)
+            skipped += nxt - number - 1
+            number = nxt
+        camera.close()
+        out = _stack(rows)
+        out["skipped"] = skipped
+        log_queue.put(out)
+    except Exception:  # noqa: BLE001 - reported to the parent, which raises
+        log_queue.put({"error": traceback.format_exc()})
+
+
+class _MaskCamera:
+    """What :func:`hec_jax.loop.camera_loop.mask_robot` reads of a camera: the calibrated pose
+    and intrinsics and a model/data pair with the robot's kinematics (no renderer).
+    """
+
+    def __init__(self, m, width: int, height: int):
+        import mujoco
+
+        from hec_jax.mjx_scene import camera_intrinsics, camera_pose_world
+
+        self.model, self.data = m, mujoco.MjData(m)
+        mujoco.mj_kinematics(m, self.data)
+        mujoco.mj_camlight(m, self.data)  # the camera's pose (cam_xpos, cam_xmat)
+        self.intrinsics = camera_intrinsics(m, "eye", width, height)
+        self.world_from_camera = camera_pose_world(m, self.data, "eye")
+
+    def pose_arm(self, qpos_adr, q_arm) -> None:
+        import mujoco
+
+        self.data.qpos[qpos_adr] = q_arm
+        mujoco.mj_kinematics(self.model, self.data)
+
+
+def eye_main(
+    task,
+    cam,
+    fps,
+    q0,
+    camera,
+    estimates,
+    x64,
+    cache_dir,
+    *,
+    ready,
+    stop,
+    log_queue,
+    priority=0,
+    nice=0,
+):
+    """The eye process: the tracker compiled on the release frame, then the newest frames.
+
+    Args:
+        task: the :class:`~hec_jax.loop.config.TaskConfig` (the robot's geometry for its mask).
+        cam: the :class:`~hec_jax.loop.config.CameraConfig` (tracker, mask, coasting).
+        fps: [1/s] the camera's frame rate (the tracker's filter step is 1 / fps).
+        q0: (nq,) qpos at the release (the warm-up frame's arm posture).
+        camera: a :class:`~hec_jax.realtime.plant.Camera` (with ``release_frame``).
+        estimates: the board the estimates go to (``ESTIMATE_FIELDS``).
+        x64: JAX in float64 (as the parent).
+        cache_dir: JAX's persistent compilation cache (None: none).
+        ready: event set once the tracker is compiled.
+        stop: event ending the loop.
+        log_queue: receives the per-frame log (or ``{"error": ...}``).
+        priority: SCHED_FIFO priority once the tracker is compiled (0: none).
+        nice: the process's nice value (threads started later inherit it).
+    """
+    rows: list[dict] = []
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, nice)
+        import jax
+
+        jax.config.update("jax_enable_x64", bool(x64))
+        if cache_dir:
+            jax.config.update("jax_compilation_cache_dir", str(cache_dir))
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+        from hec_jax.geometry import BoxTracker
+        from hec_jax.loop.camera_loop import mask_robot, robot_geoms
+        from hec_jax.mjx_scene import CUBE_EDGE, scene_ids
+        from hec_jax.realtime.clock import monotonic_s
+        from hec_jax.realtime.plant import plant_model
+        from hec_jax.realtime.shared import wait_for
+
+        m = plant_model(task)
+        ids = scene_ids(m)
+        arm = np.array(ids.arm_qpos)
+        mcam = _MaskCamera(m, cam.width, cam.height)
+        robot = robot_geoms(m, ids.hand_body)
+        hand = robot[m.geom_bodyid[robot] == ids.hand_body] if cam.inpaint_hand else ()
+        r_wc, t_wc = mcam.world_from_camera
+
+        def masked(image, q_arm):
+            if cam.self_mask_margin_m is None:
+                return image
+            mcam.pose_arm(arm, q_arm)
+            return mask_robot(image, mcam, robot, cam.self_mask_margin_m, hand)
+
+        wait_for(lambda: camera.calibration.ready(1), 300.0, 0.01, "the calibration shots")
+        tracker = BoxTracker(mcam.intrinsics, CUBE_EDGE, fps, cam.track, camera.background())
+        warm = masked(camera.release_frame(), np.asarray(q0)[arm])
+        for _ in range(3):  # compile the search and the tracking paths
+            tracker.update(warm)
+        tracker.reset()
+        if priority:
+            set_scheduling(os.SCHED_FIFO, priority)
+        ready.set()
+        last, episode, misses, published, dropped = -1, -1, 0, False, 0
+        while not stop.is_set():
+            frame = camera.latest(last)
+            if frame is None:
+                time.sleep(_POLL_S)
+                continue
+            t0 = monotonic_s()
+            lost = frame.index - last - 1  # frames the camera made that the eye never saw
+            dropped += lost
+            last = frame.index
+            if frame.episode != episode:  # a new release: a new throw for the tracker
+                tracker.reset()
+                episode, misses, published = frame.episode, 0, False
+            number = frame.number
+            st = tracker.update(masked(frame.image, frame.q_arm))
+            misses = 0 if st.valid else misses + 1
+            x = xd = xdd = np.full(2, np.nan)
+            if st.initialised:
+                x = (r_wc @ np.asarray(st.position) + t_wc)[[0, 2]]
+                xd = (r_wc @ np.asarray(st.velocity))[[0, 2]]
+                xdd = (r_wc @ np.asarray(st.acceleration))[[0, 2]]
+            t1 = monotonic_s()
+            # the acquisition frame (0: the release state, the cube still held) is always
+            # answered, so the control loop knows the eye is done with it
+            if st.initialised or published or number == 0:
+                seen = bool(st.initialised) and misses <= cam.max_coast_frames
+                estimates.write(
+                    frame=frame.index,
+                    episode=episode,
+                    number=number,
+                    t_stamp=frame.t_exposure,
+                    x=np.nan_to_num(x) if seen else np.zeros(2),
+                    xd=np.nan_to_num(xd) if seen else np.zeros(2),
+                    xdd=np.nan_to_num(xdd) if seen else np.zeros(2),
+                    seen=float(seen),
+                    valid=float(st.valid),
+                    initialised=float(st.initialised),
+                    t_wall_exposure=frame.t_wall_exposure,
+                    t_wall_done=t1,
+                )
+                published = True
+            rows.append(
+                dict(
+                    index=frame.index,
+                    episode=episode,
+                    number=number,
+                    dropped_before=lost,
+                    t_exposure=frame.t_exposure,
+                    t_wall_exposure=frame.t_wall_exposure,
+                    t_wall_start=t0,
+                    t_wall_done=t1,
+                    eye_ms=1e3 * (t1 - t0),
+                    valid=bool(st.valid),
+                    initialised=bool(st.initialised),
+                    x_est=x,
+                    xd_est=xd,
+                )
+            )
+        out = _stack(rows)
+        out["dropped"] = dropped
+        log_queue.put(out)
+    except Exception:  # noqa: BLE001 - reported to the parent, which raises
+        log_queue.put({"error": traceback.format_exc()})

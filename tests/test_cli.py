@@ -1,0 +1,405 @@
+"""The command-line boundary of every script: bad arguments end in one line and exit code 2 before
+anything is compiled; Ctrl-C and SIGTERM end a run cleanly (failed run folder, exit 130/143);
+metrics never hold NaN; the eye experiment survives a sequence without a usable frame; the
+progress display.
+"""
+
+import importlib.util
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hec_jax import runs
+from hec_jax.progress import ProgressBar, format_seconds
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _script(rel: str):
+    """The module of a script (``experiments/x.py``), imported from its path."""
+    name = "script_" + rel.replace("/", "_").removesuffix(".py")
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, ROOT / rel)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module  # before it runs: its dataclasses look their module up
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+USED = "<used folder>"  # replaced by an existing non-empty folder
+# scripts without a run folder (no --out)
+NO_OUT = {
+    "benchmarks/control.py",
+    "benchmarks/gradients.py",
+    "benchmarks/nets.py",
+    "benchmarks/sweep.py",
+}
+# script: [(bad arguments, what the one line must say)]
+BAD = {
+    "experiments/catching.py": [
+        (["--seeds", "0"], "seeds must be an integer >= 1, got 0"),
+        (["--seeds", "-3"], "seeds must be an integer >= 1, got -3"),
+        (["--swings", "0"], "swings must be an integer >= 1, got 0"),
+        (["--swings", "-1"], "swings must be an integer >= 1, got -1"),
+        (["--swing-s", "0"], "swing_s must be finite and > 0"),
+        (["--swing-s", "-0.5"], "swing_s must be finite and > 0"),
+        (["--seeds", "abc"], "--seeds: invalid literal"),
+        (["--eye", "eyes"], "--eye: 'eyes' is not one of truth, camera"),
+        (["--no-such-flag"], "unrecognized arguments: --no-such-flag"),
+        (["--out", USED], "exists and is not empty: choose another --out, or pass --overwrite"),
+    ],
+    "experiments/hitting.py": [
+        (["--seeds", "0"], "seeds must be an integer >= 1"),
+        (["--final-s", "-1"], "final_s must be finite and >= 0"),
+        (["--out", USED], "exists and is not empty"),
+    ],
+    "experiments/sweep.py": [
+        (["--seeds", "0"], "seeds must be an integer >= 1"),
+        (["--chunk", "0"], "chunk must be an integer >= 1"),
+        (["--cube-masses", "0"], "cube_mass must be finite and > 0"),
+        (["--rod-lengths", "-0.5"], "rod_length must be finite and > 0"),
+        (["--shard-index", "2", "--num-shards", "2"], "need 0 <= shard_index < num_shards"),
+    ],
+    "experiments/avoidance.py": [
+        (["--duration", "0"], "--duration: must be finite and > 0"),
+        (["--radius", "-1"], "--radius: must be finite and > 0"),
+        (["--seed", "-1"], "--seed: must be an integer >= 0"),
+    ],
+    "experiments/eye.py": [
+        (["--seconds", "0"], "--seconds: must be finite and > 0"),
+        (["--seed", "-1"], "--seed: must be an integer >= 0"),
+        (["--out", USED], "exists and is not empty"),
+    ],
+    "experiments/gradients.py": [
+        (["--swings", "0"], "--swings: must be an integer >= 1"),
+        (["--stride", "0"], "--stride: must be an integer >= 1"),
+        (["--horizons", "0"], "--horizons: each value must be an integer >= 1"),
+    ],
+    "experiments/impedance_response.py": [
+        (["--duration", "0"], "--duration: must be finite and > 0"),
+        (["--t-step", "2"], "--t-step (2.0) must come before --duration (1.5)"),
+    ],
+    "experiments/train_bptt.py": [
+        (["--batch", "0"], "--batch: must be an integer >= 1"),
+        (["--lr", "-1"], "--lr: must be finite and > 0"),
+        (["--swings", "0"], "swings must be an integer >= 1"),
+    ],
+    "benchmarks/control.py": [
+        (["--steps", "0"], "--steps: must be an integer >= 1"),
+        (["--batches", "0"], "--batches: each value must be an integer >= 1"),
+    ],
+    "benchmarks/eye.py": [
+        (["--scenes", "0"], "--scenes: must be an integer >= 1"),
+        (["--out", USED], "exists and is not empty"),
+    ],
+    "benchmarks/eye_pipeline.py": [
+        (["--batch"], "--batch: needs at least one value"),
+        (["--seconds", "0"], "--seconds: must be finite and > 0"),
+    ],
+    "benchmarks/gradients.py": [
+        (["--steps", "0"], "--steps: must be an integer >= 1"),
+        (["--batch", "-1"], "--batch: must be an integer >= 1"),
+    ],
+    "benchmarks/learning.py": [
+        (["--repeats", "0"], "--repeats: must be an integer >= 1"),
+        (["--out", USED], "exists and is not empty"),
+    ],
+    "benchmarks/nets.py": [
+        (["--batch", "0"], "--batch: must be an integer >= 1"),
+        (["--eta", "1", "1"], "--eta: missing or extra value"),
+    ],
+    "benchmarks/sweep.py": [
+        (["--batch", "0"], "--batch: must be an integer >= 1"),
+        (["--grad-batch", "-1"], "--grad-batch must be an integer >= 0"),
+    ],
+}
+CASES = [(script, argv, says) for script, cases in BAD.items() for argv, says in cases]
+
+
+@pytest.mark.parametrize(
+    ("script", "argv", "says"),
+    CASES,
+    ids=[f"{s.split('/')[-1]}:{' '.join(a)}" for s, a, _ in CASES],
+)
+def test_bad_arguments_end_in_one_line_and_exit_code_2(script, argv, says, tmp_path, capsys):
+    used = tmp_path / "used"
+    used.mkdir()
+    (used / "metrics.json").write_text("{}")
+    argv = [str(used) if a == USED else a for a in argv]
+    if "--out" not in argv and script not in NO_OUT:
+        argv = ["--out", str(tmp_path / "fresh"), *argv]
+    main = _script(script).main
+    t0 = time.perf_counter()
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+    assert ": error: " in err and says in err, err
+    assert time.perf_counter() - t0 < 5.0  # refused up front: nothing compiled
+    # nothing written beside the used folder, the used folder untouched
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["used"]
+    assert [p.name for p in used.iterdir()] == ["metrics.json"]
+
+
+def test_a_folder_of_another_sweep_is_refused_up_front(tmp_path, capsys):
+    from hec_jax.cli import parse
+    from hec_jax.loop.cli import SweepRun
+
+    tiny = ["--rod-lengths", "0.6", "--cube-masses", "0.7", "--release-angles", "-0.5"]
+    chunks = tmp_path / "chunks"
+    chunks.mkdir()
+    other = parse(SweepRun(), [*tiny, "--seeds", "2"]).sweep
+    runs.write_json(chunks / "sweep_settings.json", other.settings())
+    (chunks / "chunk_00000.npz").write_bytes(b"computed under the other settings")
+    with pytest.raises(SystemExit) as exc:
+        _script("experiments/sweep.py").main(["--out", str(tmp_path), *tiny, "--seeds", "1"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "other settings" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["chunks"]
+
+
+def _start_catching(out: Path) -> subprocess.Popen:
+    """experiments/catching.py, tiny, with SIGINT at its default (a background pytest may have
+    it ignored, and an ignored signal stays ignored)."""
+    argv = [
+        sys.executable,
+        "experiments/catching.py",
+        "--eye", "truth", "--seeds", "1", "--swings", "1", "--swing-s", "0.6",
+        "--out", str(out),
+    ]  # fmt: skip
+    launch = (
+        "import os, signal, sys; signal.signal(signal.SIGINT, signal.SIG_DFL); "
+        "os.execv(sys.argv[1], sys.argv[1:])"
+    )
+    return subprocess.Popen(
+        [sys.executable, "-c", launch, *argv],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def test_a_killed_script_leaves_a_failed_folder_never_a_complete_one(tmp_path):
+    """The real script, stopped by SIGINT (Ctrl-C) or SIGTERM once its run folder exists (during
+    the compile): exit code 130 / 143 at once, one line "interrupted", the run folder renamed
+    failed with the reason, no ``--out`` and no partial folder left."""
+    procs = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        out = tmp_path / sig.name / "run"
+        out.parent.mkdir()
+        procs[sig] = (out, _start_catching(out))
+    try:
+        _interrupt_and_check(procs)
+    finally:
+        for _, proc in procs.values():
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+
+
+def _interrupt_and_check(procs: dict) -> None:
+    for sig, (out, proc) in procs.items():
+        t0 = time.perf_counter()
+        while not list(out.parent.glob(".run.partial-*")):
+            assert proc.poll() is None, proc.communicate()
+            assert time.perf_counter() - t0 < 120
+            time.sleep(0.05)
+        time.sleep(0.5)  # into the compile
+        proc.send_signal(sig)
+    for sig, (out, proc) in procs.items():
+        t0 = time.perf_counter()
+        _, err = proc.communicate(timeout=60)
+        assert time.perf_counter() - t0 < 10  # not after the compile
+        assert proc.returncode == 128 + sig, err[-3000:]
+        assert err.strip().splitlines()[-1].startswith(f"interrupted ({sig.name})"), err
+        assert "Traceback" not in err, err
+        assert not out.exists()
+        (failed,) = [p for p in out.parent.iterdir()]
+        assert failed.name.startswith("run.failed-")
+        config = json.loads((failed / "config.json").read_text())
+        assert config["status"] == "failed" and config["error"] == f"interrupted ({sig.name})"
+
+
+def test_fail_active_run_ends_the_open_run_folder(tmp_path):
+    """What the signal handler calls: the open run folder is failed and renamed; the block, if
+    it went on, could not complete it."""
+    assert runs.fail_active_run("nothing open") is None
+    out = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="ended as failed"):
+        with runs.run_folder(out, 0, {}) as folder:
+            runs.write_json(folder / "metrics.json", {"x": 1})
+            failed = runs.fail_active_run("interrupted (SIGINT)")
+    assert failed.name.startswith("run.failed-") and not out.exists()
+    config = json.loads((failed / "config.json").read_text())
+    assert config["status"] == "failed" and config["error"] == "interrupted (SIGINT)"
+    assert runs.fail_active_run("nothing open") is None
+
+
+def _strict(text: str):
+    def refuse(name):
+        raise ValueError(f"not JSON: {name}")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def test_metrics_never_hold_nan(tmp_path):
+    """JSON has no NaN or infinity: non-finite numbers (NumPy, JAX, Python) are written as null
+    and listed with what they were."""
+    import jax.numpy as jnp
+
+    metrics = {
+        "learned": {"peak_force": {"mean": float("nan"), "std": np.float64(0.5)}},
+        "ratios": [1.0, np.inf, np.float32(-np.inf)],
+        "array": np.array([[1.0, np.nan]]),
+        "jax": jnp.array([2.0, jnp.inf]),
+        "count": np.int64(3),
+        "flag": np.bool_(True),
+        "none": None,
+    }
+    runs.write_json(tmp_path / "metrics.json", metrics)
+    got = _strict((tmp_path / "metrics.json").read_text())
+    assert got["learned"]["peak_force"] == {"mean": None, "std": 0.5}
+    assert got["ratios"] == [1.0, None, None]
+    assert got["array"] == [[1.0, None]] and got["jax"] == [2.0, None]
+    assert got["count"] == 3 and got["flag"] is True and got["none"] is None
+    assert got["non_finite_as_null"] == {
+        "count": 5,
+        "paths": {
+            "learned.peak_force.mean": "nan",
+            "ratios.1": "inf",
+            "ratios.2": "-inf",
+            "array.0.1": "nan",
+            "jax.1": "inf",
+        },
+    }
+    runs.write_json(tmp_path / "clean.json", {"a": 1.0})  # nothing added when all is finite
+    assert _strict((tmp_path / "clean.json").read_text()) == {"a": 1.0}
+
+
+def test_a_diverged_seed_is_counted_and_its_nan_metrics_are_null(tmp_path):
+    """A seed whose simulation went NaN: counted per condition (``diverged_seeds``, the reason for
+    the nulls), its NaN peak force written as null."""
+    from hec_jax.loop import metrics as mt
+    from hec_jax.loop.report import diverged_seeds
+
+    seeds, swings, steps = 3, 2, 50
+    f = np.ones((seeds, swings, steps, 3))
+    x = np.zeros((seeds, swings, steps, 2))
+    bad = {"x_e": x.copy(), "f_contact": f.copy()}
+    bad["x_e"][1, 1, 30:] = np.nan  # seed 1 diverges in its last swing
+    bad["f_contact"][2, 0, 10] = np.inf  # seed 2: one infinite contact force
+    final = {"x_e": x[:, :1].copy(), "f_contact": f[:, :1].copy()}
+    final["x_e"][0, 0, -1] = np.nan  # seed 0 only in the continuous run
+    logs = {
+        "plain": {"x_e": x, "f_contact": f},
+        "learned": bad,
+        "hitting": {"x_e": x, "f_contact": f, "final": final},
+    }
+    assert diverged_seeds(logs) == {"plain": 0, "learned": 2, "hitting": 1}
+    with np.errstate(invalid="ignore"):
+        peak = mt.mean_std(mt.force_norm(bad).max(axis=(1, 2)))  # seed 2: inf
+    runs.write_json(tmp_path / "metrics.json", {"learned": {"peak_force": peak}})
+    got = _strict((tmp_path / "metrics.json").read_text())
+    assert got["learned"]["peak_force"] == {"mean": None, "std": None}
+    assert got["non_finite_as_null"]["paths"] == {
+        "learned.peak_force.mean": "inf",
+        "learned.peak_force.std": "nan",
+    }
+
+
+def test_eye_experiment_without_a_usable_frame(tmp_path, monkeypatch):
+    """Frames in which the cube cannot be found (black): the run completes, its metrics say why
+    there is no error to report (nulls, a reason) instead of a crash."""
+    from hec_jax.mjx_scene import render
+
+    real = render.render_swing
+
+    def dark(*args, **kwargs):
+        seq = real(*args, **kwargs)
+        return seq._replace(frames=np.zeros_like(seq.frames))
+
+    monkeypatch.setattr(render, "render_swing", dark)
+    eye = _script("experiments/eye.py")
+    out = tmp_path / "eye"
+    metrics = eye.main(["--out", str(out), "--seconds", "0.1"])
+    assert metrics["valid_rate"] == 0.0 and "no frame" in metrics["reason"]
+    written = _strict((out / "metrics.json").read_text())
+    assert written["frames"] == 3 and written["position_rms_mm"] is None
+    assert json.loads((out / "config.json").read_text())["status"] == "complete"
+    # the nulls are exactly the error fields track_errors gives with a valid frame (a perfect
+    # track made of the truth)
+    from types import SimpleNamespace
+
+    from hec_jax.geometry.accuracy import track_errors
+
+    seq = real(0.4, 3, 30.0)
+    truth = dict(position=seq.position, velocity=seq.velocity, acceleration=seq.acceleration)
+    perfect = SimpleNamespace(
+        valid=np.ones(3, bool),
+        measured_position=seq.position,
+        rotation=seq.rotation @ seq.rotation[0].T,
+        causal_rotation=seq.rotation @ seq.rotation[0].T,
+        timing_ms={},
+        **truth,
+        **{f"causal_{k}": v for k, v in truth.items()},
+    )
+    errors = track_errors(perfect, seq)
+    assert set(errors) - {"frames", "valid_rate", "latency_ms"} == set(eye.ERROR_KEYS)
+    assert errors["position_rms_mm"] == 0.0
+
+
+def test_progress_bar_on_a_log(capsys, monkeypatch):
+    """Not a terminal: one line per new description with done/total, elapsed and time left
+    (from the rate after the first unit, so a compile before it does not inflate it)."""
+    import hec_jax.progress as progress
+
+    clock = [100.0]
+    monkeypatch.setattr(progress, "_clock", lambda: clock[0])
+    with ProgressBar(10, "frames", terminal=False) as bar:
+        bar.update(description="frozen swing 1/2")
+        clock[0] += 30.0  # compiling
+        bar.update(4)  # the first units
+        assert bar.remaining() is None
+        clock[0] += 4.0
+        bar.update(2)  # 2 units in 4 s: 4 left take 8 s
+        assert bar.remaining() == pytest.approx(8.0)
+        bar.update(description="frozen swing 2/2")
+        bar.log("frozen swing 1/2: 100.0% frames valid")
+        bar.update(4)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == "frozen swing 1/2: 0/10 frames (0%), 0:00 elapsed, about ? left"
+    assert lines[1] == "frozen swing 2/2: 6/10 frames (60%), 0:34 elapsed, about 0:08 left"
+    assert lines[2] == "frozen swing 1/2: 100.0% frames valid"
+    assert lines[3] == "frozen swing 2/2: 10/10 frames (100%), 0:34 elapsed"
+    assert [format_seconds(s) for s in (5, 65, 3725)] == ["0:05", "1:05", "1:02:05"]
+    with ProgressBar(3, "runs", enabled=False) as quiet:
+        quiet.update(3, "chunk 1/1")
+    with ProgressBar(3, "runs", terminal=True) as shown:  # rich, on stderr
+        shown.update(3, "chunk 1/1")
+    assert capsys.readouterr().out == ""
+    with pytest.raises(ValueError, match="total"):
+        ProgressBar(0, "runs")
+
+
+def test_signal_handlers_come_back_after_a_command():
+    """``command`` installs its SIGINT/SIGTERM handlers for the call only."""
+    from hec_jax.cli import command
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+
+    @command
+    def main():
+        assert signal.getsignal(signal.SIGINT) is not before[0]
+        return 7
+
+    assert main() == 7
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before

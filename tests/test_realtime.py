@@ -1,0 +1,230 @@
+"""The real-time loop (``hec_jax.realtime``): the plant interface against the simulated loops, the
+plant's deadline bookkeeping, and short real-time runs that check their own deadline reports.
+
+Oracles:
+
+* Un-timed, the loop on :class:`~hec_jax.realtime.MujocoPlant` must be the simulated MuJoCo C
+  loop: :func:`hec_jax.mjx_scene.rollout_c` (the reference C step sequence, tested against MJX in
+  ``test_control_closed_loop``) with the observation of :func:`hec_jax.loop.observe_c` on the
+  plant's own data and the loop's policy step (``Loop.policy_obs``, the function the MJX loop runs
+  after ``observe``). Same physics calls, same policy function; what differs is the plumbing under
+  test (the robot-side interface: joint state in, torques out; the controller's own arm model;
+  the flat vectors at the jit boundary; episodes and weights carried over). The only possible
+  difference is XLA compiling the flat-vector step with another operation order: round-off, so
+  the tolerance is 1e-10 (measured: bit-identical), through contact and learning.
+* Against the MJX episodes (``slow``): MuJoCo C and MJX differ by solver details in contact; the
+  tolerance is ``test_control_closed_loop``'s for MJX vs C with contact (1e-7 m), with learning
+  on.
+* Timed runs assert no timing target (flaky on shared CPUs): they check that the report is
+  consistent with the recorded tick times. The targets are measured by ``experiments/realtime.py``
+  (docs/realtime.md).
+"""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from hec_jax import loop as L
+from hec_jax import realtime as RT
+from hec_jax.loop.observation import observe_c
+from hec_jax.mjx_scene import c_quantities, make_data_c, rollout_c
+from hec_jax.realtime.report import tick_table
+from hec_jax.realtime.shared import Board, FrameRing
+
+SWINGS, SWING_S = 2, 0.5  # the cube touches the hand at ~0.34 s of each swing
+
+
+def _task():
+    return L.replace(L.catching(eye="truth", seeds=1), swings=SWINGS, swing_s=SWING_S, settle_s=0.3)
+
+
+@pytest.fixture(scope="module")
+def untimed():
+    """Two learned swings un-timed on the C plant (eye truth)."""
+    exp = _task()
+    loop = L.build_loop(exp.task)
+    key = jax.random.split(jax.random.PRNGKey(0), 1)[0]
+    plant = RT.MujocoPlant(exp.task, loop.q_home)
+    arm = RT.ArmModel(RT.plant_model(exp.task), loop.ids)
+    steps = [loop.swing_steps] * SWINGS
+    run = RT.run_loop(loop, plant, RT.FreeClock(), key, "learned", steps, arm)
+    return exp, loop, key, run
+
+
+def test_untimed_loop_is_the_simulated_c_loop(untimed):
+    exp, loop, key, run = untimed
+    ids, c = loop.ids, exp.task.pendulum.conditions()
+    m = RT.plant_model(exp.task)
+    policy, init = jax.jit(loop.policy_obs), jax.jit(loop.initial_policy_state_obs)
+    sw = L.switches("learned")
+    ls = loop.learner_init(key, jnp.float64)
+
+    def c_policy(ps, m_, d, cq, f_int, t):
+        tau, ps, aux = policy(ps, observe_c(ids, d.qpos, d.qvel, cq, f_int), t)
+        return np.asarray(tau), ps, jax.tree_util.tree_map(np.asarray, aux)
+
+    peak = 0.0
+    for swing in range(SWINGS):
+        d = make_data_c(m, ids, c, np.asarray(loop.q_home))
+        ps = init(observe_c(ids, d.qpos, d.qvel, c_quantities(m, d, ids), np.zeros(3)), ls, sw)
+        ps, ref = rollout_c(m, ids, d, c_policy, ps, np.zeros((loop.swing_steps, 3)), c)
+        ls = ps.learner._replace(was_inside=jnp.asarray(False))
+        got = run.logs[swing]
+        f_peak = np.abs(ref["f_contact"]).max()
+        peak = max(peak, f_peak)
+        for key_ in ("qpos", "qvel", "ctrl"):
+            np.testing.assert_allclose(got[key_], ref[key_], rtol=1e-10, atol=1e-10, err_msg=key_)
+        np.testing.assert_allclose(got["f_contact"], ref["f_contact"], atol=1e-10 * f_peak)
+        for key_ in ("x_e", "k_o", "b_o", "f_o", "energy"):
+            want = np.stack([a[key_] for a in ref["aux"]])
+            np.testing.assert_allclose(got[key_], want, rtol=1e-10, atol=1e-10, err_msg=key_)
+        diff = np.abs(got["qpos"] - ref["qpos"]).max()
+        print(f"swing {swing}: max |qpos| diff {diff:.1e}, peak force {f_peak:.0f} N")
+        assert run.counts[swing] == (loop.swing_steps, loop.swing_steps, 0, 0)
+    assert peak > 50.0  # the comparison covers contact
+    assert np.any(run.logs[1]["learning"])  # ... and learning, weights carried over
+
+
+@pytest.mark.slow
+def test_untimed_loop_matches_mjx_episodes(untimed):
+    """The same run against the MJX episodes (the simulated-time runs' code path)."""
+    exp, loop, key, run = untimed
+    logs = L.make_episodes(loop)(key[None], L.switches("learned"), exp.task.pendulum.conditions())
+    logs = jax.tree_util.tree_map(np.asarray, logs)
+    for swing in range(SWINGS):
+        got = run.logs[swing]
+        peak = np.abs(logs["f_contact"][0, swing]).max()
+        err = np.abs(got["qpos"] - logs["qpos"][0, swing]).max()
+        err_f = np.abs(got["f_contact"] - logs["f_contact"][0, swing]).max()
+        err_k = np.abs(got["k_o"] - logs["k_o"][0, swing]).max()
+        print(f"swing {swing}: qpos {err:.1e}, force {err_f:.1e} N of {peak:.0f}, K_o {err_k:.1e}")
+        assert err < 1e-7 and err_f < 1e-5 * peak and err_k < 1e-5
+
+
+class _ScriptedClock:
+    """A clock whose time the test sets."""
+
+    origin = 0.0
+
+    def __init__(self):
+        self.t = 0.0
+
+    def start(self, lead_s=0.0):
+        return 0.0
+
+    def now(self):
+        return self.t
+
+    def wait_until(self, t):
+        self.t = max(self.t, t)
+        return self.t
+
+
+def test_plant_holds_the_torque_on_late_and_skipped_steps():
+    """Deadline of step j: (j + 1) dt. A late torque is applied from the next step on; steps
+    whose deadline passes with no call are integrated with the held torque."""
+    exp = _task()
+    loop = L.build_loop(exp.task)
+    plant = RT.MujocoPlant(exp.task, loop.q_home)
+    clock = _ScriptedClock()
+    plant.begin_episode(10)
+    plant.start(clock)
+    ms = 1e-3
+    taus = [np.full(3, k + 1.0) for k in range(4)]
+    script = [  # (time of the read, time of the write) [s]
+        (0.1 * ms, 0.2 * ms),  # step 0 fresh
+        (1.0 * ms, 2.1 * ms),  # step 1 late: the held taus[0] (taus[1] held from step 2)
+        (2.2 * ms, 2.3 * ms),  # step 2 fresh
+        (6.1 * ms, 6.2 * ms),  # steps 3-5 skipped (held taus[2]), step 6 fresh
+    ]
+    indices, written = [], []
+    for (t_read, t_write), tau in zip(script, taus, strict=True):
+        clock.t = t_read
+        indices.append(plant.read().index)
+        clock.t = t_write
+        written.append(plant.write(tau))
+    assert indices == [0, 1, 2, 6]
+    assert written == [t for _, t in script]
+    assert plant.counts == (7, 3, 1, 3)
+    log = plant.episode_log()
+    np.testing.assert_array_equal(log["kind"], [0, 1, 0, 2, 2, 2, 0])
+    applied = log["ctrl"][:, 0]
+    np.testing.assert_array_equal(applied, [1.0, 1.0, 3.0, 3.0, 3.0, 3.0, 4.0])
+
+
+def test_shared_board_and_frame_ring_round_trip():
+    board = Board({"t": (), "x": (2,)})
+    assert board.seq == 0
+    board.write(t=1.5, x=[2.0, 3.0])
+    seq, rec = board.read()
+    assert seq == 2 and rec["t"] == 1.5 and rec["x"].tolist() == [2.0, 3.0]
+    ring = FrameRing(4, 6, {"t": ()}, slots=2)
+    assert ring.get() is None
+    for i in range(3):
+        ring.put(i, np.full((4, 6, 3), i, np.uint8), t=0.1 * i)
+    image, meta = ring.get(after=0)
+    assert int(meta["index"]) == 2 and image[0, 0, 0] == 2 and meta["t"] == pytest.approx(0.2)
+    assert ring.get(after=2) is None
+
+
+def _check_report(result):
+    """The deadline report agrees with the recorded tick times and the plant's step log."""
+    rep, dt = result.report["control"], result.dt
+    tt = tick_table(result.loop_run)
+    n = rep["counts"]
+    steps = sum(len(r["kind"]) for r in result.loop_run.ticks)
+    assert n["steps"] == steps == result.logs["t"].size
+    assert n["fresh"] + n["late"] + n["skipped"] == n["steps"]
+    ticked = np.isfinite(tt["t_write"])
+    assert n["ticks"] == ticked.sum() == n["fresh"] + n["late"]
+    t_sched = tt["index"] * dt
+    lat = tt["t_write"][ticked] - t_sched[ticked]
+    assert np.all(lat > 0)
+    phases = np.stack([tt[k][ticked] for k in ("t_wake", "t_obs", "t_step", "t_write")])
+    assert np.all(np.diff(phases, axis=0) >= 0)
+    assert np.all(np.diff(tt["t_write"][ticked][tt["episode"][ticked] == 0]) > 0)
+    # a tick is late exactly when its torques came at or after its deadline
+    late = tt["t_write"][ticked] >= (tt["index"][ticked] + 1) * dt  # the plant's comparison
+    assert n["late"] == n["late_from_recorded_times"] == late.sum()
+    np.testing.assert_array_equal(tt["kind"][ticked] == 1, late)
+    assert not np.any(ticked & (tt["kind"] == 2))  # a skipped step has no tick
+    assert n["missed"] == n["late"] + n["skipped"] and n["consistent"]
+    assert sum(rep["histogram"]["counts"]) == n["ticks"]
+    p = rep["latency_us"]
+    assert 0 < p["p50"] <= p["p99"] <= p["p99_9"] <= p["max"] == pytest.approx(lat.max() * 1e6)
+    print("\n".join(RT.report.deadline_table(result.report)))
+
+
+def test_realtime_run_reports_itself(tmp_path):
+    exp = L.replace(L.catching(eye="truth"), swings=1, swing_s=1.0, settle_s=0.3)
+    result = RT.run_realtime(exp, RT.RealtimeConfig(twin="none"), progress=False)
+    _check_report(result)
+    assert result.logs["x_e"].shape == (1, 1, 1000, 2)
+    assert result.metrics["peak_force"]["mean"] > 0
+    RT.write_report(tmp_path, result)
+    saved = json.loads((tmp_path / "deadline.json").read_text())
+    assert saved["control"]["counts"] == result.report["control"]["counts"]
+    assert (tmp_path / "deadline_histogram.png").stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_realtime_camera_run_reports_itself():
+    """The camera and the eye in their processes: frames and estimates add up."""
+    cam = L.CameraConfig(width=320, height=240)
+    exp = L.replace(L.catching(eye="camera", camera=cam), swings=1, swing_s=1.5, settle_s=0.3)
+    result = RT.run_realtime(exp, RT.RealtimeConfig(twin="none"), progress=False)
+    _check_report(result)
+    eye = result.report["eye"]
+    cam_log, eye_log = result.camera_log, result.eye_log
+    assert eye["camera"]["frames_rendered"] == len(cam_log["index"]) > 0
+    assert np.array_equal(cam_log["index"], np.arange(len(cam_log["index"])))
+    # every rendered frame was either processed by the eye or dropped
+    processed, dropped = eye["eye"]["frames_processed"], eye["eye"]["frames_dropped"]
+    assert processed + dropped == eye["camera"]["frames_rendered"] - (
+        len(cam_log["index"]) - 1 - int(eye_log["index"].max())
+    )
+    assert eye["estimates_taken"] >= 1
+    assert eye["latency_ms"]["n"] == 0 or eye["latency_ms"]["p50"] > 0
