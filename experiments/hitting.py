@@ -1,6 +1,6 @@
 """Hitting (Sec. 6.3, Eqs. 63-66, Fig. 7): the hand learns to strike the swinging cube periodically.
 
-    python experiments/hitting.py --out runs/hitting --seed 0 [--eye truth]
+    python experiments/hitting.py --out runs/hitting --seed 0 [--eye truth|camera|paper]
 
 Protocol: ``--swings`` training swings from the same release (the world restarts each swing, the
 learner's weights carry over), then one continuous run of ``--final-s`` seconds (the pendulum
@@ -10,7 +10,8 @@ merged; periodic: start-to-start intervals within 20% of their median; bounded p
 the series' first, each under 50 ms). The set-up and every default are the ``hitting`` preset's
 (``hec_jax.loop.config.hitting``: the hitting pad, mu); every field is a flag (``--help``).
 Writes ``config.json``, ``metrics.json``, ``trajectory_<condition>.npz`` (the continuous run),
-``fig7_hitting.png``, ``gain_beta.png`` and, with ``--eye camera``, ``hand_eye.mp4``.
+``fig7_hitting.png``, ``gain_beta.png`` and, with ``--eye camera`` or ``--eye paper``,
+``hand_eye.mp4``.
 """
 
 from __future__ import annotations

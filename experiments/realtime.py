@@ -55,6 +55,10 @@ def main(argv=None) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", not run.float32)
+    # the jitted control step runs on the calling thread (JAX's default on CPU hands every call
+    # to a dispatch thread; per tick that is one more thread hand-off: docs/realtime.md). Read
+    # when JAX creates its CPU client, so before anything is computed.
+    jax.config.update("jax_cpu_enable_async_dispatch", False)
     from hec_jax.realtime import print_report, run_realtime, write_report
     from hec_jax.report import cpu_model
     from hec_jax.runs import enable_compile_cache, run_folder

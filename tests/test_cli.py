@@ -38,6 +38,7 @@ NO_OUT = {
     "benchmarks/control.py",
     "benchmarks/gradients.py",
     "benchmarks/nets.py",
+    "benchmarks/realtime_profile.py",
     "benchmarks/sweep.py",
 }
 # script: [(bad arguments, what the one line must say)]
@@ -50,7 +51,8 @@ BAD = {
         (["--swing-s", "0"], "swing_s must be finite and > 0"),
         (["--swing-s", "-0.5"], "swing_s must be finite and > 0"),
         (["--seeds", "abc"], "--seeds: invalid literal"),
-        (["--eye", "eyes"], "--eye: 'eyes' is not one of truth, camera"),
+        (["--eye", "eyes"], "--eye: 'eyes' is not one of truth, camera, paper"),
+        (["--eye", "paper", "--realtime"], "--realtime runs --eye truth or camera"),
         (["--no-such-flag"], "unrecognized arguments: --no-such-flag"),
         (["--out", USED], "exists and is not empty: choose another --out, or pass --overwrite"),
     ],
@@ -102,6 +104,12 @@ BAD = {
         (["--batch"], "--batch: needs at least one value"),
         (["--seconds", "0"], "--seconds: must be finite and > 0"),
     ],
+    "benchmarks/eye_randomized.py": [
+        (["--sequences", "0"], "--sequences: must be an integer >= 1"),
+        (["--fps", "0"], "--fps: must be finite and > 0"),
+        (["--split", "test"], "--split: 'test' is not one of dev, heldout"),
+        (["--out", USED], "exists and is not empty"),
+    ],
     "benchmarks/gradients.py": [
         (["--steps", "0"], "--steps: must be an integer >= 1"),
         (["--batch", "-1"], "--batch: must be an integer >= 1"),
@@ -113,6 +121,10 @@ BAD = {
     "benchmarks/nets.py": [
         (["--batch", "0"], "--batch: must be an integer >= 1"),
         (["--eta", "1", "1"], "--eta: missing or extra value"),
+    ],
+    "benchmarks/realtime_profile.py": [
+        (["--ticks", "0"], "--ticks: must be an integer >= 1"),
+        (["--idle-us", "-1"], "--idle-us: must be finite and >= 0"),
     ],
     "benchmarks/sweep.py": [
         (["--batch", "0"], "--batch: must be an integer >= 1"),
@@ -146,6 +158,20 @@ def test_bad_arguments_end_in_one_line_and_exit_code_2(script, argv, says, tmp_p
     # nothing written beside the used folder, the used folder untouched
     assert sorted(p.name for p in tmp_path.iterdir()) == ["used"]
     assert [p.name for p in used.iterdir()] == ["metrics.json"]
+
+
+@pytest.mark.parametrize("script", ["experiments/catching.py", "experiments/hitting.py"])
+def test_eye_paper_is_accepted(script):
+    """``--eye paper`` (the paper's two-frame eye in the loop) parses into the experiment, with
+    the camera settings the other eyes use."""
+    from hec_jax.cli import parse
+    from hec_jax.loop.cli import TaskRun
+    from hec_jax.loop.config import PRESETS
+
+    preset = script.split("/")[-1].removesuffix(".py")
+    run = parse(TaskRun(experiment=PRESETS[preset]()), ["--eye", "paper", "--seeds", "2"])
+    assert run.experiment.eye == "paper" and run.experiment.seeds == 2
+    assert run.experiment.camera == PRESETS[preset]().camera
 
 
 def test_a_folder_of_another_sweep_is_refused_up_front(tmp_path, capsys):

@@ -419,6 +419,24 @@ def test_no_real_root_is_invalid():
     _assert_finite(est)
 
 
+def test_discriminant_tol_accepts_the_clamped_roots_and_changes_nothing_else():
+    """``discriminant_tol`` (not the paper; ``--eye paper``): with it most scenes without a real
+    root get the clamped candidates; every estimate valid without it is unchanged."""
+    noisy = make_cube_scenes(np.random.default_rng(11), N_SCENES, motion="small", noise_px=0.5)
+    before, after = jnp.asarray(noisy.points_before), jnp.asarray(noisy.points_after)
+    strict = estimate_motion(before, after, EDGE, residual_tol=None)
+    loose = estimate_motion(before, after, EDGE, residual_tol=None, discriminant_tol=1.0)
+    no_root = _no_real_root(before, after)
+    assert no_root.sum() > 10
+    v_strict, v_loose = np.asarray(strict.valid), np.asarray(loose.valid)
+    assert not v_strict[no_root].any() and v_loose[no_root].mean() > 0.9  # measured: 0.996
+    assert v_loose[v_strict].all()  # only more scenes valid, the same estimates
+    for a, b in zip(strict, loose, strict=True):
+        np.testing.assert_array_equal(np.asarray(a)[v_strict], np.asarray(b)[v_strict])
+    with pytest.raises(ValueError, match="discriminant_tol"):
+        estimate_motion(before, after, EDGE, discriminant_tol=-1.0)
+
+
 # --- malformed input ----------------------------------------------------------------------------
 
 

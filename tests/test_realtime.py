@@ -195,6 +195,13 @@ def _check_report(result):
     assert sum(rep["histogram"]["counts"]) == n["ticks"]
     p = rep["latency_us"]
     assert 0 < p["p50"] <= p["p99"] <= p["p99_9"] <= p["max"] == pytest.approx(lat.max() * 1e6)
+    # the control thread's CPU time per stage: recorded for every tick, positive, and within the
+    # wall time the tick took (a thread runs at most as long as the clock between its stamps)
+    cpu = rep["cpu"]
+    assert cpu["step_us"]["n"] == cpu["tick_us"]["n"] == n["ticks"]
+    assert all(cpu[f"{k}_us"]["p50"] > 0 for k in ("read", "observe", "step", "write"))
+    wall_step = (tt["t_step"] - tt["t_obs"])[ticked]
+    assert np.all(tt["cpu_step"][ticked] * 1e-9 <= wall_step + 2e-5)
     print("\n".join(RT.report.deadline_table(result.report)))
 
 

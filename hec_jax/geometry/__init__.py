@@ -9,6 +9,7 @@ from hec_jax.geometry.camera import (
     project_points,
     project_to_pixels,
 )
+from hec_jax.geometry.paper_eye import PaperEye, PaperEyeConfig, PaperStep
 from hec_jax.geometry.parallel_motion import (
     MotionEstimate,
     estimate_motion,
@@ -35,6 +36,9 @@ __all__ = [
     "track_box",
     "two_frame_motion",
     "MotionEstimate",
+    "PaperEye",
+    "PaperEyeConfig",
+    "PaperStep",
     "SceneConfig",
     "check_intrinsics",
     "estimate_motion",

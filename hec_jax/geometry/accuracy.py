@@ -108,3 +108,137 @@ def track_errors(track, truth) -> dict:
         ),
         "latency_ms": track.timing_ms,
     }
+
+
+# ---------------------------------------------------------------------------------------------
+# Randomized rendered sequences (issue 24): per-sequence errors and the target table.
+
+TARGETS = {
+    "acquired_within_3_rate": (">=", 0.98),
+    "valid_rate": (">=", 0.97),
+    "position_median_mm_per_m": ("<=", 3.0),
+    "rotation_median_deg": ("<=", 1.0),
+    "velocity_rms_m_s": ("<=", 0.05),
+    "gross_errors": ("<=", 0),
+    "time_ms_per_frame": ("<=", 15.0),
+}
+GROSS_M = 0.05  # a valid-flagged estimate farther than this from the truth is a gross error [m]
+ACQUIRE_FRAMES = 3  # acquisition within this many frames of the box becoming fully visible
+
+
+def fully_visible(position, rotation, size: float, intrinsics, width: int, height: int):
+    """(T,) bool: all 8 corners of the box in front of the camera and inside the image.
+
+    Args:
+        position: (T, 3) true centre, camera frame [m].
+        rotation: (T, 3, 3) R_cam_box.
+        size: edge [m].
+        intrinsics: (3, 3) camera matrix.
+        width: image width [px].
+        height: image height [px].
+    """
+    from hec_jax.geometry.synthetic import CUBE_CORNERS_UNIT
+
+    c = np.einsum("tij,nj->tni", rotation, CUBE_CORNERS_UNIT * size) + position[:, None, :]
+    k = np.asarray(intrinsics)
+    z = c[..., 2]
+    uv = c[..., :2] / np.maximum(z, 1e-9)[..., None] @ k[:2, :2].T + k[:2, 2]
+    inside = (uv[..., 0] >= 1) & (uv[..., 0] <= width - 1) & (uv[..., 1] >= 1)
+    inside &= uv[..., 1] <= height - 1
+    return np.all(inside & (z > 0.05), axis=-1)
+
+
+def symmetric_rotation_error_deg(estimated, true) -> np.ndarray:
+    """(T,) angle [deg] between R_est and the nearest of the 24 labellings R_true S of a cube."""
+    from hec_jax.geometry.track import cube_symmetries
+
+    sym = cube_symmetries()  # (24, 3, 3)
+    cand = np.einsum("tij,sjk->tsik", np.asarray(true), sym)  # (T, 24, 3, 3)
+    tr = np.einsum("tij,tsij->ts", np.asarray(estimated), cand)
+    cos = np.clip((np.max(tr, axis=1) - 1.0) / 2.0, -1.0, 1.0)
+    return np.rad2deg(np.arccos(cos))
+
+
+def sequence_errors(
+    position, rotation, velocity, valid, truth, visible, time_ms: float
+) -> dict[str, np.ndarray | float | int | None]:
+    """One method on one sequence against the truth (the raw numbers :func:`target_table` pools).
+
+    Args:
+        position: (T, 3) estimated centre [m] (camera frame; any value where not valid).
+        velocity: (T, 3) estimated velocity [m/s] (NaN where the method gives none).
+        rotation: (T, 3, 3) estimated R_cam_box (any labelling of the cube's axes).
+        valid: (T,) bool, the method's own validity flag.
+        truth: fields ``position``, ``rotation``, ``velocity`` (T, ...) in the same camera frame.
+        visible: (T,) bool, the box fully in the image (:func:`fully_visible`).
+        time_ms: the method's mean time per frame [ms].
+
+    Returns:
+        ``acquire_delay`` (frames from the first fully visible frame to the first valid frame
+        within ``GROSS_M`` of the truth; None if never visible, a large number if never acquired),
+        ``visible_frames``, ``valid_visible_frames``, and over the valid frames ``position_err_m``,
+        ``distance_m``, ``rotation_err_deg``, ``velocity_err_m_s``, plus ``gross_errors`` (valid
+        frames farther than ``GROSS_M``, visible or not) and ``time_ms``.
+    """
+    valid = np.asarray(valid, bool)
+    visible = np.asarray(visible, bool)
+    pos_err = np.linalg.norm(np.asarray(position) - truth.position, axis=-1)
+    good = valid & (pos_err <= GROSS_M)
+    delay = None
+    if visible.any():
+        first_vis = int(np.argmax(visible))
+        after = np.flatnonzero(good[first_vis:])
+        delay = int(after[0]) if after.size else 10**6
+    v = valid
+    vel_err = np.linalg.norm(np.asarray(velocity) - truth.velocity, axis=-1)
+    return {
+        "acquire_delay": delay,
+        "visible_frames": int(visible.sum()),
+        "valid_visible_frames": int((valid & visible).sum()),
+        "position_err_m": pos_err[v],
+        "distance_m": np.linalg.norm(truth.position, axis=-1)[v],
+        "rotation_err_deg": symmetric_rotation_error_deg(
+            np.asarray(rotation)[v], truth.rotation[v]
+        ),
+        "velocity_err_m_s": vel_err[v],
+        "gross_errors": int(np.sum(valid & (pos_err > GROSS_M))),
+        "time_ms": float(time_ms),
+    }
+
+
+def target_table(per_sequence: list[dict]) -> dict:
+    """Pool :func:`sequence_errors` of many sequences into the issue's target metrics.
+
+    Returns:
+        ``sequences``, ``acquired_within_3_rate`` (over the sequences where the box is ever fully
+        visible), ``valid_rate`` (valid among fully visible frames), ``position_median_mm_per_m``
+        (median over valid frames of error / distance), ``rotation_median_deg``,
+        ``velocity_rms_m_s`` (over valid frames with a velocity), ``gross_errors`` (count),
+        ``gross_error_sequences``, ``time_ms_per_frame`` (mean of the sequence means), and
+        ``meets`` {metric: bool} against :data:`TARGETS`.
+    """
+    seen = [s for s in per_sequence if s["acquire_delay"] is not None]
+    cat = lambda key: np.concatenate([np.asarray(s[key], float) for s in per_sequence])  # noqa: E731
+    pos, dist = cat("position_err_m"), cat("distance_m")
+    rot, vel = cat("rotation_err_deg"), cat("velocity_err_m_s")
+    vel = vel[np.isfinite(vel)]
+    vis = sum(s["visible_frames"] for s in per_sequence)
+    out = {
+        "sequences": len(per_sequence),
+        "acquired_within_3_rate": float(
+            np.mean([s["acquire_delay"] <= ACQUIRE_FRAMES for s in seen]) if seen else np.nan
+        ),
+        "valid_rate": float(sum(s["valid_visible_frames"] for s in per_sequence) / max(vis, 1)),
+        "position_median_mm_per_m": float(np.median(pos / dist) * 1e3) if pos.size else np.nan,
+        "rotation_median_deg": float(np.median(rot)) if rot.size else np.nan,
+        "velocity_rms_m_s": float(np.sqrt(np.mean(vel**2))) if vel.size else np.nan,
+        "gross_errors": int(sum(s["gross_errors"] for s in per_sequence)),
+        "gross_error_sequences": int(sum(s["gross_errors"] > 0 for s in per_sequence)),
+        "time_ms_per_frame": float(np.mean([s["time_ms"] for s in per_sequence])),
+    }
+    meets = {}
+    for key, (op, bound) in TARGETS.items():
+        x = out[key]
+        meets[key] = bool(np.isfinite(x) and (x >= bound if op == ">=" else x <= bound))
+    out["meets"] = meets
+    return out

@@ -28,6 +28,17 @@ def check_intrinsics(intrinsics) -> None:
         raise ValueError("intrinsics must be upper triangular with last row (0, 0, 1)")
 
 
+def check_camera_args(intrinsics, size: float, fps: float) -> None:
+    """Raise ValueError unless the intrinsics are valid (:func:`check_intrinsics`) and the
+    object's edge ``size`` [m] and the frame rate ``fps`` [1/s] are finite and positive.
+    """
+    check_intrinsics(intrinsics)
+    if not (np.isfinite(size) and size > 0):
+        raise ValueError(f"size must be finite and positive, got {size}")
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"fps must be finite and positive, got {fps}")
+
+
 def intrinsics_from_fovy(fovy_deg: float, width: int, height: int) -> np.ndarray:
     """3x3 intrinsic matrix of an ideal pinhole camera (square pixels, centred principal point).
 

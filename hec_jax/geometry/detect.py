@@ -110,15 +110,44 @@ def background_model(frames: np.ndarray, samples: int = 25) -> np.ndarray:
     return np.median(np.stack([to_gray(frames[i]) for i in idx]), axis=0).astype(np.uint8)
 
 
+def difference(
+    image: np.ndarray, background: np.ndarray, shadow_ratio=(0.25, 0.92), shadow_tol: float = 0.08
+) -> np.ndarray:
+    """(H, W) uint8 absolute difference of two gray images, or the largest over the channels of
+    two RGB images (a box of another colour but the same luminance as the background shows).
+
+    RGB only: a pixel that is the background darkened by the same factor in every channel (within
+    ``shadow_tol``), the factor in ``shadow_ratio``, is a shadow (e.g. the box's own, on the floor
+    or a wall: it moves with the box and has its outline) and gets difference 0. Background
+    channels darker than 24 grey levels are not tested (their ratios are noise).
+    """
+    diff = cv2.absdiff(image, background)
+    if diff.ndim != 3:
+        return diff
+    out = diff.max(axis=-1)
+    bg = background.astype(np.float32)
+    ratio = image.astype(np.float32) / np.maximum(bg, 1.0)
+    mean = ratio.mean(axis=-1)
+    shadow = (
+        (mean >= shadow_ratio[0])
+        & (mean <= shadow_ratio[1])
+        & (np.abs(ratio - mean[..., None]).max(axis=-1) <= shadow_tol)
+        & (bg.min(axis=-1) >= 24)
+    )
+    out[shadow] = 0
+    return out
+
+
 def foreground_regions(
     gray: np.ndarray, background: np.ndarray, threshold: int = 20, open_px: int = 5, count: int = 3
 ) -> list[tuple[tuple[int, int, int, int], float]]:
     """Bounding boxes (x0, y0, x1, y1) and areas [px^2] of the ``count`` largest moving blobs.
 
+    ``gray`` and ``background`` are both (H, W) gray or both (H, W, 3) RGB (:func:`difference`).
     Where the object was in the background image, the difference shows a blob too (a "ghost");
     the caller tries each blob.
     """
-    diff = cv2.absdiff(gray, background)
+    diff = difference(gray, background)
     mask = (diff > threshold).astype(np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((open_px, open_px), np.uint8))
     n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
@@ -207,3 +236,102 @@ def edge_points(
     keep = y1 >= min_step
     found = pts + offset[:, None] * normals
     return found[keep], ids[keep]
+
+
+def foreground_mask(
+    gray: np.ndarray, background: np.ndarray, roi, threshold: int = 12, dilate_px: int = 0
+) -> tuple[np.ndarray, tuple[int, int, int, int]] | None:
+    """Pixels of ``gray`` (or RGB, :func:`difference`) that differ from the background inside ``roi`` = (x0, y0, x1, y1) [px]: ((h, w) bool
+    mask of the clipped window, the window), or None if the window is empty.
+
+    The absolute difference is smoothed by a 3x3 box filter (sensor noise) before the threshold
+    [grey levels]; the mask is then dilated by ``dilate_px`` (a square of 2 dilate_px + 1).
+    """
+    h, w = gray.shape[:2]
+    box = clip_roi(roi, w, h)
+    if box is None:
+        return None
+    x0, y0, x1, y1 = box
+    diff = difference(gray[y0:y1, x0:x1], background[y0:y1, x0:x1])
+    mask = (cv2.blur(diff, (3, 3)) > threshold).astype(np.uint8)
+    if dilate_px > 0:
+        mask = cv2.dilate(mask, np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8))
+    return mask.astype(bool), box
+
+
+def foreground_fraction(
+    gray: np.ndarray, background: np.ndarray, polygon_px: np.ndarray, threshold: int = 12
+) -> float:
+    """Fraction of the convex hull of ``polygon_px`` (N, 2) [px, intrinsics convention] whose
+    pixels differ from the background (:func:`foreground_mask`); 0 if it lies outside the image.
+
+    Confirms a model fit: a box fitted to the edges of a static object (clutter) lies on pixels
+    that match the background.
+    """
+    pts = np.asarray(polygon_px, np.float64) - PIXEL_OFFSET
+    if not np.all(np.isfinite(pts)):
+        return 0.0
+    lo, hi = np.floor(pts.min(0)), np.ceil(pts.max(0)) + 1
+    got = foreground_mask(gray, background, (lo[0], lo[1], hi[0], hi[1]), threshold)
+    if got is None:
+        return 0.0
+    mask, (x0, y0, _, _) = got
+    hull = cv2.convexHull(np.round(pts - [x0, y0]).astype(np.int32))
+    poly = np.zeros(mask.shape, np.uint8)
+    cv2.fillConvexPoly(poly, hull, 1)
+    inside = poly.astype(bool)
+    # the part of the polygon outside the image counts as not confirmed
+    full = max(float(cv2.contourArea(hull.astype(np.float32))), 1.0)
+    return float(np.sum(mask & inside)) / max(float(inside.sum()), full)
+
+
+def segments_in_mask(segments: np.ndarray, mask: np.ndarray, origin: tuple[int, int]) -> np.ndarray:
+    """The segments (N, 2, 2) [px, intrinsics convention] whose mid point and both end points lie
+    in ``mask`` (a window whose top-left pixel is ``origin`` = (x0, y0)).
+    """
+    if not len(segments):
+        return segments
+    pts = np.concatenate([segments, segments.mean(1, keepdims=True)], axis=1)  # (N, 3, 2)
+    ij = np.floor(pts - PIXEL_OFFSET - np.asarray(origin)).astype(int)
+    h, w = mask.shape
+    inside = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
+    ij = np.clip(ij, 0, [w - 1, h - 1])
+    hit = mask[ij[..., 1], ij[..., 0]] & inside
+    return segments[np.all(hit, axis=1)]
+
+
+def foreground_iou(
+    image: np.ndarray,
+    background: np.ndarray,
+    polygon_px: np.ndarray,
+    threshold: int = 12,
+    margin: float = 0.3,
+    open_px: int = 3,
+) -> float:
+    """Intersection over union of the convex hull of ``polygon_px`` (N, 2) [px, intrinsics
+    convention] and the foreground (:func:`foreground_mask`, opened by ``open_px`` to drop thin
+    things such as a rod) in a window of the hull's bounding box grown by ``margin`` of its size.
+
+    Confirms a model fit found from scratch: a box fitted a few centimetres off, or to a static
+    object, covers the moving blob poorly. 0 where the window leaves the image.
+    """
+    pts = np.asarray(polygon_px, np.float64) - PIXEL_OFFSET
+    if not np.all(np.isfinite(pts)):
+        return 0.0
+    lo, hi = pts.min(0), pts.max(0)
+    pad = margin * float(np.max(hi - lo)) + 2
+    got = foreground_mask(
+        image, background, (lo[0] - pad, lo[1] - pad, hi[0] + pad, hi[1] + pad), threshold
+    )
+    if got is None:
+        return 0.0
+    mask, (x0, y0, _, _) = got
+    if open_px > 1:
+        kernel = np.ones((open_px, open_px), np.uint8)
+        mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
+    hull = cv2.convexHull(np.round(pts - [x0, y0]).astype(np.int32))
+    poly = np.zeros(mask.shape, np.uint8)
+    cv2.fillConvexPoly(poly, hull, 1)
+    inside = poly.astype(bool)
+    union = float(np.sum(mask | inside))
+    return float(np.sum(mask & inside)) / union if union > 0 else 0.0

@@ -672,12 +672,14 @@ def estimate_motion_core(
     length: Array,
     prior_rotation: Array | None = None,
     polish_steps: int = 0,
+    discriminant_tol: float | None = None,
 ) -> MotionEstimate:
     """Jittable core of :func:`estimate_motion`; no input validation. Shapes as there.
 
     ``length`` must already have the batch shape of ``before[..., 0, 0]``. ``polish_steps`` (a
     Python int, static under ``jit``): 0 gives the paper's closed form (Eqs. 7-38); n > 0 follows it
     with n Gauss-Newton steps on the reprojection error (:func:`polish_motion`).
+    ``discriminant_tol`` (static): as in :func:`estimate_motion`.
     """
     dtype = before.dtype
     eps = _eps(dtype)
@@ -729,7 +731,8 @@ def estimate_motion_core(
         beta**2 * k1**2 * _sum_last(_homogeneous(base3a) ** 2)
     )  # size of c2 without motion cancellation
     moved = jnp.max(jnp.abs(coeffs), axis=-1) > 100.0 * eps * jnp.abs(coeff_scale)
-    disc_ok = roots.discriminant >= -jnp.sqrt(eps) * (
+    disc_tol = jnp.sqrt(eps) if discriminant_tol is None else discriminant_tol
+    disc_ok = roots.discriminant >= -disc_tol * (
         roots.coefficients[..., 1] ** 2 + 4.0 * jnp.abs(coeffs[..., 2] * coeffs[..., 0])
     )
     seg_len = jnp.stack(
@@ -772,6 +775,7 @@ def estimate_motion(
     prior_rotation=None,
     residual_tol: float | None = 0.05,
     polish_steps: int = 0,
+    discriminant_tol: float | None = None,
 ) -> MotionEstimate:
     """Motion (Phi, Gamma of Eq. 1) from two images of two 3D-parallel segments (Eqs. 7-38).
 
@@ -794,6 +798,14 @@ def estimate_motion(
             float32 accuracy requirement of the tests (noise-free rotation error p99 < 0.01 deg)
             is met with the polish (0.004-0.0065 deg), not by the closed form (0.03-0.06 deg, set by
             the rounding of the inputs to float32, not by the arithmetic).
+        discriminant_tol: None (default): the paper's reading, Eqs. 37-38 need real roots (a
+            negative discriminant beyond rounding, relative to c1^2 + 4 |c2 c0|, is invalid).
+            A number: negative discriminants down to ``-discriminant_tol`` times that scale are
+            accepted, and the two candidates with the square root clamped to 0 (-c1 / (2 c2)
+            and -2 c0 / c1, :func:`solve_virtual_t3`) go to the root choice as usual; ``inf``
+            accepts any. Not in the paper: under image noise the quadratic often loses its
+            real roots (``docs/eye_pipeline.md``, "--eye paper"), and the clamped candidates are
+            then about as good as real roots are; ``residual_tol`` still rejects the bad ones.
 
     Returns:
         :class:`MotionEstimate`. Degenerate configurations (segment plane through the camera
@@ -848,10 +860,21 @@ def estimate_motion(
         raise ValueError(f"polish_steps must be an integer >= 0, got {polish_steps!r}")
     if polish_steps < 0:
         raise ValueError(f"polish_steps must be an integer >= 0, got {polish_steps}")
-    est = _estimate_jit(before, after, length, prior_rotation, polish_steps=int(polish_steps))
+    if discriminant_tol is not None:
+        discriminant_tol = float(discriminant_tol)
+        if not discriminant_tol >= 0:
+            raise ValueError(f"discriminant_tol must be >= 0 or None, got {discriminant_tol}")
+    est = _estimate_jit(
+        before,
+        after,
+        length,
+        prior_rotation,
+        polish_steps=int(polish_steps),
+        discriminant_tol=discriminant_tol,
+    )
     if residual_tol is not None:
         est = est._replace(valid=consistency_check(est, residual_tol))
     return est
 
 
-_estimate_jit = jax.jit(estimate_motion_core, static_argnames="polish_steps")
+_estimate_jit = jax.jit(estimate_motion_core, static_argnames=("polish_steps", "discriminant_tol"))

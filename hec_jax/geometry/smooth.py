@@ -31,6 +31,7 @@ Frames without a measurement get zero information (bridged by the priors).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -68,6 +69,14 @@ class SmootherConfig:
             camera axis (x, y or 45 deg between x and z) gave 0.29-0.64 at 0.25 deg/s (the
             fixed-axis result then still within 0.02 deg of the free one or better) and 0.53-1.7
             at 0.5 deg/s (where the fixed-axis model is worse than the free one: rejected).
+        max_gap_s: valid frames more than this apart [s] start a new segment; each segment (first
+            to last valid frame) is smoothed on its own, and a frame outside every segment (before
+            the first acquisition, after a loss, in a long gap) holds the state of the nearest
+            segment end (its rotation and centre, zero velocity and acceleration): nothing is
+            extrapolated beyond a short gap (issue 24: over 50 unacquired frames the unsegmented
+            smoother had carried the centre 3 m away). None (the default, the smoother as it was
+            before issue 24): one segment over all frames, the priors extrapolating to both ends.
+            0.2 in ``benchmarks/eye_randomized.py``.
     """
 
     angular_accel_psd: float = 20.0
@@ -77,6 +86,7 @@ class SmootherConfig:
     hinge: bool = True
     hinge_iters: int = 10
     hinge_max_cost: float = 0.5
+    max_gap_s: float | None = None
 
 
 class SmoothedTrack(NamedTuple):
@@ -281,32 +291,82 @@ PAD = 32  # sequence lengths are padded to a multiple of this (one compilation p
 def smooth_track(
     rotations, positions, information, valid, dt: float, cfg: SmootherConfig = SmootherConfig()
 ) -> SmoothedTrack:
-    """Smooth a tracked sequence (NumPy in and out). Needs >= 4 valid frames, else returns the
-    inputs unchanged with zero velocity and acceleration.
+    """Smooth a tracked sequence (NumPy in and out), segment by segment (``cfg.max_gap_s``).
+
+    A segment with fewer than 4 valid frames is not smoothed: its valid frames keep their
+    measurements (zero velocity and acceleration), the others hold the nearest valid frame's.
+    With fewer than 4 valid frames in all, the inputs are returned unchanged (positions zeroed
+    where not valid), with zero velocity and acceleration.
+    ``hinge``, ``hinge_axis`` and ``hinge_cost`` are those of the longest smoothed segment.
 
     Args:
-        cfg: the smoother's settings.
         rotations: (T, 3, 3) per-frame R_cam_box (a guess where not valid, e.g. coasted).
         positions: (T, 3) per-frame centres [m] (any finite value where not valid).
         information: (T, 6, 6) information of (dw, dt) [1/rad^2, 1/m^2].
         valid: (T,) bool.
         dt: frame interval [s].
+        cfg: the smoother's settings.
     """
     valid = np.asarray(valid, bool)
     t_n = len(valid)
-    positions = np.where(valid[:, None], positions, 0.0)
-    if valid.sum() < 4:
-        z = np.zeros((t_n, 3))
-        return SmoothedTrack(
-            np.asarray(rotations),
-            positions,
-            z,
-            z,
-            np.tile(np.eye(3), (t_n, 1, 1)),
-            np.bool_(False),
-            np.full(3, np.nan),
-            np.float64(np.nan),
-        )
+    rotations = np.asarray(rotations, np.float64)
+    positions = np.where(valid[:, None], np.asarray(positions, np.float64), 0.0)
+    information = np.asarray(information, np.float64)
+    z = np.zeros((t_n, 3))
+    out = SmoothedTrack(
+        rotations.copy(),
+        positions.copy(),
+        z.copy(),
+        z.copy(),
+        np.tile(np.eye(3), (t_n, 1, 1)),
+        np.bool_(False),
+        np.full(3, np.nan),
+        np.float64(np.nan),
+    )
+    idx = np.flatnonzero(valid)
+    if idx.size < 4:
+        return out
+    if cfg.max_gap_s is None:
+        return _smooth_segment(rotations, positions, information, valid, dt, cfg)
+    gap = max(int(np.floor(cfg.max_gap_s / dt + 1e-9)), 1)
+    breaks = np.flatnonzero(np.diff(idx) > gap + 1)
+    starts = np.concatenate([[idx[0]], idx[breaks + 1]])
+    ends = np.concatenate([idx[breaks], [idx[-1]]]) + 1
+    longest = -1
+    for a, b in zip(starts, ends, strict=True):
+        sl = slice(a, b)
+        if valid[sl].sum() >= 4:
+            seg = _smooth_segment(rotations[sl], positions[sl], information[sl], valid[sl], dt, cfg)
+            for name in ("rotation", "position", "velocity", "acceleration", "position_cov"):
+                getattr(out, name)[sl] = getattr(seg, name)
+            if b - a > longest:
+                longest = b - a
+                out = out._replace(
+                    hinge=seg.hinge, hinge_axis=seg.hinge_axis, hinge_cost=seg.hinge_cost
+                )
+        else:  # too short to smooth: measurements, held over its own gaps
+            near = idx[(idx >= a) & (idx < b)]
+            j = near[np.abs(np.arange(a, b)[:, None] - near[None, :]).argmin(1)]
+            out.rotation[sl], out.position[sl] = rotations[j], positions[j]
+    # frames outside every segment hold the nearest segment end (no extrapolation)
+    inside = np.zeros(t_n, bool)
+    ends_all = []
+    for a, b in zip(starts, ends, strict=True):
+        inside[a:b] = True
+        ends_all += [a, b - 1]
+    ends_all = np.asarray(ends_all)
+    for t in np.flatnonzero(~inside):
+        e = ends_all[np.argmin(np.abs(ends_all - t))]
+        out.rotation[t], out.position[t] = out.rotation[e], out.position[e]
+        out.velocity[t], out.acceleration[t] = 0.0, 0.0
+        out.position_cov[t] = out.position_cov[e]
+    return out
+
+
+def _smooth_segment(rotations, positions, information, valid, dt, cfg) -> SmoothedTrack:
+    """:func:`_smooth` on one segment (>= 4 valid frames), padded to a multiple of ``PAD``."""
+    t_n = len(valid)
+    cfg = dataclasses.replace(cfg, max_gap_s=None)  # not used inside: one compilation for all
     key = (cfg, float(dt))
     if key not in _JIT:
         _JIT[key] = jax.jit(lambda r, p, i, v: _smooth(r, p, i, v, dt, cfg))
@@ -324,5 +384,5 @@ def smooth_track(
         ext(information, np.zeros((1, 6, 6))),
         np.concatenate([valid, np.zeros(pad, bool)]),
     )
-    per_frame = (np.asarray(x)[:t_n] for x in out[:5])
+    per_frame = (np.array(x)[:t_n] for x in out[:5])
     return SmoothedTrack(*per_frame, *(np.asarray(x) for x in out[5:]))

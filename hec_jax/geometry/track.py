@@ -16,10 +16,16 @@ median of the sequence) or the whole image, LSD, and a multi-start of the same a
 refinement from a fixed set of rotations, the best coverage winning.
 
 Steps 3-4 and the filter are one jitted function; only detection runs outside JAX.
+
+Opt-in, off by default (issue 24, scenes the tracker has never seen; ``TrackConfig`` from
+``colour_background`` on, all on in :data:`UNSEEN_SCENES`): colour differences to the background
+with shadows discounted, segments only on the moving blob, and fits confirmed by their silhouette
+and inner edges.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -44,7 +50,7 @@ from hec_jax.geometry.box_model import (
     project_corners_np,
     project_edges,
 )
-from hec_jax.geometry.camera import check_intrinsics
+from hec_jax.geometry.camera import check_camera_args
 from hec_jax.geometry.refine import (
     edge_residuals,
     levenberg_marquardt,
@@ -59,6 +65,12 @@ from hec_jax.geometry.synthetic import random_rotation
 @dataclass(frozen=True)
 class TrackConfig:
     """Static parameters of the tracker (hashable).
+
+    The fields from ``colour_background`` on are the checks of issue 24 (scenes the tracker has
+    never seen: colour, clutter, shadows). All are off by default: the tracker the hand-eye loop
+    was tuned with (on in the loop, they made the camera-driven catching worse,
+    ``docs/eye_randomized.md``); :data:`UNSEEN_SCENES` turns them on. They need a background
+    (given, or the median of the frames seen) and are skipped without one.
 
     Attributes:
         max_segments: segments kept per frame (longest first) [-].
@@ -103,6 +115,33 @@ class TrackConfig:
         edge_cubic: bicubic instead of bilinear sampling of the edge profiles (worse there).
         init_gates: association gates of the search from scratch, in box image sizes [-].
         seed: seed of the search's start rotations.
+        colour_background: with an RGB background, differences to it (moving blobs, masks,
+            outlines, the checks below) are colour differences, the largest over the channels,
+            and a pixel that is the background darkened by one factor in every channel (a shadow)
+            does not differ (:func:`detect.difference`); False: gray differences.
+        foreground_edges: segments (search and tracking) are kept only on the foreground mask
+            dilated by ``mask_px``, plus the segments of the difference image (the outline of a
+            box of the background's luminance), and the final refinement takes edge points from
+            the difference image on the model edges where the gray image gives fewer than half
+            the expected ones.
+        mask_px: dilation of that mask [px] (clutter edges touching the box are dropped).
+        foreground_threshold: grey-level difference to the background of a foreground pixel
+            (``foreground_edges``, ``min_foreground``, ``min_iou_acquire``).
+        min_foreground: a fit counts only if at least this fraction of its projected silhouette
+            differs from the background (:func:`detect.foreground_fraction`; a box fitted to the
+            edges of a static object does not); 0: off.
+        min_iou_acquire: a box found by the search from scratch counts only if its projected
+            silhouette and the moving blob overlap by at least this intersection over union
+            (:func:`detect.foreground_iou`; not while tracking, where a hand touching the box
+            joins the blob); 0: off.
+        min_inner_support, inner_edge_px: a fit counts only if the gray image shows at least this
+            fraction of the expected edge points on its inner edges (both adjacent faces visible)
+            at least ``inner_edge_px`` long [-, px] (rejects a Necker-like twin of the outline);
+            0: off.
+        min_region_fraction: the search from scratch skips moving blobs smaller than this fraction
+            of the largest (cost; 0: none skipped). 0.25 in ``benchmarks/eye_randomized.py``; not
+            in :data:`UNSEEN_SCENES`, because in the hand-eye loop the moving arm is the largest
+            blob.
     """
 
     max_segments: int = 48
@@ -133,6 +172,26 @@ class TrackConfig:
     background_every: int = 3
     background_frames: int = 25
     seed: int = field(default=0)
+    colour_background: bool = False
+    foreground_edges: bool = False
+    mask_px: int = 3
+    foreground_threshold: int = 12
+    min_foreground: float = 0.0
+    min_iou_acquire: float = 0.0
+    min_inner_support: float = 0.0
+    inner_edge_px: float = 10.0
+    min_region_fraction: float = 0.0
+
+
+# The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
+# hand-eye loop keeps ``TrackConfig``'s defaults (all off).
+UNSEEN_SCENES = TrackConfig(
+    colour_background=True,
+    foreground_edges=True,
+    min_foreground=0.5,
+    min_iou_acquire=0.6,
+    min_inner_support=0.05,
+)
 
 
 class Association(NamedTuple):
@@ -387,6 +446,23 @@ def usable_edges(
     return e, usable & ~np.any(beaten, axis=1)
 
 
+def _inner_support(rotation, translation, size, edges_px, usable, ids, cfg: TrackConfig) -> float:
+    """Fraction of the expected gray edge points found on the usable inner edges (both faces
+    visible, at least ``inner_edge_px`` long); 1 if there is none.
+
+    An outline alone can be fitted by a box turned the other way at another depth (the wrong
+    twin puts its inner edges across a face where the image has no step).
+    """
+    vis_f = face_visibility_np(rotation, translation, size)
+    length = np.linalg.norm(edges_px[:, 1] - edges_px[:, 0], axis=-1)
+    inner = usable & np.all(vis_f[EDGE_FACES], axis=1) & (length >= cfg.inner_edge_px)
+    if not inner.any():
+        return 1.0
+    expected = np.maximum(length - 6.0, 0.0) / cfg.edge_spacing_px
+    found = np.bincount(ids, minlength=12)
+    return float(np.sum(np.minimum(found, expected)[inner]) / max(np.sum(expected[inner]), 1.0))
+
+
 def _make_search(cfg: TrackConfig):
     rots = jnp.asarray(random_rotation(np.random.default_rng(cfg.seed), (cfg.init_starts,)))
 
@@ -440,6 +516,8 @@ class BoxTrack(NamedTuple):
             filter), total = detection + estimation, smoothing (offline pass, per frame).
         hinge: bool, the main fields come from the fixed-axis model (:func:`smooth.fit_hinge`).
         hinge_axis: (3,) its unit axis in the camera frame (NaN if not fitted).
+        causal_pose_rotation: (T, 3, 3) R_cam_box of the per-frame fits (coasted where not valid;
+            the first valid frame's before it), the labelling of ``pose_rotation``.
     """
 
     position: np.ndarray
@@ -461,6 +539,7 @@ class BoxTrack(NamedTuple):
     timing_ms: dict
     hinge: np.ndarray
     hinge_axis: np.ndarray
+    causal_pose_rotation: np.ndarray
 
 
 def cube_symmetries() -> np.ndarray:
@@ -488,7 +567,26 @@ def snap_to_symmetry(rotation: np.ndarray, reference: np.ndarray) -> np.ndarray:
 _CACHE: dict = {}
 
 
+# fields read only on the host (the issue-24 checks): configs that differ only in these share
+# their compiled functions
+_HOST_ONLY = {
+    name: getattr(TrackConfig(), name)
+    for name in (
+        "colour_background",
+        "foreground_edges",
+        "mask_px",
+        "foreground_threshold",
+        "min_foreground",
+        "min_iou_acquire",
+        "min_inner_support",
+        "inner_edge_px",
+        "min_region_fraction",
+    )
+}
+
+
 def _compiled(cfg: TrackConfig, fps: float):
+    cfg = dataclasses.replace(cfg, **_HOST_ONLY)
     key = (cfg, float(fps))
     if key not in _CACHE:
         fcfg = kf.FilterConfig(dt=1.0 / fps, jerk_psd=cfg.jerk_psd)
@@ -615,16 +713,15 @@ class BoxTracker:
         config: TrackConfig = TrackConfig(),
         background=None,
     ):
-        check_intrinsics(intrinsics)
-        if not (np.isfinite(size) and size > 0):
-            raise ValueError(f"size must be finite and positive, got {size}")
-        if not (np.isfinite(fps) and fps > 0):
-            raise ValueError(f"fps must be finite and positive, got {fps}")
+        check_camera_args(intrinsics, size, fps)
+        self._background_rgb = None  # the given background in colour (colour_background)
+        self._frame_rgb = None  # the frame being processed
         if background is not None:
             background = np.asarray(background)
             if background.dtype != np.uint8:
                 raise ValueError(f"background must be uint8, got dtype {background.dtype}")
             if background.ndim == 3 and background.shape[-1] == 3:
+                self._background_rgb = background
                 background = detect.to_gray(background)
             if background.ndim != 2:
                 raise ValueError(f"background must be (H, W) or (H, W, 3), got {background.shape}")
@@ -683,16 +780,23 @@ class BoxTracker:
         """Search from scratch: (prior (R, t), segments, mask) of the best valid candidate, or None.
         ``gate`` = (predicted centre (3,) [m], radius [m]) rejects far candidates (or None).
         """
-        m, k = self.config.max_segments, self.intrinsics
+        cfg, k = self.config, self.intrinsics
+        m = cfg.max_segments
         if self._bg_dirty:
             self.background = np.median(np.stack(self._bg_frames), axis=0).astype(np.uint8)
             self._bg_dirty = False
-        background = self.background
-        regions = detect.foreground_regions(gray, background) if background is not None else []
+        image, background = self._difference_pair(gray)
+        regions = detect.foreground_regions(image, background) if background is not None else []
+        if cfg.min_region_fraction > 0:
+            # blobs much smaller than the largest (a shadow's edge, pieces of the rod): not tried
+            regions = [r for r in regions if r[1] >= cfg.min_region_fraction * regions[0][1]]
         candidates = []
         for (x0, y0, x1, y1), area in regions:
             pad = 0.2 * max(x1 - x0, y1 - y0) + 4
-            seg = detect.detect_segments(gray, (x0 - pad, y0 - pad, x1 + pad, y1 + pad))
+            roi = (x0 - pad, y0 - pad, x1 + pad, y1 + pad)
+            seg = detect.detect_segments(gray, roi)
+            if cfg.foreground_edges:
+                seg = self._masked(seg, image, background, roi)
             centre = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
             candidates.append((seg, centre, np.sqrt(area) / 1.2))
         if not regions:
@@ -712,6 +816,7 @@ class BoxTracker:
             score = float(cand.association.coverage) - 0.1 * float(cand.rms)
             t_c = np.asarray(cand.pose.translation)
             near = gate is None or np.linalg.norm(t_c - gate[0]) <= gate[1]
+            near = near and self._confirmed(gray, cand.pose.rotation, t_c, acquire=True)
             if bool(cand.valid) and near and score > best:
                 found, best = (cand, segp_c, mask_c), score
         if found is None:
@@ -723,6 +828,96 @@ class BoxTracker:
         if self._rot_anchor is not None:
             rot = snap_to_symmetry(rot, self._rot_anchor)
         return (rot, np.asarray(cand.pose.translation)), segp_c, mask_c
+
+    def _difference_pair(self, gray) -> tuple[np.ndarray, np.ndarray | None]:
+        """(image, background) whose difference finds the moving things: the RGB frame and
+        background with ``colour_background`` and an RGB background given (a box of the
+        background's luminance but another colour shows), else the gray ones (None: no
+        background yet).
+        """
+        if self.config.colour_background and self._background_rgb is not None:
+            return self._frame_rgb, self._background_rgb
+        return gray, self.background
+
+    def _moving_segments(self, gray, roi) -> np.ndarray:
+        """Segments in ``roi``; with ``foreground_edges`` and a background, only those on the
+        moving blob's dilated mask (the edges of static clutter next to the box are not the box's).
+        """
+        seg = detect.detect_segments(gray, roi)
+        if not self.config.foreground_edges or self.background is None:
+            return seg
+        return self._masked(seg, *self._difference_pair(gray), roi)
+
+    def _masked(self, seg, image, background, roi) -> np.ndarray:
+        """``seg`` inside the dilated foreground mask, plus the segments of the difference image
+        (the outline of a box of the background's luminance has no step in the gray image).
+        """
+        cfg = self.config
+        h, w = image.shape[:2]
+        box = detect.clip_roi(roi, w, h)
+        if box is None:
+            return seg
+        x0, y0, x1, y1 = box
+        diff = detect.difference(image[y0:y1, x0:x1], background[y0:y1, x0:x1])
+        mask = cv2.blur(diff, (3, 3)) > cfg.foreground_threshold
+        k = 2 * cfg.mask_px + 1
+        mask = cv2.dilate(mask.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+        outline = detect.detect_segments(np.ascontiguousarray(diff))
+        if len(outline):
+            outline = outline + np.array([x0, y0], float)
+        seg = detect.segments_in_mask(seg, mask, (x0, y0))
+        outline = detect.segments_in_mask(outline, mask, (x0, y0))
+        return np.concatenate([seg.reshape(-1, 2, 2), outline.reshape(-1, 2, 2)])
+
+    def _outline_points(self, gray, edges_px, usable, pts, ids):
+        """Add edge points from the difference to the background on the usable edges where the
+        gray image gave fewer than half the expected points (an outline of the background's
+        luminance in another colour; the box against a background of its own grey).
+        """
+        cfg = self.config
+        if not cfg.foreground_edges or self.background is None:
+            return pts, ids
+        length = np.linalg.norm(edges_px[:, 1] - edges_px[:, 0], axis=-1)
+        expected = np.maximum(length - 6.0, 0.0) / cfg.edge_spacing_px
+        weak = usable & (np.bincount(ids, minlength=12) < 0.5 * expected)
+        if not weak.any():
+            return pts, ids
+        image, background = self._difference_pair(gray)
+        h, w = gray.shape
+        box = detect.clip_roi(_window(edges_px[weak].reshape(-1, 2), 0.1), w, h)
+        if box is None:
+            return pts, ids
+        x0, y0, x1, y1 = box
+        diff = detect.difference(image[y0:y1, x0:x1], background[y0:y1, x0:x1])
+        offset = np.array([x0, y0], float)
+        p2, i2 = detect.edge_points(
+            diff,
+            edges_px - offset,
+            weak,
+            spacing=cfg.edge_spacing_px,
+            search=cfg.search_px,
+            blur=cfg.edge_blur_px,
+        )
+        return np.concatenate([pts, p2 + offset]), np.concatenate([ids, i2])
+
+    def _confirmed(self, gray, rotation, translation, acquire: bool = False) -> bool:
+        """The fit's projected silhouette differs from the background (``min_foreground``) and,
+        for a box found from scratch (``acquire``), covers the moving blob (``min_iou_acquire``);
+        True where a check is off or impossible (no background yet).
+        """
+        cfg = self.config
+        iou = acquire and cfg.min_iou_acquire > 0
+        if (cfg.min_foreground <= 0 and not iou) or self.background is None:
+            return True
+        corners = project_corners_np(np.asarray(rotation), translation, self.size, self.intrinsics)
+        image, background = self._difference_pair(gray)
+        thr = cfg.foreground_threshold
+        if cfg.min_foreground > 0:
+            if detect.foreground_fraction(image, background, corners, thr) < cfg.min_foreground:
+                return False
+        if iou:
+            return detect.foreground_iou(image, background, corners, thr) >= cfg.min_iou_acquire
+        return True
 
     def _fit(self, prior, segp, mask, gray, first) -> Finished:
         cfg, k, size_a = self.config, self.intrinsics, np.float64(self.size)
@@ -738,6 +933,12 @@ class BoxTracker:
             blur=cfg.edge_blur_px,
             interpolation=cv2.INTER_CUBIC if cfg.edge_cubic else cv2.INTER_LINEAR,
         )
+        support = 1.0
+        if cfg.min_inner_support > 0:
+            support = _inner_support(
+                pose_np.rotation, pose_np.translation, self.size, edges_px, usable, ids, cfg
+            )
+        pts, ids = self._outline_points(gray, edges_px, usable, pts, ids)
         n_pts = min(len(pts), cfg.max_points)
         sel = np.linspace(0, len(pts) - 1, n_pts).astype(int) if n_pts else np.zeros(0, int)
         pp, pi, pw = (
@@ -747,7 +948,7 @@ class BoxTracker:
         )
         pp[:n_pts], pi[:n_pts], pw[:n_pts] = pts[sel], ids[sel], 1.0
         use_prior = (not first) and self._rot_prev2 is not None
-        return jax.device_get(
+        fin = jax.device_get(
             self._finish(
                 self._state,
                 loc,
@@ -761,6 +962,9 @@ class BoxTracker:
                 np.float64(1.0 if use_prior else 0.0),
             )
         )
+        if support < cfg.min_inner_support:  # inner edges not in the image: a Necker-like twin
+            fin = fin._replace(valid=np.bool_(False))
+        return fin
 
     def update(self, frame) -> TrackStep:
         """Process the next camera frame ((H, W, 3) uint8 RGB, 1 / fps after the previous one).
@@ -778,6 +982,7 @@ class BoxTracker:
         m, i = cfg.max_segments, self._frame
         t0 = time.perf_counter()
         gray = detect.to_gray(frame)
+        self._frame_rgb = frame
         if not self._given_background and i % cfg.background_every == 0:
             self._bg_frames = [*self._bg_frames, gray][-cfg.background_frames :]
             self._bg_dirty = len(self._bg_frames) >= 5  # median taken when a search needs it
@@ -788,7 +993,7 @@ class BoxTracker:
             omega = _log(rot_prev @ rot_prev2.T) if rot_prev2 is not None else np.zeros(3)
             prior = (_rodrigues(omega) @ rot_prev, np.asarray(self._predicted.mean[:3]))
             corners = project_corners_np(*prior, self.size, k)
-            seg = detect.detect_segments(gray, _window(corners, cfg.roi_margin))
+            seg = self._moving_segments(gray, _window(corners, cfg.roi_margin))
             segp, mask = detect.pad_segments(seg, m)
         t1 = time.perf_counter()
         # innovation gate while the filter runs: a fit must lie within 3 sigma of the predicted
@@ -806,7 +1011,10 @@ class BoxTracker:
         def gated(f, gate=gate):
             if f is None or not bool(f.valid):
                 return False
-            return gate is None or np.linalg.norm(np.asarray(f.translation) - gate[0]) <= gate[1]
+            t_f = np.asarray(f.translation)
+            if gate is not None and np.linalg.norm(t_f - gate[0]) > gate[1]:
+                return False
+            return self._confirmed(gray, f.rotation, t_f)
 
         if tracking:
             fin = self._fit(prior, segp, mask, gray, not self._started)
@@ -832,7 +1040,7 @@ class BoxTracker:
                 prior, segp, mask = got
                 first = not (self._started and self._misses < cfg.lost_after)
                 fin2 = self._fit(prior, segp, mask, gray, first)
-                if gated(fin2):
+                if gated(fin2) and self._confirmed(gray, fin2.rotation, fin2.translation, True):
                     fin = fin2
                     if first or not self._started:
                         self._started = False
@@ -936,11 +1144,7 @@ def track_box(
         ValueError: frames not (T, H, W, 3) uint8, bad intrinsics, size or fps.
     """
     frames = detect.check_frames(frames)
-    check_intrinsics(intrinsics)
-    if not (np.isfinite(size) and size > 0):
-        raise ValueError(f"size must be finite and positive, got {size}")
-    if not (np.isfinite(fps) and fps > 0):
-        raise ValueError(f"fps must be finite and positive, got {fps}")
+    check_camera_args(intrinsics, size, fps)
     cfg = config
     scfg = smoother if smoother is not None else SmootherConfig()
     t_n = len(frames)
@@ -993,5 +1197,6 @@ def track_box(
         timing_ms=timing,
         hinge=np.bool_(sm.hinge),
         hinge_axis=np.asarray(sm.hinge_axis),
+        causal_pose_rotation=causal_pose_rotation,
         **out,
     )

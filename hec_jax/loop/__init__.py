@@ -9,7 +9,7 @@
 Modules: ``config`` (configs and named presets), ``observation`` (simulator -> task observation),
 ``object_state`` (eye + touch), ``policy`` (one control step; :func:`build_loop`), ``episodes``
 (swings in ``lax.scan``, seeds and conditions ``vmap``-ed), ``camera_loop`` (render -> mask ->
-tracker -> jitted segment, at the NumPy boundary), ``metrics``, ``experiment``
+tracker or the paper's eye -> jitted segment, at the NumPy boundary), ``metrics``, ``experiment``
 (:func:`run_experiment`), ``report`` (run folders), ``sweep``, ``devices`` (several GPUs),
 ``cli`` (the task scripts' command line), ``plain`` (plain impedance rollouts, MJX and C),
 ``exact`` (exact one-step gradients and the learner that uses them), ``gradients`` and

@@ -1,14 +1,17 @@
 """The closed hand-eye loop: the object's state comes only from rendered camera frames.
 
 Wires the world (``hec_jax.mjx_scene``: MJX physics, C rendering), the eye (``hec_jax.geometry``:
-the online :class:`~hec_jax.geometry.BoxTracker`) and the hand with its learner
+the online :class:`~hec_jax.geometry.BoxTracker`, ``eye="camera"``, or the paper's two-frame
+method :class:`~hec_jax.geometry.PaperEye`, ``eye="paper"``) and the hand with its learner
 (:mod:`hec_jax.loop.policy`) together at the NumPy boundary:
 
 * The camera takes a frame every 1/fps [s] (30 fps default), rounded to a whole number of 1 ms
   control steps (33 ms, i.e. 30.3 fps, for 30 fps; the eye is told the rounded rate). A frame
   shows the state at the middle of its exposure (``exposure_s``; motion blur is not modelled).
-* Each frame goes through the eye (LSD segments, box fit, constant-acceleration Kalman filter);
-  its estimate reaches the controller ``latency_s`` after the end of the exposure.
+* Each frame goes through the eye (box tracker: LSD segments, box fit, constant-acceleration
+  Kalman filter; paper's eye: a face's parallel edges, Eqs. 1-38 on this and the previous frame,
+  the same kind of filter); its estimate reaches the controller ``latency_s`` after the end of
+  the exposure. Both eyes see the same frames (self-mask and inpainting included).
 * Between estimates the controller predicts the object's state from the last one with the filter's
   constant-acceleration model (``object_state.eye_object_state``), every 1 ms, inside the jitted
   ``lax.scan`` of one inter-frame segment; the learner runs in the same scan.
@@ -31,7 +34,8 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 
-from hec_jax.geometry import BoxTracker
+from hec_jax.geometry import BoxTracker, PaperEye
+from hec_jax.geometry.paper_eye import STATUSES
 from hec_jax.loop.config import CameraConfig
 from hec_jax.loop.episodes import _float_dtype, run_conditions
 from hec_jax.loop.object_state import EyeInput
@@ -239,6 +243,18 @@ def _draw_overlay(frame: np.ndarray, step, k: np.ndarray, r_cam_world, t_cam_wor
     return img
 
 
+def make_eye(eye: str, intrinsics, fps: float, cam: CameraConfig, background):
+    """One seed's eye on the loop's camera: ``"camera"``, the box tracker
+    (:class:`~hec_jax.geometry.BoxTracker`, ``cam.track``), or ``"paper"``, the paper's two-frame
+    method (:class:`~hec_jax.geometry.PaperEye`, ``cam.paper``); both take the RGB background.
+    """
+    if eye == "camera":
+        return BoxTracker(intrinsics, CUBE_EDGE, fps, cam.track, background)
+    if eye == "paper":
+        return PaperEye(intrinsics, CUBE_EDGE, fps, cam.paper, background)
+    raise ValueError(f"eye must be 'camera' or 'paper', got {eye!r}")
+
+
 def _first_segment_line(ms: float) -> str:
     return f"camera loop: compile and first control segment {ms / 1e3:.1f} s"
 
@@ -253,6 +269,7 @@ def run_camera(
     progress: bool | ProgressBar = True,
     corrupt=None,
     compiled: tuple | None = None,
+    eye_source: str = "camera",
 ):
     """One condition with the object's state from the camera, for a batch of seeds.
 
@@ -270,12 +287,16 @@ def run_camera(
         corrupt: optional ``(seed, swing, frame, image) -> image`` applied to each rendered frame
             before the eye sees it (occluders, dropped frames, noise: robustness tests).
         compiled: ``(make_start(loop), make_segment(loop))`` to reuse across calls (one compile).
+        eye_source: ``"camera"`` (the box tracker) or ``"paper"`` (the paper's two-frame
+            method), :func:`make_eye`.
 
     Returns:
         (logs, eye, video): ``logs`` as :func:`~hec_jax.loop.episodes.make_episodes` (arrays (n_seeds, swings,
         steps, ...)); ``eye``: per-frame arrays (n_seeds, swings, frames): ``t_stamp`` [s],
         ``valid``, ``initialised``, ``x_est``/``x_true`` [m] (..., 2) task-plane centre at the
-        frame's time, ``xd_est`` [m/s], and per-frame ``eye_ms``, ``render_ms`` plus
+        frame's time, ``xd_est`` [m/s], ``status`` (the paper's eye: index into
+        :data:`~hec_jax.geometry.paper_eye.STATUSES`, else -1), and per-frame ``eye_ms``,
+        ``render_ms`` plus
         ``sim_ms`` per segment and the wall time; ``video``: BGR frames with overlays.
     """
     cam = CameraConfig() if cam is None else cam
@@ -303,7 +324,7 @@ def run_camera(
     robot = robot_geoms(m_render, loop.ids.hand_body)
     hand = robot[m_render.geom_bodyid[robot] == loop.ids.hand_body]
     trackers = [
-        BoxTracker(camera.intrinsics, CUBE_EDGE, fps, cam.track, background) for _ in range(n_seeds)
+        make_eye(eye_source, camera.intrinsics, fps, cam, background) for _ in range(n_seeds)
     ]
     own_bar = not isinstance(progress, ProgressBar)
     if own_bar:
@@ -328,6 +349,9 @@ def run_camera(
             "eye_ms": np.zeros((n_seeds, n_f)),
             "render_ms": np.zeros((n_seeds, n_f)),
             "sim_ms": np.zeros(n_f),
+            # the paper's eye: why a frame is (in)valid, index into geometry.paper_eye.STATUSES
+            # (-1: the box tracker, which gives none)
+            "status": np.full((n_seeds, n_f), -1, np.int8),
         }
         frames_out = []
         d, cs, touch = start(ls, sw0, conditions)
@@ -366,6 +390,8 @@ def run_camera(
                 rec["t_stamp"][i, j] = s_img * dt
                 rec["valid"][i, j] = bool(st.valid)
                 rec["initialised"][i, j] = bool(st.initialised)
+                if eye_source == "paper":
+                    rec["status"][i, j] = STATUSES.index(st.status)
                 rec["x_true"][i, j] = x_true[_AX]
                 misses[i] = 0 if st.valid else misses[i] + 1
                 if st.initialised:
@@ -454,6 +480,7 @@ def run_conditions_camera(
     cam: CameraConfig | None = None,
     video_condition: str = "learned",
     progress: bool = True,
+    eye_source: str = "camera",
 ):
     """The three conditions with the camera in the loop, and with ground truth for comparison.
 
@@ -463,7 +490,7 @@ def run_conditions_camera(
     :func:`~hec_jax.loop.episodes.run_conditions`; ``video``: seed 0 of ``video_condition``, its
     last swing (or the continuous run when the task has one). ``progress``: one bar over the
     frames of both camera conditions (:class:`~hec_jax.progress.ProgressBar`), the ground-truth
-    runs' compile and run times on their own line.
+    runs' compile and run times on their own line. ``eye_source``: as :func:`run_camera`.
     """
     total = 2 * n_seeds * frames_per_condition(loop, cam)
     with ProgressBar(total, "frames", enabled=progress) as bar:
@@ -486,6 +513,7 @@ def run_conditions_camera(
                 shown if want else None,
                 bar,
                 compiled=compiled,
+                eye_source=eye_source,
             )
             camera_logs[condition], eyes[condition] = logs, eye
             if condition == "frozen":  # the first call of the shared functions compiled them

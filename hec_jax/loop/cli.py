@@ -24,6 +24,12 @@ class TaskRun:
     # time beside it; every real-time setting is a flag of experiments/realtime.py)
     realtime: bool = False
 
+    def __post_init__(self):
+        if self.realtime and self.experiment.eye == "paper":
+            raise ValueError(
+                "--realtime runs --eye truth or camera (the paper's eye: simulated time)"
+            )
+
 
 @command
 def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
@@ -38,6 +44,8 @@ def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
     import jax
 
     jax.config.update("jax_enable_x64", not run.float32)
+    if run.realtime:  # the jitted call on the calling thread, as experiments/realtime.py does
+        jax.config.update("jax_cpu_enable_async_dispatch", False)  # (docs/realtime.md)
     from hec_jax.loop.experiment import run_experiment
     from hec_jax.loop.report import print_summary, write_experiment
     from hec_jax.runs import run_folder

@@ -18,11 +18,15 @@ from typing import Annotated, Literal
 import tyro
 
 from hec_jax.control import ControllerConfig
-from hec_jax.geometry import TrackConfig
+from hec_jax.geometry import PaperEyeConfig, TrackConfig
 from hec_jax.mjx_scene import X_HOME, PendulumConfig
 from hec_jax.nets import LearnerConfig, NetConfig
 
-EyeSource = Literal["truth", "camera"]
+# The object's state: the simulator's ("truth"), or camera frames through the box tracker
+# ("camera", ``geometry.BoxTracker``) or through the paper's two-frame method ("paper",
+# ``geometry.PaperEye``: Eqs. 1-38 on a pair of parallel cube edges in consecutive frames).
+EyeSource = Literal["truth", "camera", "paper"]
+EYE_SOURCES = ("truth", "camera", "paper")
 
 
 def _positive(obj, *names: str, allow_zero: bool = False) -> None:
@@ -118,7 +122,7 @@ class TaskConfig:
 
 @dataclass(frozen=True)
 class CameraConfig:
-    """Timing and resolution of the eye in the loop (``--eye camera``)."""
+    """Timing and resolution of the eye in the loop (``--eye camera`` and ``--eye paper``)."""
 
     fps: float = 30.0  # frame rate [1/s]; frames fall on whole control steps (33 ms at 30 fps)
     latency_s: float = 1.0 / 30.0  # end of exposure -> estimate at the controller [s]
@@ -144,6 +148,9 @@ class CameraConfig:
     track: Annotated[TrackConfig, tyro.conf.Suppress] = field(
         default_factory=lambda: TrackConfig(maneuver_nis=16.3, stop_hypothesis=True)
     )
+    # The paper's eye (``--eye paper``): face edges, Eqs. 1-38 between consecutive frames, the
+    # composed pose and its filter (``geometry.paper_eye``; defaults argued there).
+    paper: Annotated[PaperEyeConfig, tyro.conf.Suppress] = field(default_factory=PaperEyeConfig)
 
     def __post_init__(self):
         _positive(self, "fps", "width", "height")
@@ -159,7 +166,9 @@ class ExperimentConfig:
     """A task run under the three conditions (plain, frozen, learned) for a batch of seeds."""
 
     task: TaskConfig = field(default_factory=TaskConfig)
-    eye: EyeSource = "truth"  # the object's state: the simulator's, or camera frames via the eye
+    # the object's state: the simulator's, or camera frames via the box tracker ("camera") or the
+    # paper's two-frame method on parallel edges ("paper")
+    eye: EyeSource = "truth"
     camera: CameraConfig = field(default_factory=CameraConfig)
     seed: int = 0  # PRNG seed of the network initialisations
     seeds: int = 5  # network initialisations, run side by side (vmap)
@@ -167,8 +176,8 @@ class ExperimentConfig:
     def __post_init__(self):
         if not (isinstance(self.seeds, int) and self.seeds >= 1):
             raise ValueError(f"seeds must be an integer >= 1, got {self.seeds}")
-        if self.eye not in ("truth", "camera"):
-            raise ValueError(f"eye must be 'truth' or 'camera', got {self.eye!r}")
+        if self.eye not in EYE_SOURCES:
+            raise ValueError(f"eye must be one of {', '.join(EYE_SOURCES)}, got {self.eye!r}")
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
 """An experiment: one task under the three conditions (plain, frozen, learned) for a batch of
-seeds, with the object's state from the simulator or from the camera, and its metrics.
+seeds, with the object's state from the simulator or from the camera (the box tracker or the
+paper's eye), and its metrics.
 
     from hec_jax import loop
     exp = loop.replace(loop.catching(eye="truth", seeds=3), swings=3, mu=2e-3)
@@ -62,7 +63,13 @@ def run_experiment(config: ExperimentConfig, progress: bool = True) -> Experimen
         logs, timing = run_conditions(loop, conditions, config.seed, config.seeds)
     else:
         logs, truth, timing, eyes, video = run_conditions_camera(
-            loop, conditions, config.seed, config.seeds, config.camera, progress=progress
+            loop,
+            conditions,
+            config.seed,
+            config.seeds,
+            config.camera,
+            progress=progress,
+            eye_source=config.eye,
         )
     wall = time.perf_counter() - t0
     metrics = task_metrics(loop, logs)

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from hec_jax.geometry.paper_eye import STATUSES
+
 
 def contact_events(f_norm: np.ndarray, threshold: float, min_gap: int) -> list[tuple[int, int]]:
     """(start, end) sample indices of contact episodes in a force-magnitude series; contacts closer
@@ -150,6 +152,9 @@ def eye_metrics(eye: dict, logs: dict, dt: float) -> dict:
         "real_time_factor": float(sim_s / wall),  # simulated time of one world / wall time
         "real_time_factor_all_worlds": float(n_seeds * sim_s / wall),
     }
+    status = eye.get("status")
+    if status is not None and np.any(status >= 0):  # the paper's eye: frames by reason
+        out["frames_by_status"] = {n: int(np.sum(status == i)) for i, n in enumerate(STATUSES)}
     if len(walls) > 1:  # without the first episode (compilation)
         out["real_time_factor_warm"] = float(
             sim_s * (len(walls) - 1) / len(walls) / walls[1:].sum()

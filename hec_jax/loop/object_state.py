@@ -107,6 +107,9 @@ def touch_object_state(
       catching run: taking the centre on the hand's normal line instead gave 44-50 mm errors
       while a cube was held off-centre, and the hand pushed it out). Velocity and acceleration
       are the hand's (the eye's across n made the hold chatter, measured: 8-18 contacts a swing).
+      While the eye has nothing (``eye.seen`` 0, e.g. the paper's eye with the hand hiding a
+      side of the face) the position across n is the last touch's, or on the hand's normal line
+      before any touch (the eye's zeros would put the object metres away).
     * Out of contact the force sensor says the object does not touch the hand, so an estimate
       closer than ``distance`` contradicts it: the position is moved out to ``distance`` along the
       same direction (projected onto what the sensor allows). Near X_r = 0 the sphere geometry of
@@ -124,8 +127,13 @@ def touch_object_state(
     inv = jnp.where(pos, 1.0 / jnp.sqrt(jnp.where(pos, f_sq, 1.0)), 0.0)
     n = -f_int * inv  # unit contact normal, hand -> object (F_int acts ON the hand)
     x_eye, xd_eye, xdd_eye = eye_object_state(eye, t)
-    # touch along n, the eye's position across it (where on the face the hand holds the cube)
-    x_touch = x_eye + n * jnp.dot(n, x_e + distance * n - x_eye)
+    # touch along n, the eye's position across it (where on the face the hand holds the cube);
+    # with the eye blind (it carries zeros then), the last touch's across it, or the hand's
+    # normal line if there was none
+    touched = jnp.isfinite(touch.t)
+    x_across = jnp.where(touched, touch.x, x_e + distance * n)
+    x_across = jnp.where(eye.seen > 0, x_eye, x_across)
+    x_touch = x_across + n * jnp.dot(n, x_e + distance * n - x_across)
     touch = jax.tree_util.tree_map(
         lambda new, old: jnp.where(in_contact, new, old),
         TouchMemory(jnp.asarray(t, touch.t.dtype), x_touch, xd_e),

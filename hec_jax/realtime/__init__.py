@@ -11,6 +11,8 @@
 * :mod:`.report`: the deadline report (tick latency percentiles and histogram, missed deadlines,
   the eye's latency and dropped frames) and the run folder's files.
 * :mod:`.workers`: the camera's and the eye's processes; :mod:`.shared`: their shared memory.
+* :mod:`.profile`: where a control tick's time goes, per stage, without deadlines
+  (``python benchmarks/realtime_profile.py``).
 
     from hec_jax import loop, realtime
     result = realtime.run_realtime(loop.catching(eye="truth"), realtime.RealtimeConfig(duration_s=6))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import threading
 import time
 from typing import Protocol
 
@@ -95,13 +96,17 @@ class FreeClock:
 
 
 class realtime_priority:
-    """Context manager: every thread of this process under ``SCHED_FIFO`` at ``priority``
-    (1-99; 0: leave the scheduling alone), normal scheduling again on exit.
+    """Context manager: the calling thread (the control loop) under ``SCHED_FIFO`` at
+    ``priority`` (1-99; 0: leave the scheduling alone) and every other thread of this process at
+    ``priority - 1``; normal scheduling again on exit.
 
     A real-time control loop runs so (a robot's controller on a PREEMPT_RT kernel): ordinary
-    processes on the same cores no longer preempt it. Needs CAP_SYS_NICE (root); the kernel's
-    real-time throttling (``sched_rt_runtime_us``, 95% by default) still leaves the other
-    processes some time if the loop spins. Threads started inside the block inherit it.
+    processes on the same cores no longer preempt it. The other threads are XLA's: its CPU runtime
+    hands independent parts of the jitted step to its thread pool while the calling thread waits,
+    so they must not wait behind ordinary processes either, and they must never preempt the loop
+    (one below it). Needs CAP_SYS_NICE (root); the kernel's real-time throttling
+    (``sched_rt_runtime_us``, 95% by default) still leaves the other processes some time if the
+    loop spins. Threads started inside the block inherit the calling thread's.
 
     Raises:
         PermissionError: not allowed to change the scheduling.
@@ -114,7 +119,8 @@ class realtime_priority:
 
     def __enter__(self):
         if self.priority:
-            set_scheduling(os.SCHED_FIFO, self.priority)
+            set_scheduling(os.SCHED_FIFO, max(self.priority - 1, 1))
+            set_thread_scheduling(threading.get_native_id(), os.SCHED_FIFO, self.priority)
         return self
 
     def __exit__(self, *exc):
@@ -122,8 +128,56 @@ class realtime_priority:
             set_scheduling(os.SCHED_OTHER, 0)
 
 
+def _threads() -> list[int]:
+    """The thread ids of this process (Linux)."""
+    return [int(tid) for tid in os.listdir("/proc/self/task")]
+
+
+def set_thread_scheduling(tid: int, policy: int, priority: int) -> None:
+    """``sched_setscheduler`` for thread ``tid`` (Linux; a thread that has ended is skipped)."""
+    with contextlib.suppress(ProcessLookupError):
+        os.sched_setscheduler(tid, policy, os.sched_param(priority))
+
+
 def set_scheduling(policy: int, priority: int) -> None:
     """``sched_setscheduler`` for every thread of this process (Linux)."""
-    for tid in os.listdir("/proc/self/task"):
-        with contextlib.suppress(ProcessLookupError):  # a thread that ended meanwhile
-            os.sched_setscheduler(int(tid), policy, os.sched_param(priority))
+    for tid in _threads():
+        set_thread_scheduling(tid, policy, priority)
+
+
+class pinned:
+    """Context manager: every thread of this process (the control loop and XLA's pool threads,
+    which run parts of each jitted step) on the CPUs ``cpus``; their previous CPU sets on exit.
+
+    The step's hand-offs to XLA's threads then stay on the loop's CPU (no wake-up of another
+    virtual CPU; per tick, the process's CPU time halves: docs/realtime.md), and the other CPUs
+    are left to the camera and the eye. Threads started inside the block inherit the
+    calling thread's CPUs. ``cpus`` None or empty: nothing changes.
+    """
+
+    def __init__(self, cpus):
+        self.cpus = set(cpus) if cpus else set()
+        self._old: dict[int, set[int]] = {}
+
+    def __enter__(self):
+        if self.cpus and hasattr(os, "sched_setaffinity"):
+            for tid in _threads():
+                with contextlib.suppress(ProcessLookupError):
+                    self._old[tid] = os.sched_getaffinity(tid)
+                    os.sched_setaffinity(tid, self.cpus)
+        return self
+
+    def __exit__(self, *exc):
+        for tid, cpus in self._old.items():
+            with contextlib.suppress(ProcessLookupError):
+                os.sched_setaffinity(tid, cpus)
+        self._old = {}
+
+
+def pin_process(pid: int, cpus) -> None:
+    """Every thread of process ``pid`` on the CPUs ``cpus`` (Linux; threads that end meanwhile
+    are skipped).
+    """
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(ProcessLookupError):
+            os.sched_setaffinity(int(tid), set(cpus))

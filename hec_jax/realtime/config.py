@@ -23,7 +23,9 @@ class RealtimeConfig:
     spin_us: float = 200.0  # [us] busy-wait before each tick (sleep before that)
     lead_ms: float = 20.0  # [ms] from the start of an episode's clock to its first tick
     gc_off: bool = True  # no Python garbage collection during an episode (collected between)
-    pin_cpus: bool = False  # control loop on CPU 0, camera and eye on the others
+    # the control process (its loop and XLA's pool threads) on the first CPU, the camera and eye
+    # processes on the others (False: wherever the kernel puts them; docs/realtime.md)
+    pin_cpus: bool = True
     # SCHED_FIFO priority of the control loop while it runs (1-99); 0: normal scheduling (other
     # processes on the machine may preempt the loop)
     rt_priority: int = 0

@@ -168,6 +168,13 @@ class ArmObs(NamedTuple):
     xd_e: np.ndarray
 
 
+def empty_arm_obs() -> ArmObs:
+    """An :class:`ArmObs` of new, uninitialised arrays (for :meth:`ArmModel.observe`'s ``out``)."""
+    return ArmObs(
+        np.empty((3, 3)), np.empty(3), np.empty((2, 3)), np.empty(2), np.empty(2), np.empty(2)
+    )
+
+
 class ArmModel:
     """The controller's model of the arm: Eqs. 39-44's M, h, J, J' theta' and X_e from a joint
     state, by MuJoCo C (mj_fwdPosition / mj_fwdVelocity, mj_fullM, mj_jacSite, mj_jacDot) on its
@@ -184,30 +191,37 @@ class ArmModel:
         self.m, self.ids = m, ids
         self.d = mujoco.MjData(m)
         self._qpos, self._dof = np.array(ids.arm_qpos), np.array(ids.arm_dof)
+        self._dof_dof = np.ix_(self._dof, self._dof)  # M(theta): the arm's rows and columns
+        self._hand = (ids.hand_site, _AX)
         self._M = np.zeros((m.nv, m.nv))
         self._jac = np.zeros((3, m.nv))
         self._jacdot = np.zeros((3, m.nv))
 
-    def observe(self, q: np.ndarray, qd: np.ndarray) -> ArmObs:
-        """The arm's observation at joint angles ``q`` [rad] and velocities ``qd`` [rad/s]."""
-        m, d, ids, dof = self.m, self.d, self.ids, self._dof
+    def observe(self, q: np.ndarray, qd: np.ndarray, out: ArmObs | None = None) -> ArmObs:
+        """The arm's observation at joint angles ``q`` [rad] and velocities ``qd`` [rad/s],
+        written into ``out``'s arrays (e.g. views of the controller's observation vector: no
+        allocation, about half the NumPy calls per tick) or new ones (None); returns it.
+        """
+        m, d, ids = self.m, self.d, self.ids
+        out = empty_arm_obs() if out is None else out
         d.qpos[self._qpos] = q
-        d.qvel[dof] = qd
+        d.qvel[self._dof] = qd
         mujoco.mj_fwdPosition(m, d)
         mujoco.mj_fwdVelocity(m, d)
         mujoco.mj_fullM(m, d, self._M)
         mujoco.mj_jacSite(m, d, self._jac, None, ids.hand_site)
         mujoco.mj_jacDot(m, d, self._jacdot, None, d.site_xpos[ids.hand_site], ids.hand_body)
-        J = self._jac[_AX][:, dof]
         qd = np.asarray(qd, np.float64)
-        return ArmObs(
-            M=self._M[np.ix_(dof, dof)],
-            h=(d.qfrc_bias - d.qfrc_passive)[dof],
-            J=J,
-            jdot_qdot=self._jacdot[_AX][:, dof] @ qd,
-            x_e=d.site_xpos[ids.hand_site][_AX],
-            xd_e=J @ qd,
-        )
+        out.M[...] = self._M[self._dof_dof]
+        np.subtract(d.qfrc_bias[self._dof], d.qfrc_passive[self._dof], out=out.h)
+        # the products on operands indexed as observe_c does (its J is column-major): BLAS sums
+        # in another order for another layout (or alignment) of an operand, 1 ulp apart
+        J = self._jac[_AX][:, self._dof]
+        out.J[...] = J
+        out.jdot_qdot[...] = self._jacdot[_AX][:, self._dof] @ qd
+        out.x_e[...] = d.site_xpos[self._hand]
+        out.xd_e[...] = J @ qd
+        return out
 
 
 STATE_FIELDS = {"t": (), "step": (), "episode": (), "t_wall": ()}
@@ -267,6 +281,7 @@ class MujocoPlant:
         self.camera_config = camera
         self._camera_proc = None
         self._jac_cube = np.zeros((3, self.m.nv))
+        self._arm_qpos, self._arm_dof = np.array(self.ids.arm_qpos), np.array(self.ids.arm_dof)
         self._arrival = float(self.conditions.arrival_phase)
         self.frames: FrameRing | None = None
         self.calibration: Images | None = None
@@ -448,8 +463,8 @@ class MujocoPlant:
         return PlantSample(
             index=self.j,
             t=float(d.time),
-            q=d.qpos[np.array(ids.arm_qpos)],
-            qd=d.qvel[np.array(ids.arm_dof)],
+            q=d.qpos[self._arm_qpos],
+            qd=d.qvel[self._arm_dof],
             f_int=self._f_contact.copy(),
             x_o=x_o,
             xd_o=xd_o,

@@ -99,6 +99,8 @@ def deadline_report(run, dt: float, fps: float | None, camera_log=None, eye_log=
         "write_us": percentiles((tt["t_write"] - tt["t_step"])[ticked], 1e6),
         "histogram": {"edges_us": HIST_EDGES_US.tolist(), "counts": hist.tolist()},
     }
+    if "cpu_step" in tt:
+        control["cpu"] = cpu_report(tt, ticked)
     p999 = control["latency_us"]["p99_9"]
     targets = {
         "p99_9_latency_within_period": bool(p999 is not None and p999 < dt * 1e6),
@@ -112,6 +114,27 @@ def deadline_report(run, dt: float, fps: float | None, camera_log=None, eye_log=
             age_max is not None and age_max <= 2e3 / fps
         )
     return report
+
+
+CPU_STAGES = ("cpu_read", "cpu_observe", "cpu_step", "cpu_write")
+
+
+def cpu_report(tt: dict, ticked: np.ndarray) -> dict:
+    """Per-stage CPU time of the control thread [us] (percentiles over the ticks), their sum per
+    tick, the CPU time of the process's other threads during the tick's work (mean), and the control
+    thread's context switches per tick (mean; voluntary: waits, involuntary: preemptions).
+    CPU time counts only the time the thread ran, so it does not grow with the time other
+    processes hold the CPU (it does grow with the cache misses they cause).
+    """
+    out = {k[4:] + "_us": percentiles(tt[k][ticked], 1e-3) for k in CPU_STAGES}
+    total = sum(tt[k][ticked] for k in CPU_STAGES)
+    out["tick_us"] = percentiles(total, 1e-3)
+    # a mean: the kernel brings other threads' CPU times up to date only at their switches
+    other = tt["cpu_other_threads"][ticked]
+    out["other_threads_mean_us"] = float(np.mean(other) * 1e-3) if other.size else None
+    for k in ("switches_voluntary", "switches_involuntary"):
+        out[f"{k}_per_tick"] = float(np.mean(tt[k][ticked])) if ticked.any() else None
+    return out
 
 
 def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dict:
@@ -225,6 +248,21 @@ def deadline_table(report: dict) -> list[str]:
             f"{us(c['wake_jitter_us']['p99_9'])} / {us(c['step_us']['p99_9'])}",
         ),
     ]
+    cpu = c.get("cpu")
+    if cpu:
+        stages = ("read", "observe", "step", "write", "tick")
+        rows += [
+            (
+                "control thread CPU p50 [us]: " + " / ".join(stages),
+                " / ".join(us(cpu[f"{k}_us"]["p50"]) for k in stages),
+            ),
+            (
+                "other threads' CPU mean [us] per tick; context switches per tick (vol., invol.)",
+                f"{us(cpu['other_threads_mean_us'])}; "
+                f"{cpu['switches_voluntary_per_tick']:.2f}, "
+                f"{cpu['switches_involuntary_per_tick']:.2f}",
+            ),
+        ]
     eye = report.get("eye")
     if eye:
 

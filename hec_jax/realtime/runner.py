@@ -16,6 +16,13 @@ Per tick j (plant time j dt, :class:`~hec_jax.realtime.clock.WallClock`):
 5. write the torques; the plant applies them to step j if they came before its deadline
    ((j + 1) dt), else holds the previous ones (:class:`~hec_jax.realtime.plant.MujocoPlant`).
 
+Each tick records its clock times and the control thread's CPU time per stage
+(:data:`TICK_TIMES`, :data:`TICK_CPU`). :func:`run_realtime` runs the loop with every thread of
+the control process (XLA's pool threads, which run parts of each jitted step, included) on one
+CPU and, at real-time priority, XLA's threads one priority below the loop
+(:class:`~hec_jax.realtime.clock.pinned`, :class:`~hec_jax.realtime.clock.realtime_priority`);
+``experiments/realtime.py`` also makes JAX's CPU dispatch inline (docs/realtime.md).
+
 Episodes (swings) are as in :mod:`hec_jax.loop.episodes`: the world restarts at the release,
 the controller state restarts, the learner's weights carry over. Un-timed mode
 (:class:`~hec_jax.realtime.clock.FreeClock`) runs the same code with no clock: every torque is on
@@ -29,6 +36,7 @@ import dataclasses
 import gc
 import math
 import os
+import resource
 import time
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
@@ -45,11 +53,44 @@ from hec_jax.loop.experiment import condition_metrics
 from hec_jax.loop.object_state import EyeInput
 from hec_jax.loop.policy import Loop, build_loop, switches
 from hec_jax.realtime import workers
-from hec_jax.realtime.clock import Clock, FreeClock, WallClock, monotonic_s, realtime_priority
+from hec_jax.realtime.clock import (
+    Clock,
+    FreeClock,
+    WallClock,
+    monotonic_s,
+    pin_process,
+    pinned,
+    realtime_priority,
+)
 from hec_jax.realtime.config import RealtimeConfig
-from hec_jax.realtime.plant import ArmModel, MujocoPlant, Plant, PlantSample, plant_model
+from hec_jax.realtime.plant import (
+    ArmModel,
+    ArmObs,
+    MujocoPlant,
+    Plant,
+    PlantSample,
+    plant_model,
+)
 from hec_jax.realtime.report import compare_metrics, deadline_report
 from hec_jax.realtime.shared import _CTX, Board, wait_for
+
+# Per-tick records of :func:`run_loop` (``LoopRun.ticks``): clock times [s] of the tick's phases,
+# and the control thread's CPU time [ns] per stage (load-insensitive: time the thread ran, not
+# time it waited), the CPU time of the process's other threads (XLA's pool running parts of the
+# jitted step) and the control thread's context switches during the tick's work.
+TICK_TIMES = ("t_wake", "t_obs", "t_step", "t_write", "t_stamp")
+TICK_CPU = (
+    "cpu_read",
+    "cpu_observe",
+    "cpu_step",
+    "cpu_write",
+    "cpu_other_threads",
+    "switches_voluntary",
+    "switches_involuntary",
+)
+_thread_ns, _process_ns = time.thread_time_ns, time.process_time_ns
+_rusage = resource.getrusage
+_THREAD = getattr(resource, "RUSAGE_THREAD", resource.RUSAGE_SELF)
 
 
 def float_dtype():
@@ -148,6 +189,35 @@ def fill_observation(vec: np.ndarray, sample: PlantSample, arm) -> None:
     vec[sl["t"]] = sample.t
 
 
+def fill_sample(vec: np.ndarray, sample: PlantSample) -> None:
+    """Writes the plant sample's part of the observation (joint state, force, object truth, time)
+    into ``vec`` in place; the arm's part comes from
+    :meth:`~hec_jax.realtime.plant.ArmModel.observe` into :func:`arm_views` of ``vec``.
+    """
+    sl = _OBS_SLICES
+    vec[sl["q"]] = sample.q
+    vec[sl["qd"]] = sample.qd
+    vec[sl["f_int"]] = sample.f_int[_XZ]
+    vec[sl["x_o"]] = 0.0 if sample.x_o is None else sample.x_o
+    vec[sl["xd_o"]] = 0.0 if sample.xd_o is None else sample.xd_o
+    vec[sl["t"]] = sample.t
+
+
+def arm_views(vec: np.ndarray) -> ArmObs:
+    """:class:`~hec_jax.realtime.plant.ArmObs` of views into the observation vector ``vec``
+    (``ArmModel.observe(q, qd, out=arm_views(vec))`` writes the arm's part in place).
+    """
+    sl = _OBS_SLICES
+    return ArmObs(
+        M=vec[sl["M"]].reshape(3, 3),
+        h=vec[sl["h"]],
+        J=vec[sl["J"]].reshape(2, 3),
+        jdot_qdot=vec[sl["jdot_qdot"]],
+        x_e=vec[sl["x_e"]],
+        xd_e=vec[sl["xd_e"]],
+    )
+
+
 def unpack_observation(vec: jax.Array) -> tuple[TaskObs, jax.Array]:
     """(TaskObs, t [s]) from an observation vector (jittable)."""
     parts = {name: vec[_OBS_SLICES[name]].reshape(shape) for name, shape in OBS_FIELDS}
@@ -160,7 +230,8 @@ class StepFns(NamedTuple):
 
     Attributes:
         step: ``(ps_vec, sw_vec, obs_vec) -> (ps_vec, out_vec)``; ``out_vec`` is the torques
-            [N m] (3,) followed by the policy's logged signals (``aux``).
+            [N m] (3,) followed by the policy's logged signals (``aux``). ``ps_vec`` is donated
+            (invalid after the call: use the returned one).
         init: ``(obs_vec, learner_state, switches) -> PolicyState`` at a release.
         ps: layout of the policy state without its switches.
         sw: layout of the :class:`~hec_jax.loop.policy.Switches`.
@@ -206,7 +277,11 @@ def make_step_fns(loop: Loop, learner_state, sw) -> StepFns:
         ps_vec = flat_ps.pack(ps._replace(switches=None), dtype)
         return ps_vec, jnp.concatenate([tau.astype(dtype), flat_aux.pack(aux, dtype)])
 
-    return StepFns(jax.jit(step), jax.jit(init), flat_ps, flat_sw, flat_aux, dtype)
+    # the policy state's buffer is donated: its successor is written into it (no allocation of
+    # the 26 kB state per tick; the caller keeps only the returned one)
+    return StepFns(
+        jax.jit(step, donate_argnums=0), jax.jit(init), flat_ps, flat_sw, flat_aux, dtype
+    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -259,7 +334,14 @@ class LoopRun:
             ``t_write`` [s] (clock times of the wake-up, the observation ready, the jitted step
             done, the torques taken by the plant; NaN where the step had no tick; after a
             catch-up the wake-up precedes j dt), ``kind`` (plant: 0 fresh, 1 late, 2 skipped),
-            ``t_stamp`` [s] (exposure of the eye's estimate in force, NaN: none).
+            ``t_stamp`` [s] (exposure of the eye's estimate in force, NaN: none); the control
+            thread's CPU time [ns] of each stage, ``cpu_read`` (plant read), ``cpu_observe``
+            (eye estimate, arm model, observation vector), ``cpu_step`` (the jitted call, its
+            argument and result conversions), ``cpu_write`` (plant write; the MuJoCo plant
+            integrates the physics step in it); ``cpu_other_threads`` [ns] the CPU time of the
+            process's other threads meanwhile (XLA's pool threads running parts of the step);
+            ``switches_voluntary`` / ``switches_involuntary``: the control thread's context
+            switches during the tick's work (waits for XLA's threads / preemptions).
         arrivals: per episode, one row per eye estimate taken: ``tick``, ``t_tick`` [s],
             ``t_stamp`` [s], ``frame``, ``number`` (in the episode; 0: the release frame,
             answered before the release), ``seen``, ``t_wall_exposure``, ``t_wall_done``,
@@ -331,6 +413,7 @@ def run_loop(
     n_tau = 3
     out = LoopRun()
     obs_np = np.zeros(OBS_SIZE)
+    arm_out = arm_views(obs_np)
     for e, n in enumerate(episode_steps):
         plant.begin_episode(n)
         clock.start(3600.0)  # held: tick 0 an hour away while the episode is prepared
@@ -342,9 +425,9 @@ def run_loop(
         sw_vec = jnp.asarray(fns.sw.pack_np(sw), fns.dtype)
         ps = fns.init(jnp.asarray(obs_np), ls, sw)
         ps_vec = jnp.asarray(fns.ps.pack_np(ps._replace(switches=None)), fns.dtype)
-        for _ in range(20):  # compiled and warm before the clock runs
-            np.asarray(fns.step(ps_vec, sw_vec, obs_np.copy())[1])
-        rec = {k: np.full(n, np.nan) for k in ("t_wake", "t_obs", "t_step", "t_write", "t_stamp")}
+        for _ in range(20):  # compiled and warm before the clock runs (on copies: donated)
+            np.asarray(fns.step(jnp.array(ps_vec), sw_vec, obs_np.copy())[1])
+        rec = {k: np.full(n, np.nan) for k in (*TICK_TIMES, *TICK_CPU)}
         rows = np.zeros((n, n_tau + fns.aux.size))
         ticked = np.zeros(n, bool)
         arrivals: list[tuple] = []
@@ -366,10 +449,12 @@ def run_loop(
             j = 0
             while j < n:
                 t_wake = clock.wait_until(j * dt)
+                c0, p0, u0 = _thread_ns(), _process_ns(), _rusage(_THREAD)
                 s = plant.read()
                 j = s.index
                 if j >= n:
                     break
+                c1 = _thread_ns()
                 if estimates is not None and estimates.seq != seq:
                     seq, est = estimates.read()
                     if int(est["episode"]) == e:
@@ -391,16 +476,25 @@ def run_loop(
                                 monotonic_s(),
                             )
                         )
-                fill_observation(obs_np, s, arm.observe(s.q, s.qd))
+                arm.observe(s.q, s.qd, arm_out)  # in place: the arm's part of obs_np
+                fill_sample(obs_np, s)
                 t_obs = clock.now()
+                c2 = _thread_ns()
                 ps_vec, row = fns.step(ps_vec, sw_vec, obs_np.copy())
                 row = np.asarray(row)
                 t_step = clock.now()
+                c3 = _thread_ns()
                 t_write = plant.write(row[:n_tau])
+                c4, p4, u4 = _thread_ns(), _process_ns(), _rusage(_THREAD)
                 rows[j] = row
                 ticked[j] = True
                 rec["t_wake"][j], rec["t_obs"][j] = t_wake, t_obs
                 rec["t_step"][j], rec["t_write"][j], rec["t_stamp"][j] = t_step, t_write, stamp
+                rec["cpu_read"][j], rec["cpu_observe"][j] = c1 - c0, c2 - c1
+                rec["cpu_step"][j], rec["cpu_write"][j] = c3 - c2, c4 - c3
+                rec["cpu_other_threads"][j] = (p4 - p0) - (c4 - c0)
+                rec["switches_voluntary"][j] = u4.ru_nvcsw - u0.ru_nvcsw
+                rec["switches_involuntary"][j] = u4.ru_nivcsw - u0.ru_nivcsw
                 j += 1
         finally:
             if gc_off:
@@ -606,10 +700,12 @@ def run_realtime(
 
     Raises:
         ValueError: un-timed mode with the camera (the camera loop in simulated time is
-            :func:`hec_jax.loop.run_camera`).
+            :func:`hec_jax.loop.run_camera`); ``eye="paper"`` (simulated time only).
     """
     rt = RealtimeConfig() if rt is None else rt
     exp = realtime_experiment(exp, rt)
+    if exp.eye == "paper":
+        raise ValueError("the real-time eye is the box tracker: eye='truth' or 'camera'")
     if exp.eye == "camera" and not rt.timed:
         raise ValueError("un-timed mode runs with eye='truth' (simulated camera: loop.run_camera)")
     task = exp.task
@@ -621,6 +717,7 @@ def run_realtime(
     eye = None
     load = {"before": os.getloadavg()}
     nice = rt.child_nice if rt.timed else 0
+    control_cpus = None
     with MujocoPlant(
         task, loop.q_home, cam, True, rt.camera_priority, nice, rt.camera_msaa
     ) as plant:
@@ -631,11 +728,10 @@ def run_realtime(
                     task, cam, plant.camera(), plant.dt, plant.q_release, rt.eye_priority, nice
                 )
                 eye.wait_ready(rt.startup_timeout_s)
-            if rt.pin_cpus and hasattr(os, "sched_setaffinity"):
-                _pin(plant, eye)
+            control_cpus = _pin_children(plant, eye) if rt.pin_cpus and rt.timed else None
             clock = WallClock(rt.spin_us * 1e-6) if rt.timed else FreeClock()
             load["start"] = os.getloadavg()
-            with realtime_priority(rt.rt_priority if rt.timed else 0):
+            with pinned(control_cpus), realtime_priority(rt.rt_priority if rt.timed else 0):
                 run = run_loop(
                     loop,
                     plant,
@@ -663,6 +759,12 @@ def run_realtime(
     fps = None if cam is None else 1.0 / (steps_per_frame(cam, plant.dt) * plant.dt)
     report = deadline_report(run, plant.dt, fps, camera_log, eye_log)
     report["timed"] = rt.timed
+    report["placement"] = {  # where the control process's threads ran
+        "control_cpus": None if control_cpus is None else sorted(control_cpus),
+        "rt_priority": rt.rt_priority if rt.timed else 0,
+        # JAX's CPU dispatch as configured (it takes effect when JAX creates its CPU client)
+        "jax_cpu_async_dispatch": bool(jax.config.values["jax_cpu_enable_async_dispatch"]),
+    }
     if not rt.timed:  # no clock: latencies are not wall times, no timing target applies
         report["targets"] = {}
     twins = simulated_twins(exp, loop, rt.condition, rt.twin, progress)
@@ -673,13 +775,16 @@ def run_realtime(
     )
 
 
-def _pin(plant: MujocoPlant, eye: EyeProcess | None) -> None:
-    """The control loop on CPU 0, the camera and eye on the other CPUs."""
-    cpus = sorted(os.sched_getaffinity(0))
+def _pin_children(plant: MujocoPlant, eye: EyeProcess | None) -> set[int] | None:
+    """The camera's and the eye's processes (all their threads) on every CPU but the first;
+    returns the first, for the control loop's process (:class:`~.clock.pinned`). None on a
+    single CPU.
+    """
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
     if len(cpus) < 2:
-        return
-    os.sched_setaffinity(0, {cpus[0]})
+        return None
     rest = set(cpus[1:])
     for proc in (plant._camera_proc, None if eye is None else eye.proc):
         if proc is not None:
-            os.sched_setaffinity(proc.pid, rest)
+            pin_process(proc.pid, rest)
+    return {cpus[0]}
