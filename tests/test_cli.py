@@ -53,6 +53,9 @@ BAD = {
         (["--seeds", "abc"], "--seeds: invalid literal"),
         (["--eye", "eyes"], "--eye: 'eyes' is not one of truth, camera, paper"),
         (["--eye", "paper", "--realtime"], "--realtime runs --eye truth or camera"),
+        (["--noise-grey", "-1"], "--noise-grey: must be finite and >= 0, got -1.0"),
+        (["--jitter-s", "0.02"], "--jitter-s: must be below half the frame period"),
+        (["--realtime", "--focal-error", "0.01"], "camera defects (--noise-grey, --blur-ren"),
         (["--no-such-flag"], "unrecognized arguments: --no-such-flag"),
         (["--out", USED], "exists and is not empty: choose another --out, or pass --overwrite"),
     ],
@@ -417,15 +420,31 @@ def test_progress_bar_on_a_log(capsys, monkeypatch):
 
 
 def test_signal_handlers_come_back_after_a_command():
-    """``command`` installs its SIGINT/SIGTERM handlers for the call only."""
+    """``command`` installs its SIGINT/SIGTERM handlers for the call only, and leaves a signal
+    ignored at start (SIG_IGN: SIGINT of a background job) ignored.
+    """
     from hec_jax.cli import command
 
-    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    outer = signal.getsignal(signal.SIGINT)  # SIG_IGN when the tests run as a background job
+    try:
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a foreground shell
+        before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
 
-    @command
-    def main():
-        assert signal.getsignal(signal.SIGINT) is not before[0]
-        return 7
+        @command
+        def main():
+            assert signal.getsignal(signal.SIGINT) is not before[0]
+            return 7
 
-    assert main() == 7
-    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+        assert main() == 7
+        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+        @command
+        def ignored():
+            return signal.getsignal(signal.SIGINT)
+
+        assert ignored() is signal.SIG_IGN
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, outer)
