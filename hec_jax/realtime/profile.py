@@ -8,26 +8,19 @@ import time
 
 import numpy as np
 
+from hec_jax.realtime.clock import FreeClock
+
 STAGES = ("cpu_read", "cpu_observe", "cpu_step", "cpu_write")
 
 
-class IdleClock:
+class IdleClock(FreeClock):
     """:class:`~hec_jax.realtime.clock.FreeClock`'s time (every torque on time) with a real
     wait of ``idle_s`` before each tick: sleep, then spin the last ``spin_s``.
     """
 
     def __init__(self, idle_s: float, spin_s: float):
-        self.origin, self._t = 0.0, 0.0
+        super().__init__()
         self.idle_s, self.spin_s = idle_s, min(spin_s, idle_s)
-
-    def start(self, lead_s: float = 0.0) -> float:
-        """Resets the time to 0; returns the origin (0)."""
-        self._t = 0.0
-        return self.origin
-
-    def now(self) -> float:
-        """[s] the tick last waited for."""
-        return self._t
 
     def wait_until(self, t: float) -> float:
         """Waits ``idle_s`` of wall time, then sets the time to ``t`` [s] and returns it."""
@@ -36,8 +29,7 @@ class IdleClock:
             time.sleep(self.idle_s - self.spin_s)
         while time.perf_counter() < end:
             pass
-        self._t = max(self._t, t)
-        return self._t
+        return super().wait_until(t)
 
 
 def stage_table(ticks: list[dict]) -> dict[str, dict[str, float]]:
