@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Literal
 
 from hec_jax.cli import command, parse
-from hec_jax.loop.config import PRESETS, ExperimentConfig
+from hec_jax.loop.config import PRESETS, REALTIME_DEFECTS, CameraDefects, ExperimentConfig
 from hec_jax.realtime.config import RealtimeConfig
 
 
@@ -36,6 +36,10 @@ class RealtimeRun:
     out: Path = Path("runs/realtime")  # run folder (written complete or not at all)
     overwrite: bool = False  # replace an existing non-empty --out
     float32: bool = False  # float32 (default float64, as the simulated runs)
+
+    def __post_init__(self):
+        if self.experiment.camera.defects != CameraDefects():
+            raise ValueError(REALTIME_DEFECTS)
 
 
 @command

@@ -21,6 +21,7 @@ from hec_jax.loop.camera_loop import run_camera, run_conditions_camera
 from hec_jax.loop.config import (
     PRESETS,
     CameraConfig,
+    CameraDefects,
     ExperimentConfig,
     TargetImpedance,
     TaskConfig,
@@ -65,6 +66,7 @@ __all__ = [
     "PRESETS",
     "TOUCH_DISTANCE",
     "CameraConfig",
+    "CameraDefects",
     "ExperimentConfig",
     "ExperimentResult",
     "EyeInput",

@@ -7,7 +7,10 @@ method :class:`~hec_jax.geometry.PaperEye`, ``eye="paper"``) and the hand with i
 
 * The camera takes a frame every 1/fps [s] (30 fps default), rounded to a whole number of 1 ms
   control steps (33 ms, i.e. 30.3 fps, for 30 fps; the eye is told the rounded rate). A frame
-  shows the state at the middle of its exposure (``exposure_s``; motion blur is not modelled).
+  shows the state at the middle of its exposure (``exposure_s``). The camera is perfect unless
+  ``cam.defects`` (:class:`~hec_jax.loop.config.CameraDefects`) says otherwise: motion blur
+  (renders averaged over the exposure), defocus, sensor noise (:func:`camera_frame`), intrinsics
+  known to the eye with an error (:func:`eye_intrinsics`) and jittered time stamps.
 * Each frame goes through the eye (box tracker: LSD segments, box fit, constant-acceleration
   Kalman filter; paper's eye: a face's parallel edges, Eqs. 1-38 on this and the previous frame,
   the same kind of filter); its estimate reaches the controller ``latency_s`` after the end of
@@ -36,12 +39,12 @@ import numpy as np
 
 from hec_jax.geometry import BoxTracker, PaperEye
 from hec_jax.geometry.paper_eye import STATUSES
-from hec_jax.loop.config import CameraConfig
+from hec_jax.loop.config import CameraConfig, CameraDefects
 from hec_jax.loop.episodes import _float_dtype, run_conditions
 from hec_jax.loop.object_state import EyeInput
 from hec_jax.loop.policy import Loop, PolicyState, Switches, switches
 from hec_jax.mjx_scene import CUBE_EDGE, PendulumConditions, load_mj_model, rollout
-from hec_jax.mjx_scene.render import SceneCamera, render_model_like
+from hec_jax.mjx_scene.render import SceneCamera, render_model_like, sensor
 from hec_jax.progress import ProgressBar
 
 _AX = np.array([0, 2])  # task axes (x, z) of the world frame
@@ -55,6 +58,64 @@ def steps_per_frame(cam: CameraConfig, dt: float) -> int:
 def frame_steps(cam: CameraConfig, dt: float, steps: int) -> np.ndarray:
     """Simulation steps at which the frames' exposures end (state at the start of that step)."""
     return np.arange(0, steps, steps_per_frame(cam, dt))
+
+
+def exposure_offsets(cam: CameraConfig, dt: float) -> np.ndarray:
+    """Steps before the end of a frame's exposure at which the frame is rendered, the one
+    nearest mid-exposure (the frame's time) last: one, at mid-exposure, with
+    ``defects.blur_renders`` = 1, else the midpoints of that many equal parts of the exposure on
+    the control grid (motion blur).
+    """
+    mid = int(round(0.5 * cam.exposure_s / dt))
+    n = cam.defects.blur_renders
+    if n == 1:
+        return np.array([mid])
+    back = np.array([int(round((k + 0.5) / n * cam.exposure_s / dt)) for k in range(n)])
+    return back[np.argsort(np.abs(back - mid), kind="stable")[::-1]]
+
+
+def camera_frame(
+    camera: SceneCamera, qpos: np.ndarray, defects: CameraDefects, rng: np.random.Generator
+) -> np.ndarray:
+    """One (H, W, 3) uint8 frame from the renders at joint positions ``qpos`` (n, nq) (the
+    exposure's, :func:`exposure_offsets`; more than one: their mean, rounded, as motion blur),
+    with ``defects``' defocus and sensor noise (:func:`~hec_jax.mjx_scene.render.sensor`).
+    ``camera.data`` is left at the last row's kinematics. Without defects: ``camera.render``'s
+    frame itself.
+    """
+    if len(qpos) == 1:
+        frame = camera.render(qpos[0])
+    else:
+        shots = [camera.render(q).astype(np.float32) for q in qpos]
+        frame = np.round(np.mean(shots, axis=0)).astype(np.uint8)
+    return sensor(frame, rng, defects.noise_grey, defects.defocus_px)
+
+
+def eye_intrinsics(k: np.ndarray, defects: CameraDefects) -> np.ndarray:
+    """The eye's (3, 3) K: the true ``k`` with fx, fy times (1 + ``focal_error``) and cx, cy
+    moved by ``centre_error_px`` (a calibration error; the renderer keeps ``k``).
+    """
+    out = np.array(k, dtype=float)
+    out[0, 0] *= 1.0 + defects.focal_error
+    out[1, 1] *= 1.0 + defects.focal_error
+    out[:2, 2] += defects.centre_error_px
+    return out
+
+
+def defects_rng(defects: CameraDefects, seed_index: int, swing: int | str) -> np.random.Generator:
+    """The generator of one seed's frames in one swing (``"final"``: the continuous run;
+    ``"background"``: the calibration shot of the empty scene): seeded by
+    ``defects.defect_seed``, the seed's index in the batch and the swing.
+    """
+    swing_id = {"final": 1_000_000, "background": 1_000_001}.get(swing, swing)
+    return np.random.default_rng([defects.defect_seed, seed_index, swing_id])
+
+
+def stamp_jitter(defects: CameraDefects, rng: np.random.Generator) -> float:
+    """One frame's time-stamp error [s]: uniform in [-jitter_s, jitter_s] (0 without a draw
+    when ``jitter_s`` is 0).
+    """
+    return float(rng.uniform(-defects.jitter_s, defects.jitter_s)) if defects.jitter_s > 0 else 0.0
 
 
 def frames_per_condition(loop: Loop, cam: CameraConfig | None = None) -> int:
@@ -154,9 +215,9 @@ def robot_geoms(m, hand_body: int) -> np.ndarray:
     return np.flatnonzero(m.body_rootid[m.geom_bodyid] == root)
 
 
-def robot_mask(shape, camera: SceneCamera, geoms, margin: float) -> np.ndarray:
+def robot_mask(shape, camera: SceneCamera, geoms, margin: float, intrinsics=None) -> np.ndarray:
     """(H, W) uint8, 255 on the robot's own image, from its forward kinematics (``camera.data``)
-    and the calibrated camera.
+    and the calibrated camera (``intrinsics``, the eye's K; None: ``camera.intrinsics``).
 
     Each sphere, capsule or cylinder of ``geoms`` is drawn at its pose: a disc, or a thick line
     between the axis end points with round ends, of the geom's radius + ``margin`` [m] at that
@@ -165,7 +226,7 @@ def robot_mask(shape, camera: SceneCamera, geoms, margin: float) -> np.ndarray:
     """
     mask = np.zeros(shape[:2], np.uint8)
     r_wc, t_wc = camera.world_from_camera
-    k = camera.intrinsics
+    k = camera.intrinsics if intrinsics is None else intrinsics
     m, d = camera.model, camera.data
 
     def px(p_world):
@@ -194,7 +255,12 @@ def robot_mask(shape, camera: SceneCamera, geoms, margin: float) -> np.ndarray:
 
 
 def mask_robot(
-    frame: np.ndarray, camera: SceneCamera, geoms, margin: float, inpaint_geoms=()
+    frame: np.ndarray,
+    camera: SceneCamera,
+    geoms,
+    margin: float,
+    inpaint_geoms=(),
+    intrinsics=None,
 ) -> np.ndarray:
     """``frame`` with the robot's own image (:func:`robot_mask`) painted black (the backdrop
     colour), except ``inpaint_geoms``, whose image is filled from its surroundings (OpenCV Telea,
@@ -204,13 +270,14 @@ def mask_robot(
     a notch into the cube's image (the cube's nearer front face covers part of the hand's disc),
     and a black notch adds strong false edges across the cube's side (measured, short catching
     run: the eye lost the held cube on up to 52% of a swing's frames; inpainted, on none). A
-    filled notch keeps the cube's colour inside and the backdrop's outside.
+    filled notch keeps the cube's colour inside and the backdrop's outside. ``intrinsics``: as
+    :func:`robot_mask`.
     """
     rest = [g for g in geoms if g not in set(inpaint_geoms)]
     out = frame.copy()
-    out[robot_mask(frame.shape, camera, rest, margin) > 0] = 0
+    out[robot_mask(frame.shape, camera, rest, margin, intrinsics) > 0] = 0
     if len(inpaint_geoms):
-        hand = robot_mask(frame.shape, camera, inpaint_geoms, margin)
+        hand = robot_mask(frame.shape, camera, inpaint_geoms, margin, intrinsics)
         ys, xs = np.nonzero(hand)
         if len(ys):
             h, w = hand.shape
@@ -278,7 +345,7 @@ def run_camera(
         conditions: scalar :class:`~hec_jax.mjx_scene.PendulumConditions`.
         keys: (n_seeds, 2) PRNG keys (network initialisations).
         condition: "plain", "frozen" or "learned".
-        cam: camera timing and resolution.
+        cam: camera timing, resolution and defects.
         video_swing: swing whose frames of seed 0 are kept with overlays ("final": the
             continuous run; None: none).
         progress: True: a progress bar over this condition's frames (:class:`~hec_jax.progress.
@@ -296,7 +363,7 @@ def run_camera(
         ``valid``, ``initialised``, ``x_est``/``x_true`` [m] (..., 2) task-plane centre at the
         frame's time, ``xd_est`` [m/s], ``status`` (the paper's eye: index into
         :data:`~hec_jax.geometry.paper_eye.STATUSES`, else -1), and per-frame ``eye_ms``,
-        ``render_ms`` plus
+        ``render_ms`` (defects included), ``stamp_error_s`` (the time stamp's jitter) plus
         ``sim_ms`` per segment and the wall time; ``video``: BGR frames with overlays.
     """
     cam = CameraConfig() if cam is None else cam
@@ -305,6 +372,7 @@ def run_camera(
     period = steps_per_frame(cam, dt)
     fps = 1.0 / (period * dt)  # the camera's rate on the control grid [1/s]
     e_off = int(round(0.5 * cam.exposure_s / dt))
+    backs = exposure_offsets(cam, dt)  # the renders of one frame, mid-exposure (e_off) last
     guard = cam.touch_guard_frames * period * dt  # [s]
     memory = guard + cam.latency_s + cam.max_coast_frames * period * dt  # [s]
     n_seeds = keys.shape[0]
@@ -319,13 +387,19 @@ def run_camera(
         m_render, "eye", cam.width, cam.height, cam.fast_render, ("cube", "rod")
     ) as bg:
         background = bg.render(q0)  # the static scene without the pendulum (a calibration shot)
+    # taken by the same camera: its defocus and one shot's noise
+    background = sensor(
+        background,
+        defects_rng(cam.defects, 0, "background"),
+        cam.defects.noise_grey,
+        cam.defects.defocus_px,
+    )
     camera = SceneCamera(m_render, "eye", cam.width, cam.height, cam.fast_render)
+    k_eye = eye_intrinsics(camera.intrinsics, cam.defects)  # what the eye believes
     r_wc, t_wc = camera.world_from_camera
     robot = robot_geoms(m_render, loop.ids.hand_body)
     hand = robot[m_render.geom_bodyid[robot] == loop.ids.hand_body]
-    trackers = [
-        make_eye(eye_source, camera.intrinsics, fps, cam, background) for _ in range(n_seeds)
-    ]
+    trackers = [make_eye(eye_source, k_eye, fps, cam, background) for _ in range(n_seeds)]
     own_bar = not isinstance(progress, ProgressBar)
     if own_bar:
         total = n_seeds * frames_per_condition(loop, cam)
@@ -349,6 +423,7 @@ def run_camera(
             "eye_ms": np.zeros((n_seeds, n_f)),
             "render_ms": np.zeros((n_seeds, n_f)),
             "sim_ms": np.zeros(n_f),
+            "stamp_error_s": np.zeros((n_seeds, n_f)),
             # the paper's eye: why a frame is (in)valid, index into geometry.paper_eye.STATUSES
             # (-1: the box tracker, which gives none)
             "status": np.full((n_seeds, n_f), -1, np.int8),
@@ -358,6 +433,7 @@ def run_camera(
         f_prev = jnp.zeros((n_seeds, 3), dtype)
         for tr in trackers:
             tr.reset()
+        rngs = [defects_rng(cam.defects, i, index) for i in range(n_seeds)]
         queues: list[list[_Estimate]] = [[] for _ in range(n_seeds)]
         misses = np.zeros(n_seeds, int)  # frames since the last valid fit
         qpos_hist = np.zeros((n_seeds, steps, m_c.nq))
@@ -368,11 +444,14 @@ def run_camera(
         for j, s in enumerate(fs):
             s_img = max(s - e_off, 0)  # mid-exposure
             for i in range(n_seeds):
-                qpos = d_qpos[i] if s_img == s else qpos_hist[i, s_img]
+                at = np.maximum(s - backs, 0)  # the exposure's steps
+                qpos = np.stack([d_qpos[i] if t == s else qpos_hist[i, t] for t in at])
                 t0 = time.perf_counter()
-                frame = camera.render(qpos)
-                x_true = camera.data.xpos[loop.ids.cube_body].copy()  # render ran kinematics
-                shown = frame  # the video shows the rendered frame
+                frame = camera_frame(camera, qpos, cam.defects, rngs[i])
+                if at[-1] != s_img:  # motion blur without a render at mid-exposure
+                    camera.pose(d_qpos[i] if s_img == s else qpos_hist[i, s_img])
+                x_true = camera.data.xpos[loop.ids.cube_body].copy()  # mid-exposure kinematics
+                shown = frame  # the video shows the camera's frame
                 if cam.self_mask_margin_m is not None:
                     frame = mask_robot(
                         frame,
@@ -380,6 +459,7 @@ def run_camera(
                         robot,
                         cam.self_mask_margin_m,
                         hand if cam.inpaint_hand else (),
+                        k_eye,
                     )
                 if corrupt is not None:
                     frame = corrupt(i, index, j, frame)
@@ -388,6 +468,8 @@ def run_camera(
                 rec["render_ms"][i, j] = 1e3 * (t1 - t0)
                 rec["eye_ms"][i, j] = 1e3 * (time.perf_counter() - t1)
                 rec["t_stamp"][i, j] = s_img * dt
+                jitter = stamp_jitter(cam.defects, rngs[i])
+                rec["stamp_error_s"][i, j] = jitter
                 rec["valid"][i, j] = bool(st.valid)
                 rec["initialised"][i, j] = bool(st.initialised)
                 if eye_source == "paper":
@@ -402,7 +484,7 @@ def run_camera(
                     queues[i].append(
                         _Estimate(
                             s * dt + cam.latency_s,
-                            s_img * dt,
+                            s_img * dt + jitter,
                             p[_AX],
                             v[_AX],
                             a[_AX],
@@ -411,11 +493,11 @@ def run_camera(
                     )
                 elif queues[i]:  # lost after having been seen
                     z = np.zeros(2)
-                    queues[i].append(_Estimate(s * dt + cam.latency_s, s_img * dt, z, z, z, False))
-                if i == 0 and keep_video:
-                    frames_out.append(
-                        _draw_overlay(shown, st, camera.intrinsics, r_wc.T, t_wc, x_true)
+                    queues[i].append(
+                        _Estimate(s * dt + cam.latency_s, s_img * dt + jitter, z, z, z, False)
                     )
+                if i == 0 and keep_video:
+                    frames_out.append(_draw_overlay(shown, st, k_eye, r_wc.T, t_wc, x_true))
             eyes = _stack_eye(
                 [_eye_input(q, s * dt, bounds[j + 1] * dt, guard, memory) for q in queues]
             )

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from hec_jax.cli import command, parse
-from hec_jax.loop.config import PRESETS, ExperimentConfig
+from hec_jax.loop.config import PRESETS, REALTIME_DEFECTS, CameraDefects, ExperimentConfig
 from hec_jax.loop.sweep import SweepConfig
 
 
@@ -29,6 +29,8 @@ class TaskRun:
             raise ValueError(
                 "--realtime runs --eye truth or camera (the paper's eye: simulated time)"
             )
+        if self.realtime and self.experiment.camera.defects != CameraDefects():
+            raise ValueError(REALTIME_DEFECTS)
 
 
 @command

@@ -17,6 +17,7 @@ from typing import Annotated, Literal
 
 import tyro
 
+from hec_jax.cli import require
 from hec_jax.control import ControllerConfig
 from hec_jax.geometry import PaperEyeConfig, TrackConfig
 from hec_jax.mjx_scene import X_HOME, PendulumConfig
@@ -120,13 +121,56 @@ class TaskConfig:
                 raise ValueError(f"TaskConfig.{name} must be an integer >= 1 or None, got {v}")
 
 
+# camera defects are modelled in the simulated-time loop only (hec_jax.loop.camera_loop)
+REALTIME_DEFECTS = (
+    "camera defects (--noise-grey, --blur-renders, ...) are simulated-time only, not --realtime"
+)
+
+
+@dataclass(frozen=True)
+class CameraDefects:
+    """What makes the loop's camera imperfect, applied at the NumPy boundary
+    (:mod:`hec_jax.loop.camera_loop`); every defect is off by default (the perfect rendered camera).
+
+    The renderer always uses the true camera; the eye (tracker, self-mask, overlay) uses the
+    perturbed intrinsics. Noise and jitter are drawn from a generator seeded by ``defect_seed``,
+    the seed's index in the batch and the swing: the same settings give the same frames.
+    """
+
+    noise_grey: float = 0.0  # sensor noise: Gaussian, standard deviation [grey levels of 255]
+    defocus_px: float = 0.0  # Gaussian blur sigma [px] (defocus; under 0.05 px: none)
+    # motion blur: renders averaged over the exposure (``exposure_s``, at the midpoints of equal
+    # sub-intervals on the 1 ms grid); 1: one render at mid-exposure (no blur)
+    blur_renders: int = 1
+    focal_error: float = 0.0  # the eye's fx, fy are the true ones times (1 + focal_error) [-]
+    centre_error_px: float = 0.0  # the eye's cx, cy are the true ones + this [px]
+    # the frame time stamps the controller gets are off by uniform(-jitter_s, jitter_s) [s]
+    # (the exposure itself stays on the frame grid)
+    jitter_s: float = 0.0
+    defect_seed: int = 0  # seed of the noise and the jitter
+
+    def __post_init__(self):
+        require(self, "non_negative", "noise_grey", "defocus_px", "jitter_s")
+        require(self, "count", "blur_renders")
+        require(self, "seed", "defect_seed")
+        if not (math.isfinite(self.focal_error) and abs(self.focal_error) < 0.5):
+            raise ValueError(
+                f"--focal-error: must be finite and in (-0.5, 0.5), got {self.focal_error!r}"
+            )
+        if not (math.isfinite(self.centre_error_px) and abs(self.centre_error_px) <= 100):
+            raise ValueError(
+                f"--centre-error-px: must be finite and within +-100 px, got {self.centre_error_px!r}"
+            )
+
+
 @dataclass(frozen=True)
 class CameraConfig:
     """Timing and resolution of the eye in the loop (``--eye camera`` and ``--eye paper``)."""
 
     fps: float = 30.0  # frame rate [1/s]; frames fall on whole control steps (33 ms at 30 fps)
     latency_s: float = 1.0 / 30.0  # end of exposure -> estimate at the controller [s]
-    exposure_s: float = 0.004  # the frame shows the state at mid-exposure [s] (no blur modelled)
+    # the frame shows the state at mid-exposure [s] (motion blur: ``defects.blur_renders``)
+    exposure_s: float = 0.004
     width: int = 640  # [px]
     height: int = 480  # [px]
     fast_render: bool = True  # no shadows/reflections (3x faster software rendering)
@@ -151,6 +195,8 @@ class CameraConfig:
     # The paper's eye (``--eye paper``): face edges, Eqs. 1-38 between consecutive frames, the
     # composed pose and its filter (``geometry.paper_eye``; defaults argued there).
     paper: Annotated[PaperEyeConfig, tyro.conf.Suppress] = field(default_factory=PaperEyeConfig)
+    # sensor noise, blur, intrinsics error, time-stamp jitter (all off by default)
+    defects: CameraDefects = field(default_factory=CameraDefects)
 
     def __post_init__(self):
         _positive(self, "fps", "width", "height")
@@ -159,6 +205,13 @@ class CameraConfig:
             raise ValueError(
                 f"max_coast_frames must be an integer >= 0, got {self.max_coast_frames}"
             )
+        if not self.defects.jitter_s < 0.5 / self.fps:
+            raise ValueError(
+                f"--jitter-s: must be below half the frame period ({0.5 / self.fps:.4g} s), "
+                f"got {self.defects.jitter_s!r}"
+            )
+        if self.defects.blur_renders > 1 and self.exposure_s <= 0:
+            raise ValueError("--blur-renders above 1 needs --exposure-s > 0")
 
 
 @dataclass(frozen=True)

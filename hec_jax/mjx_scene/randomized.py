@@ -22,7 +22,7 @@ import mujoco
 import numpy as np
 
 from hec_jax.mjx_scene.camera import camera_intrinsics, camera_pose_world
-from hec_jax.mjx_scene.render import RenderedSequence, body_in_camera, sampled_motion
+from hec_jax.mjx_scene.render import RenderedSequence, body_in_camera, sampled_motion, sensor
 
 HINGE_HEIGHT = 1.6  # [m] above the floor
 
@@ -316,12 +316,8 @@ def post_process(frame: np.ndarray, scene: RandomScene, rng: np.random.Generator
     """The camera's imperfections on one rendered (H, W, 3) uint8 frame: exposure gain, Gaussian
     blur (defocus) and Gaussian sensor noise, clipped and rounded to uint8.
     """
-    img = frame.astype(np.float32) * scene.gain
-    if scene.blur_px > 0.05:
-        img = cv2.GaussianBlur(img, (0, 0), scene.blur_px)
-    if scene.noise_sigma > 0:
-        img += rng.normal(0.0, scene.noise_sigma, img.shape).astype(np.float32)
-    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+    out = sensor(frame, rng, scene.noise_sigma, scene.blur_px, scene.gain)
+    return out.copy() if out is frame else out
 
 
 def render_random_sequence(

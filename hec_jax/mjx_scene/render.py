@@ -17,6 +17,7 @@ from __future__ import annotations
 import copy
 from typing import NamedTuple
 
+import cv2
 import mujoco
 import numpy as np
 
@@ -94,14 +95,18 @@ class SceneCamera:
             for flag in _SLOW_FLAGS:
                 self._renderer.scene.flags[getattr(mujoco.mjtRndFlag, flag)] = False
 
-    def render(self, qpos) -> np.ndarray:
-        """The frame (H, W, 3) uint8 at joint positions ``qpos`` (nq,)."""
+    def pose(self, qpos) -> None:
+        """Sets ``data`` to joint positions ``qpos`` (nq,) and runs the kinematics (no render)."""
         qpos = np.asarray(qpos, dtype=np.float64)
         if qpos.shape != (self.model.nq,):
             raise ValueError(f"qpos must have shape ({self.model.nq},), got {qpos.shape}")
         self.data.qpos[:] = qpos
         mujoco.mj_kinematics(self.model, self.data)
         mujoco.mj_camlight(self.model, self.data)
+
+    def render(self, qpos) -> np.ndarray:
+        """The frame (H, W, 3) uint8 at joint positions ``qpos`` (nq,)."""
+        self.pose(qpos)
         self._renderer.update_scene(self.data, camera=self.camera_id)
         return self._renderer.render()
 
@@ -123,6 +128,28 @@ class SceneCamera:
 
     def __exit__(self, *exc):
         self.close()
+
+
+def sensor(
+    frame: np.ndarray,
+    rng: np.random.Generator,
+    noise_sigma: float = 0.0,
+    blur_px: float = 0.0,
+    gain: float = 1.0,
+) -> np.ndarray:
+    """A camera's imperfections on one rendered (H, W, 3) uint8 frame: exposure gain [-],
+    Gaussian blur of sigma ``blur_px`` [px] (defocus; none under 0.05 px) and Gaussian sensor
+    noise of standard deviation ``noise_sigma`` [grey levels], clipped and rounded to uint8.
+    With none of them the frame itself is returned (no copy, no draw from ``rng``).
+    """
+    if gain == 1.0 and blur_px <= 0.05 and noise_sigma <= 0:
+        return frame
+    img = frame.astype(np.float32) * gain
+    if blur_px > 0.05:
+        img = cv2.GaussianBlur(img, (0, 0), blur_px)
+    if noise_sigma > 0:
+        img += rng.normal(0.0, noise_sigma, img.shape).astype(np.float32)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
 class RenderedSequence(NamedTuple):

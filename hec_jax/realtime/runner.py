@@ -47,7 +47,7 @@ import numpy as np
 
 from hec_jax.control import TaskObs
 from hec_jax.loop.camera_loop import run_camera, steps_per_frame
-from hec_jax.loop.config import CameraConfig, ExperimentConfig
+from hec_jax.loop.config import REALTIME_DEFECTS, CameraConfig, CameraDefects, ExperimentConfig
 from hec_jax.loop.episodes import make_episodes
 from hec_jax.loop.experiment import condition_metrics
 from hec_jax.loop.object_state import EyeInput
@@ -700,7 +700,8 @@ def run_realtime(
 
     Raises:
         ValueError: un-timed mode with the camera (the camera loop in simulated time is
-            :func:`hec_jax.loop.run_camera`); ``eye="paper"`` (simulated time only).
+            :func:`hec_jax.loop.run_camera`); ``eye="paper"`` or camera defects (simulated time
+            only).
     """
     rt = RealtimeConfig() if rt is None else rt
     exp = realtime_experiment(exp, rt)
@@ -708,6 +709,8 @@ def run_realtime(
         raise ValueError("the real-time eye is the box tracker: eye='truth' or 'camera'")
     if exp.eye == "camera" and not rt.timed:
         raise ValueError("un-timed mode runs with eye='truth' (simulated camera: loop.run_camera)")
+    if exp.camera.defects != CameraDefects():
+        raise ValueError(REALTIME_DEFECTS)
     task = exp.task
     loop = build_loop(task)
     key = jax.random.split(jax.random.PRNGKey(exp.seed), 1)[0]
