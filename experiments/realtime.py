@@ -2,7 +2,7 @@
 and the eye in their own processes, MuJoCo C physics stepping at 1 kHz behind a robot-driver
 interface (``hec_jax.realtime``), and the same run in simulated time beside it.
 
-    python experiments/realtime.py --preset catching --eye camera --width 320 --height 240 --duration-s 60 --rt-priority 50 --out runs/realtime-catching
+    python experiments/realtime.py --preset catching --eye camera --camera-msaa 0 --duration-s 60 --rt-priority 50 --out runs/realtime-catching
 
 Writes ``config.json``, ``deadline.json`` (tick latency p50/p99/p99.9/max and histogram, missed
 1 ms deadlines, the eye's exposure-to-state latency and age, dropped frames, load average),
@@ -22,7 +22,14 @@ from pathlib import Path
 from typing import Literal
 
 from hec_jax.cli import command, parse
-from hec_jax.loop.config import PRESETS, REALTIME_DEFECTS, CameraDefects, ExperimentConfig
+from hec_jax.loop.config import (
+    PRESETS,
+    REALTIME_DEFECTS,
+    REALTIME_SCENE,
+    CameraDefects,
+    ExperimentConfig,
+)
+from hec_jax.realtime.clock import realtime_refused
 from hec_jax.realtime.config import RealtimeConfig
 
 
@@ -40,6 +47,12 @@ class RealtimeRun:
     def __post_init__(self):
         if self.experiment.camera.defects != CameraDefects():
             raise ValueError(REALTIME_DEFECTS)
+        if self.experiment.camera.scene != "void":
+            raise ValueError(REALTIME_SCENE)
+        rt = self.realtime
+        refused = realtime_refused(max(rt.rt_priority, rt.camera_priority, rt.eye_priority))
+        if refused:
+            raise ValueError(refused)
 
 
 @command

@@ -235,3 +235,39 @@ def test_realtime_camera_run_reports_itself():
     )
     assert eye["estimates_taken"] >= 1
     assert eye["latency_ms"]["n"] == 0 or eye["latency_ms"]["p50"] > 0
+
+
+def test_realtime_refused_says_why_and_leaves_the_scheduling(monkeypatch):
+    import os
+
+    from hec_jax.realtime import clock
+
+    assert clock.realtime_refused(0) is None
+    before = (os.sched_getscheduler(0), os.sched_getparam(0))
+    allowed = clock.realtime_refused(10)  # None where permitted (root), else the reason
+    assert (os.sched_getscheduler(0), os.sched_getparam(0)) == before
+    assert allowed is None or "not permitted" in allowed
+
+    def deny(*args):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(clock.os, "sched_setscheduler", deny)
+    why = clock.realtime_refused(50)
+    assert "SCHED_FIFO 50" in why and "--rt-priority" in why
+
+
+def test_in_contact_follows_the_episode_logs():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from hec_jax.realtime.report import in_contact
+
+    f0 = np.zeros((4, 3))
+    f0[2] = [0.0, 0.0, 1.5]  # contact at sample 2 of episode 0
+    f1 = np.zeros((3, 3))
+    f1[0] = [-2.0, 0.0, 0.0]  # and at sample 0 of episode 1
+    run = SimpleNamespace(logs=[{"f_contact": f0}, {"f_contact": f1}])
+    tt = {"episode": np.array([0, 0, 0, 0, 1, 1, 1]), "index": np.array([0, 1, 2, 3, 0, 1, 2])}
+    np.testing.assert_array_equal(in_contact(run, tt), [0, 0, 1, 0, 1, 0, 0])
+    assert in_contact(SimpleNamespace(logs=[{"t": np.zeros(3)}]), tt) is None

@@ -138,6 +138,13 @@ class TrackConfig:
             fraction of the expected edge points on its inner edges (both adjacent faces visible)
             at least ``inner_edge_px`` long [-, px] (rejects a Necker-like twin of the outline);
             0: off.
+        local_starts, local_spread_deg: when the tracked fit fails while the filter runs, a
+            multi-start search around the predicted pose (``local_starts`` rotations: the
+            predicted one and random turns of up to ``local_spread_deg`` about it, each at the
+            predicted centre and at the last fitted one) before the search from scratch; the
+            search from scratch tries ``init_starts`` rotations on every moving blob (about
+            0.2 s on one core), this one 2 x ``local_starts`` on one window. 0: off (the search
+            from scratch only, as before). Its fit must pass the same gates and checks.
         min_region_fraction: the search from scratch skips moving blobs smaller than this fraction
             of the largest (cost; 0: none skipped). 0.25 in ``benchmarks/eye_randomized.py``; not
             in :data:`UNSEEN_SCENES`, because in the hand-eye loop the moving arm is the largest
@@ -178,6 +185,8 @@ class TrackConfig:
     foreground_threshold: int = 12
     min_foreground: float = 0.0
     min_iou_acquire: float = 0.0
+    local_starts: int = 0
+    local_spread_deg: float = 25.0
     min_inner_support: float = 0.0
     inner_edge_px: float = 10.0
     min_region_fraction: float = 0.0
@@ -463,6 +472,39 @@ def _inner_support(rotation, translation, size, edges_px, usable, ids, cfg: Trac
     return float(np.sum(np.minimum(found, expected)[inner]) / max(np.sum(expected[inner]), 1.0))
 
 
+def _make_local_search(cfg: TrackConfig):
+    n = max(cfg.local_starts - 1, 0)
+    rng = np.random.default_rng(cfg.seed + 1)
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.deg2rad(cfg.local_spread_deg) * rng.uniform(size=(n, 1)) ** (1.0 / 3.0)
+    turns = [np.eye(3)] + [cv2.Rodrigues(w.reshape(3, 1))[0] for w in axis * angle]
+    turns = jnp.asarray(np.stack(turns))
+
+    def local(rotation, centres, segments, mask, size, intrinsics):
+        """Multi-start search around a predicted pose: (K,) turns of ``rotation`` [R_cam_box] x
+        the (C, 3) ``centres`` [m]; gates as the search from scratch, from the box's image size
+        at the first centre's depth.
+        """
+        edge_px = intrinsics[0, 0] * size / centres[0, 2]
+        gates = jnp.concatenate(
+            [jnp.asarray(cfg.init_gates) * edge_px, jnp.asarray(cfg.gates_px)]
+        ).astype(segments.dtype)
+        k, c = turns.shape[0], centres.shape[0]
+        rots = jnp.tile((turns @ rotation).astype(segments.dtype), (c, 1, 1))
+        trans = jnp.repeat(centres.astype(segments.dtype), k, axis=0)
+
+        def one(r, t):
+            return locate(Pose(r, t), segments, mask, size, intrinsics, gates, cfg)
+
+        locs = jax.vmap(one)(rots, trans)
+        score = locs.association.coverage - 0.1 * locs.rms + 1.0 * locs.valid
+        best = jnp.argmax(score)
+        return jax.tree.map(lambda x: x[best], locs)
+
+    return jax.jit(local)
+
+
 def _make_search(cfg: TrackConfig):
     rots = jnp.asarray(random_rotation(np.random.default_rng(cfg.seed), (cfg.init_starts,)))
 
@@ -590,7 +632,13 @@ def _compiled(cfg: TrackConfig, fps: float):
     key = (cfg, float(fps))
     if key not in _CACHE:
         fcfg = kf.FilterConfig(dt=1.0 / fps, jerk_psd=cfg.jerk_psd)
-        _CACHE[key] = (_make_locate(cfg), _make_finish(cfg, fcfg), _make_search(cfg), fcfg)
+        _CACHE[key] = (
+            _make_locate(cfg),
+            _make_finish(cfg, fcfg),
+            _make_search(cfg),
+            fcfg,
+            _make_local_search(cfg),
+        )
     return _CACHE[key]
 
 
@@ -731,7 +779,7 @@ class BoxTracker:
         self.intrinsics = np.asarray(intrinsics, np.float64)
         self.background = background
         self._given_background = background is not None
-        self._locate, self._finish, self._search, self._fcfg = _compiled(config, fps)
+        self._locate, self._finish, self._search, self._fcfg, self._local = _compiled(config, fps)
         self._f, self._q = (np.asarray(x) for x in kf.transition(self._fcfg))
         self.reset()
 
@@ -775,6 +823,59 @@ class BoxTracker:
         cov = f @ np.asarray(self._state.cov) @ f.T + q
         rot = _rodrigues(self._angular_velocity() * dt) @ rot
         return BoxPrediction(np.bool_(True), mean[:3], mean[3:6], mean[6:], cov[:3, :3], rot)
+
+    def _predict_without_measurement(self) -> None:
+        """One frame on without a measurement: the state becomes its prediction, and the
+        prediction moves one frame further (constant acceleration, covariance + Q).
+        """
+        f, q = self._f, self._q
+        mean, cov = self._state.mean, self._state.cov
+        self._state = kf.FilterState(f @ mean, f @ cov @ f.T + q)
+        mean, cov = self._state.mean, self._state.cov
+        self._predicted = kf.FilterState(f @ mean, f @ cov @ f.T + q)
+
+    def warm_up(self, frame) -> None:
+        """Compile every path of :meth:`update` on ``frame`` (a frame showing the box): the
+        search from scratch, the tracked fit and, with ``config.local_starts``, the local
+        search; then :meth:`reset`. A real-time consumer calls it before its first frame (each
+        path compiles in seconds on first use).
+        """
+        for _ in range(3):
+            self.update(frame)
+        if self.config.local_starts > 0 and self._started and self._rot_prev is not None:
+            self._reacquire_locally(detect.to_gray(_check_frame(frame)), self._rot_prev, bool)
+        self.reset()
+
+    def skip(self, frames: int) -> None:
+        """Account for ``frames`` frame times whose images this tracker never saw (dropped by a
+        busy consumer under a latest-frame policy, or not exposed by the camera), before the next
+        :meth:`update`.
+
+        The filter predicts over each of them without a measurement (constant acceleration, its
+        covariance grows by Q per frame: the innovation gate of the next fit widens), the
+        rotation coasts at its last angular velocity, and the frame count moves on (the loss
+        gate's time since the last valid frame counts them; the rotation turns for at most
+        ``config.lost_after`` of them, then holds). They are not misses: a frame never
+        seen is no failed fit, so they do not bring the loss of the track closer. Without this
+        the next frame would be taken as 1 / fps after the last one seen, and its prediction
+        would lag by the frames in between. ``skip(0)`` changes nothing.
+
+        Raises:
+            ValueError: ``frames`` not an integer >= 0.
+        """
+        if isinstance(frames, bool) or not isinstance(frames, (int, np.integer)) or frames < 0:
+            raise ValueError(f"frames must be an integer >= 0, got {frames!r}")
+        for n in range(int(frames)):
+            if self._started:
+                self._predict_without_measurement()
+            rot_prev, rot_prev2 = self._rot_prev, self._rot_prev2
+            if rot_prev is not None and rot_prev2 is not None:
+                if n < self.config.lost_after:  # one frame's turn, exactly a rotation
+                    turn = _rodrigues(_log(rot_prev @ rot_prev2.T))
+                    self._rot_prev2, self._rot_prev = rot_prev, turn @ rot_prev
+                else:  # no angular velocity is known over a longer gap: stop turning
+                    self._rot_prev2 = None
+            self._frame += 1
 
     def _acquire(self, gray, gate):
         """Search from scratch: (prior (R, t), segments, mask) of the best valid candidate, or None.
@@ -828,6 +929,31 @@ class BoxTracker:
         if self._rot_anchor is not None:
             rot = snap_to_symmetry(rot, self._rot_anchor)
         return (rot, np.asarray(cand.pose.translation)), segp_c, mask_c
+
+    def _reacquire_locally(self, gray, rotation, gated) -> Finished | None:
+        """The local search (``config.local_starts``) around ``rotation`` [R_cam_box] at the
+        filter's predicted centre and the last fitted one; its refined fit if it passes
+        ``gated``, else None.
+        """
+        cfg, k = self.config, self.intrinsics
+        centres = [np.asarray(self._predicted.mean[:3], np.float64)]
+        centres.append(centres[0] if self._last_good is None else np.asarray(self._last_good[1]))
+        centres = np.stack(centres)
+        corners = np.concatenate([project_corners_np(rotation, c, self.size, k) for c in centres])
+        seg = self._moving_segments(gray, _window(corners, cfg.roi_margin))
+        segp, mask = detect.pad_segments(seg, cfg.max_segments)
+        if not mask.any():
+            return None
+        loc = jax.device_get(
+            self._local(np.asarray(rotation), centres, segp, mask, np.float64(self.size), k)
+        )
+        if not bool(loc.valid):
+            return None
+        rot = np.asarray(loc.pose.rotation)
+        if self._rot_anchor is not None:
+            rot = snap_to_symmetry(rot, self._rot_anchor)
+        fin = self._fit((rot, np.asarray(loc.pose.translation)), segp, mask, gray, False)
+        return fin if gated(fin) else None
 
     def _difference_pair(self, gray) -> tuple[np.ndarray, np.ndarray | None]:
         """(image, background) whose difference finds the moving things: the RGB frame and
@@ -967,7 +1093,8 @@ class BoxTracker:
         return fin
 
     def update(self, frame) -> TrackStep:
-        """Process the next camera frame ((H, W, 3) uint8 RGB, 1 / fps after the previous one).
+        """Process the next camera frame ((H, W, 3) uint8 RGB, 1 / fps after the previous one;
+        frame times in between that were never seen are told with :meth:`skip` first).
 
         Raises:
             ValueError: frame not (H, W, 3) uint8, or not the background's size.
@@ -1031,6 +1158,9 @@ class BoxTracker:
                 seg = detect.detect_segments(gray, _window(corners, cfg.roi_margin))
                 segp, mask = detect.pad_segments(seg, m)
                 fin = self._fit(prior, segp, mask, gray, False)
+        if not gated(fin) and tracking and self._started and cfg.local_starts > 0:
+            # the tracked fit failed while the filter runs: search around the prediction first
+            fin = self._reacquire_locally(gray, _rodrigues(omega) @ rot_prev, gated)
         if not gated(fin):
             # lost, or the tracked fit failed: search this frame from scratch (near the
             # prediction while the filter runs; anywhere, with a new filter, once lost)
@@ -1049,11 +1179,7 @@ class BoxTracker:
             self._state, self._predicted = fin.filter_state, fin.predicted
             self._started = True
         elif self._started:
-            f, q = self._f, self._q
-            mean, cov = self._state.mean, self._state.cov
-            self._state = kf.FilterState(f @ mean, f @ cov @ f.T + q)
-            mean, cov = self._state.mean, self._state.cov
-            self._predicted = kf.FilterState(f @ mean, f @ cov @ f.T + q)
+            self._predict_without_measurement()
         t2 = time.perf_counter()
         segs = np.full((m, 2, 2), np.nan)
         edge_ids = np.full(m, -1)

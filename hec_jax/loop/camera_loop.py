@@ -10,7 +10,10 @@ method :class:`~hec_jax.geometry.PaperEye`, ``eye="paper"``) and the hand with i
   shows the state at the middle of its exposure (``exposure_s``). The camera is perfect unless
   ``cam.defects`` (:class:`~hec_jax.loop.config.CameraDefects`) says otherwise: motion blur
   (renders averaged over the exposure), defocus, sensor noise (:func:`camera_frame`), intrinsics
-  known to the eye with an error (:func:`eye_intrinsics`) and jittered time stamps.
+  known to the eye with an error (:func:`eye_intrinsics`) and jittered time stamps. The camera
+  sees scene.xml in front of a black void, or (``cam.scene = "lab"``) a room with shadows from
+  an oblique pose (:func:`hec_jax.mjx_scene.lab.lab_model`, rendering only: the simulated model
+  is ``loop``'s either way, and the eye's K and pose are read from the model rendered).
 * Each frame goes through the eye (box tracker: LSD segments, box fit, constant-acceleration
   Kalman filter; paper's eye: a face's parallel edges, Eqs. 1-38 on this and the previous frame,
   the same kind of filter); its estimate reaches the controller ``latency_s`` after the end of
@@ -43,7 +46,8 @@ from hec_jax.loop.config import CameraConfig, CameraDefects
 from hec_jax.loop.episodes import _float_dtype, run_conditions
 from hec_jax.loop.object_state import EyeInput
 from hec_jax.loop.policy import Loop, PolicyState, Switches, switches
-from hec_jax.mjx_scene import CUBE_EDGE, PendulumConditions, load_mj_model, rollout
+from hec_jax.mjx_scene import CUBE_EDGE, PendulumConditions, rollout
+from hec_jax.mjx_scene.lab import scene_model
 from hec_jax.mjx_scene.render import SceneCamera, render_model_like, sensor
 from hec_jax.progress import ProgressBar
 
@@ -376,15 +380,16 @@ def run_camera(
     guard = cam.touch_guard_frames * period * dt  # [s]
     memory = guard + cam.latency_s + cam.max_coast_frames * period * dt  # [s]
     n_seeds = keys.shape[0]
-    m_c = load_mj_model()
+    m_c = scene_model(cam.scene)  # what the camera sees (the simulated model: ``loop``'s)
     m_render = render_model_like(m_c, loop.model_for(conditions))
+    shadows = cam.scene == "lab"  # the lab's lights cast shadows, also with fast_render
     dtype = _float_dtype()
     sw0 = switches(condition)
     start, segment = (make_start(loop), make_segment(loop)) if compiled is None else compiled
     ls = jax.vmap(lambda k: loop.learner_init(k, dtype))(keys)
     q0 = np.asarray(start(ls, sw0, conditions)[0].qpos[0])
     with SceneCamera(
-        m_render, "eye", cam.width, cam.height, cam.fast_render, ("cube", "rod")
+        m_render, "eye", cam.width, cam.height, cam.fast_render, ("cube", "rod"), shadows
     ) as bg:
         background = bg.render(q0)  # the static scene without the pendulum (a calibration shot)
     # taken by the same camera: its defocus and one shot's noise
@@ -394,7 +399,7 @@ def run_camera(
         cam.defects.noise_grey,
         cam.defects.defocus_px,
     )
-    camera = SceneCamera(m_render, "eye", cam.width, cam.height, cam.fast_render)
+    camera = SceneCamera(m_render, "eye", cam.width, cam.height, cam.fast_render, (), shadows)
     k_eye = eye_intrinsics(camera.intrinsics, cam.defects)  # what the eye believes
     r_wc, t_wc = camera.world_from_camera
     robot = robot_geoms(m_render, loop.ids.hand_body)

@@ -7,7 +7,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from hec_jax.cli import command, parse
-from hec_jax.loop.config import PRESETS, REALTIME_DEFECTS, CameraDefects, ExperimentConfig
+from hec_jax.loop.config import (
+    PRESETS,
+    REALTIME_DEFECTS,
+    REALTIME_SCENE,
+    CameraDefects,
+    ExperimentConfig,
+)
 from hec_jax.loop.sweep import SweepConfig
 
 
@@ -31,6 +37,8 @@ class TaskRun:
             )
         if self.realtime and self.experiment.camera.defects != CameraDefects():
             raise ValueError(REALTIME_DEFECTS)
+        if self.realtime and self.experiment.camera.scene != "void":
+            raise ValueError(REALTIME_SCENE)
 
 
 @command

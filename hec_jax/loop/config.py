@@ -125,6 +125,8 @@ class TaskConfig:
 REALTIME_DEFECTS = (
     "camera defects (--noise-grey, --blur-renders, ...) are simulated-time only, not --realtime"
 )
+# the same for a scene other than scene.xml's void: the real-time camera process renders scene.xml
+REALTIME_SCENE = "--scene lab is simulated-time only, not --realtime"
 
 
 @dataclass(frozen=True)
@@ -148,6 +150,37 @@ class CameraDefects:
     # (the exposure itself stays on the frame grid)
     jitter_s: float = 0.0
     defect_seed: int = 0  # seed of the noise and the jitter
+
+    @classmethod
+    def industrial(cls, defect_seed: int = 0) -> CameraDefects:
+        """A plausible calibrated machine-vision camera (``--camera-model industrial``): a 1/2.9"
+        global-shutter CMOS (e.g. Sony IMX273/IMX296 class, 3.45 um pixels) at 30 fps over USB3,
+        software-triggered, with a fixed C-mount lens, calibrated with a checkerboard.
+
+        * **Noise 2 grey levels**: at 8 bits and 0 dB gain one grey level is about 40 e-
+          (saturation about 10 ke-); temporal dark noise is about 2.5 e- and the shot noise of a
+          mid-grey pixel (5 ke-) 70 e-, i.e. about 1.8 grey levels: 2 with a little gain.
+        * **Motion blur over the 4 ms exposure** (``CameraConfig.exposure_s``, 3 renders): indoor
+          lab light at f/2.8 needs a few ms; the cube at up to about 1.5 m/s moves 6 mm (about
+          2 px at 1.7 m) during it.
+        * **Defocus 0.5 px**: a fixed-focus lens focused on the swing plane; the swing's depth
+          range and the lens's MTF give a blur spot of about one pixel (sigma 0.5 px).
+        * **Focal length 1% off, principal point 1.5 px off**: typical residual errors of a
+          checkerboard calibration of such a camera (fx, fy to 0.5-1%; cx, cy to 1-2 px).
+        * **Time-stamp jitter 1 ms**: a software-triggered USB3 camera stamped on the host: the
+          trigger and transfer latency varies by about +-1 ms.
+
+        Lens distortion and rolling shutter are not modelled (a global shutter has none).
+        """
+        return cls(
+            noise_grey=2.0,
+            defocus_px=0.5,
+            blur_renders=3,
+            focal_error=0.01,
+            centre_error_px=1.5,
+            jitter_s=0.001,
+            defect_seed=defect_seed,
+        )
 
     def __post_init__(self):
         require(self, "non_negative", "noise_grey", "defocus_px", "jitter_s")
@@ -173,7 +206,16 @@ class CameraConfig:
     exposure_s: float = 0.004
     width: int = 640  # [px]
     height: int = 480  # [px]
-    fast_render: bool = True  # no shadows/reflections (3x faster software rendering)
+    # no shadows/reflections (3x faster software rendering); the lab scene keeps its shadows
+    fast_render: bool = True
+    # what the camera sees: "void", scene.xml (black background, the camera along the swing
+    # plane's normal), or "lab", a room around it with shadows and an oblique camera
+    # (``hec_jax.mjx_scene.lab``; rendering only, the simulated model is the same)
+    scene: Literal["void", "lab"] = "void"
+    # "perfect": the defects are the flags below (all off by default); "industrial":
+    # ``CameraDefects.industrial()``'s values for every defect flag left at its default (a flag
+    # given with a non-default value keeps it; --defect-seed is kept)
+    camera_model: Literal["perfect", "industrial"] = "perfect"
     # Frames without a valid fit after which the filter's extrapolation is no longer used: the
     # object counts as unseen (F_o = 0, no learning) until the eye finds it again.
     max_coast_frames: int = 2
@@ -199,6 +241,14 @@ class CameraConfig:
     defects: CameraDefects = field(default_factory=CameraDefects)
 
     def __post_init__(self):
+        if self.scene not in ("void", "lab"):
+            raise ValueError(f"--scene: must be 'void' or 'lab', got {self.scene!r}")
+        if self.camera_model not in ("perfect", "industrial"):
+            raise ValueError(
+                f"--camera-model: must be 'perfect' or 'industrial', got {self.camera_model!r}"
+            )
+        if self.camera_model == "industrial":  # resolved here, so config.json has the values
+            object.__setattr__(self, "defects", _industrial_over(self.defects))
         _positive(self, "fps", "width", "height")
         _positive(self, "latency_s", "exposure_s", "touch_guard_frames", allow_zero=True)
         if not (isinstance(self.max_coast_frames, int) and self.max_coast_frames >= 0):
@@ -212,6 +262,20 @@ class CameraConfig:
             )
         if self.defects.blur_renders > 1 and self.exposure_s <= 0:
             raise ValueError("--blur-renders above 1 needs --exposure-s > 0")
+
+
+def _industrial_over(given: CameraDefects) -> CameraDefects:
+    """``CameraDefects.industrial()`` with every field of ``given`` that differs from its default."""
+    base = CameraDefects.industrial()
+    off = CameraDefects()
+    return dataclasses.replace(
+        base,
+        **{
+            f.name: getattr(given, f.name)
+            for f in dataclasses.fields(CameraDefects)
+            if getattr(given, f.name) != getattr(off, f.name)
+        },
+    )
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,9 @@ Modelling choices (see also ``scene.xml``):
 * Contact: only the hand sphere and the cube, through an explicit frictionless pair (condim 1,
   solref 0.005), so that the contact force passes through the hand centre and Eq. 39 with a 2-D
   force is exact. Every other geom has contype = conaffinity = 0.
-* Camera ``eye``: fixed, optical axis along world +y, fovy 45 deg, 640x480 intended.
+* Camera ``eye``: fixed, optical axis along world +y, fovy 45 deg, 640x480 intended, in front of
+  a black void. ``lab.lab_model`` puts a room around the set-up and moves the camera to an oblique
+  pose, for rendering only (issue 24, point 5).
 * Time step 1 ms, semi-implicit Euler with joint damping integrated explicitly (eulerdamp off).
 """
 
@@ -59,6 +61,7 @@ from hec_jax.mjx_scene.model import (
     solve_posture,
     validate_conditions,
 )
+from hec_jax.mjx_scene.lab import SCENES, lab_model, scene_model
 from hec_jax.mjx_scene.render import (
     RenderedSequence,
     SceneCamera,
@@ -92,6 +95,7 @@ __all__ = [
     "IMAGE_HEIGHT",
     "IMAGE_WIDTH",
     "SCENE_XML",
+    "SCENES",
     "TASK_AXES",
     "CQuantities",
     "PendulumConditions",
@@ -114,6 +118,7 @@ __all__ = [
     "site_jacobians",
     "site_position",
     "hand_contact_force_c",
+    "lab_model",
     "load_mj_model",
     "load_mjx_model",
     "make_data",
@@ -128,6 +133,7 @@ __all__ = [
     "render_swing",
     "rollout",
     "rollout_c",
+    "scene_model",
     "scene_ids",
     "set_solver_options",
     "validate_conditions",

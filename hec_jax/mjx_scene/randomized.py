@@ -22,6 +22,7 @@ import mujoco
 import numpy as np
 
 from hec_jax.mjx_scene.camera import camera_intrinsics, camera_pose_world
+from hec_jax.mjx_scene.lab import look_at_xyaxes, orbit_position
 from hec_jax.mjx_scene.render import RenderedSequence, body_in_camera, sampled_motion, sensor
 
 HINGE_HEIGHT = 1.6  # [m] above the floor
@@ -201,11 +202,7 @@ def _wood_png(seed: int, rgb, size: int = 256) -> bytes:
 
 
 def _look_at_xyaxes(pos: np.ndarray, target: np.ndarray) -> str:
-    fwd = (target - pos) / np.linalg.norm(target - pos)
-    right = np.cross(fwd, [0.0, 0.0, 1.0])
-    right /= np.linalg.norm(right)
-    up = np.cross(right, fwd)
-    return " ".join(f"{v:.9f}" for v in (*right, *up))
+    return " ".join(f"{v:.9f}" for v in look_at_xyaxes(pos, target))
 
 
 def swing_bottom(scene: RandomScene) -> np.ndarray:
@@ -215,9 +212,9 @@ def swing_bottom(scene: RandomScene) -> np.ndarray:
 
 def camera_position(scene: RandomScene) -> np.ndarray:
     """(3,) world position of the camera [m]."""
-    el, az = np.deg2rad(scene.elevation_deg), np.deg2rad(scene.azimuth_deg)
-    d = np.array([np.sin(az) * np.cos(el), -np.cos(az) * np.cos(el), np.sin(el)])
-    return swing_bottom(scene) + scene.distance_m * d
+    return orbit_position(
+        swing_bottom(scene), scene.elevation_deg, scene.azimuth_deg, scene.distance_m
+    )
 
 
 def scene_mjcf(scene: RandomScene, width: int, height: int) -> tuple[str, dict[str, bytes]]:

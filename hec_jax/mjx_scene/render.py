@@ -41,16 +41,24 @@ _SLOW_FLAGS = ("mjRND_SHADOW", "mjRND_REFLECTION", "mjRND_SKYBOX", "mjRND_FOG", 
 def render_model_like(m_c: mujoco.MjModel, mx) -> mujoco.MjModel:
     """A copy of the C model ``m_c`` with the kinematic geometry of the MJX model ``mx`` (unbatched).
 
+    ``m_c`` may have more bodies, geoms and sites than ``mx`` if they come after all of ``mx``'s
+    (a visual-only scene around the simulated one, :func:`hec_jax.mjx_scene.lab.lab_model`):
+    ``mx``'s rows are copied onto the first ones, the rest keep ``m_c``'s.
+
     Raises:
-        ValueError: ``mx`` is batched or does not match ``m_c``'s sizes.
+        ValueError: ``mx`` is batched, a field's rows do not match ``mx``'s own count, or ``m_c``
+            has fewer.
     """
     out = copy.copy(m_c)
     for name in _GEOMETRY_FIELDS:
         src = np.asarray(getattr(mx, name))
         dst = getattr(out, name)
-        if src.shape != dst.shape:
-            raise ValueError(f"{name}: MJX model has shape {src.shape}, C model {dst.shape}")
-        dst[...] = src
+        rows = int(getattr(mx, "n" + name.split("_")[0]))  # mx.nbody, mx.ngeom, mx.nsite
+        if src.shape[0] != rows or src.shape[1:] != dst.shape[1:] or rows > dst.shape[0]:
+            raise ValueError(
+                f"{name}: MJX model has shape {src.shape} ({rows} rows), C model {dst.shape}"
+            )
+        dst[:rows] = src
     return out
 
 
@@ -66,7 +74,10 @@ class SceneCamera:
         camera: camera name or id.
         width, height: [px].
         fast: drop shadows, reflections, skybox, fog and haze (3x faster in software rendering).
-        hidden_geoms: names of geoms drawn fully transparent (e.g. to render a background).
+        hidden_geoms: names of geoms drawn fully transparent (e.g. to render a background); they
+            cast no shadow either.
+        shadows: keep the shadows when ``fast`` (a scene whose lights are meant to cast them,
+            :func:`hec_jax.mjx_scene.lab.lab_model`).
     """
 
     def __init__(
@@ -77,6 +88,7 @@ class SceneCamera:
         height: int = IMAGE_HEIGHT,
         fast: bool = True,
         hidden_geoms: tuple[str, ...] = (),
+        shadows: bool = False,
     ):
         self.camera_id = camera_id(m_c, camera)
         self.model = copy.copy(m_c)
@@ -92,7 +104,7 @@ class SceneCamera:
         self.world_from_camera = camera_pose_world(self.model, self.data, self.camera_id)
         self._renderer = mujoco.Renderer(self.model, height, width)
         if fast:
-            for flag in _SLOW_FLAGS:
+            for flag in _SLOW_FLAGS[1:] if shadows else _SLOW_FLAGS:
                 self._renderer.scene.flags[getattr(mujoco.mjtRndFlag, flag)] = False
 
     def pose(self, qpos) -> None:

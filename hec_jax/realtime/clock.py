@@ -128,6 +128,26 @@ class realtime_priority:
             set_scheduling(os.SCHED_OTHER, 0)
 
 
+def realtime_refused(priority: int) -> str | None:
+    """Why ``SCHED_FIFO`` at ``priority`` is refused to this process, as one line (None: it is
+    allowed, or ``priority`` is 0). Tried on the calling thread and undone at once, so a run
+    can say so before it compiles anything.
+    """
+    if not priority:
+        return None
+    policy, param = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(int(priority)))
+    except PermissionError as err:
+        return (
+            f"real-time scheduling (SCHED_FIFO {priority}) is not permitted here ({err.strerror}):"
+            " it needs root or CAP_SYS_NICE and a real-time budget for this process's cgroup;"
+            " run without --rt-priority, --camera-priority and --eye-priority"
+        )
+    os.sched_setscheduler(0, policy, param)
+    return None
+
+
 def _threads() -> list[int]:
     """The thread ids of this process (Linux)."""
     return [int(tid) for tid in os.listdir("/proc/self/task")]

@@ -37,6 +37,17 @@ class RealtimeConfig:
     # the kernel's real-time budget (95% of each second), which then stalls all of them for the
     # rest of the second.
     eye_priority: int = 0
+    # the eye tells its tracker the frame times it never saw (frames dropped while it was busy,
+    # or not exposed) before the next frame (``BoxTracker.skip``), so that frame is predicted at
+    # its own time; False: every frame processed is taken as 1 / fps after the last (as before
+    # 2026-11-26, for the ablation). The simulated camera loop drops no frame: no difference there.
+    eye_skips_unseen: bool = True
+    # the eye's re-acquisition when a tracked fit fails: a search around the predicted pose with
+    # this many start rotations before the search from scratch (``TrackConfig.local_starts``);
+    # set in the camera's tracker for the real-time run and its simulated twin alike. On the
+    # 2-core CPU it turned most of the eye's 0.3-0.8 s searches into 64-101 ms recoveries
+    # (docs/realtime.md); 0: the search from scratch only, as the simulated task runs
+    eye_local_starts: int = 12
     # multisample anti-aliasing of the rendered camera (MuJoCo's offsamples); None: the scene's
     # (4, as the simulated camera loop). 0 makes software rendering about 3x cheaper (13 -> 4 ms
     # at 320x240) at the price of aliased edges: a real camera costs the computer nothing, the
@@ -80,6 +91,10 @@ class RealtimeConfig:
         ):
             raise ValueError(
                 f"camera_msaa must be None or an integer in 0..16, got {self.camera_msaa}"
+            )
+        if not (isinstance(self.eye_local_starts, int) and 0 <= self.eye_local_starts <= 256):
+            raise ValueError(
+                f"eye_local_starts must be an integer in 0..256, got {self.eye_local_starts!r}"
             )
         if self.condition not in ("plain", "frozen", "learned"):
             raise ValueError(f"condition must be plain, frozen or learned, got {self.condition!r}")

@@ -137,6 +137,21 @@ def cpu_report(tt: dict, ticked: np.ndarray) -> dict:
     return out
 
 
+def in_contact(run, tt: dict) -> np.ndarray | None:
+    """Per row of ``tt``: the hand touched the object during that physics step (a non-zero
+    contact force in the episode's log); None without the logs' ``f_contact``.
+    """
+    logs = getattr(run, "logs", None)
+    if not logs or any("f_contact" not in lg for lg in logs):
+        return None
+    flags = []  # tick_table's rows: episode by episode, samples 0 .. n - 1
+    for e, lg in enumerate(logs):
+        n = int(np.sum(tt["episode"] == e))
+        touched = np.any(np.asarray(lg["f_contact"]) != 0, axis=-1)[:n]
+        flags.append(np.pad(touched, (0, n - len(touched))))
+    return np.concatenate(flags).astype(bool)
+
+
 def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dict:
     """The eye's part of :func:`deadline_report`."""
     arr = {k: np.concatenate([a[k] for a in run.arrivals]) for k in run.arrivals[0]}
@@ -159,6 +174,14 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
         "age_ms": percentiles(tt["index"] * dt - tt["t_stamp"], 1e3),
         "ticks_with_estimate": int(np.isfinite(tt["t_stamp"]).sum()),
     }
+    # the same over the ticks whose physics step had no hand-object contact: in contact the
+    # controller takes the object's state from touch (object_state.touch_object_state), not
+    # the eye. Information beside the target, which counts every tick.
+    contact = in_contact(run, tt)
+    if contact is not None:
+        age = (tt["index"] * dt - tt["t_stamp"])[~contact]
+        out["age_out_of_contact_ms"] = percentiles(age, 1e3)
+        out["ticks_in_contact"] = int(contact.sum())
     if camera_log:
         late = camera_log["step"] - camera_log["step_due"]
         out["camera"] = {
@@ -276,6 +299,13 @@ def deadline_table(report: dict) -> list[str]:
                 ms(eye["age_ms"]),
             ),
         ]
+        if "age_out_of_contact_ms" in eye:
+            rows.append(
+                (
+                    "... out of contact (state from the eye, not touch) p50 / p99 / max [ms]",
+                    ms(eye["age_out_of_contact_ms"]),
+                )
+            )
         if "camera" in eye:
             cam = eye["camera"]
             rows += [

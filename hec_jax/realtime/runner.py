@@ -47,7 +47,13 @@ import numpy as np
 
 from hec_jax.control import TaskObs
 from hec_jax.loop.camera_loop import run_camera, steps_per_frame
-from hec_jax.loop.config import REALTIME_DEFECTS, CameraConfig, CameraDefects, ExperimentConfig
+from hec_jax.loop.config import (
+    REALTIME_DEFECTS,
+    REALTIME_SCENE,
+    CameraConfig,
+    CameraDefects,
+    ExperimentConfig,
+)
 from hec_jax.loop.episodes import make_episodes
 from hec_jax.loop.experiment import condition_metrics
 from hec_jax.loop.object_state import EyeInput
@@ -89,6 +95,8 @@ TICK_CPU = (
     "switches_involuntary",
 )
 _thread_ns, _process_ns = time.thread_time_ns, time.process_time_ns
+# [s] before tick 0 at which the dry ticks of an episode's lead stop (one takes about 0.3 ms)
+WARM_UNTIL_S = 1.5e-3
 _rusage = resource.getrusage
 _THREAD = getattr(resource, "RUSAGE_THREAD", resource.RUSAGE_SELF)
 
@@ -422,11 +430,17 @@ def run_loop(
         fill_observation(obs_np, s0, arm.observe(s0.q, s0.qd))
         if estimates is not None:
             sw = sw_base._replace(eye=eye_input(None, guard, memory))
-        sw_vec = jnp.asarray(fns.sw.pack_np(sw), fns.dtype)
+        # the switches stay a NumPy vector, made anew at each estimate's arrival: the jitted
+        # step takes it as it takes the observation (no extra cost per call), and an arrival
+        # costs no device array (measured: 40 us hot, 3x that cold, on every 33rd tick)
+        sw_np_dtype = np.dtype(fns.dtype)
+        sw_vec = fns.sw.pack_np(sw, sw_np_dtype)
         ps = fns.init(jnp.asarray(obs_np), ls, sw)
         ps_vec = jnp.asarray(fns.ps.pack_np(ps._replace(switches=None)), fns.dtype)
         for _ in range(20):  # compiled and warm before the clock runs (on copies: donated)
             np.asarray(fns.step(jnp.array(ps_vec), sw_vec, obs_np.copy())[1])
+        warm_obs = obs_np.copy()
+        warm_views = arm_views(warm_obs)
         rec = {k: np.full(n, np.nan) for k in (*TICK_TIMES, *TICK_CPU)}
         rows = np.zeros((n, n_tau + fns.aux.size))
         ticked = np.zeros(n, bool)
@@ -445,6 +459,13 @@ def run_loop(
             gc.collect()
             gc.disable()
         clock.start(lead_s)
+        # until shortly before tick 0, dry ticks (the arm model and the jitted step on copies of
+        # the release sample) keep the tick's code and data in the caches: after the episode's
+        # set-up and the lead's wait, the first tick took 2-10x the median (docs/realtime.md).
+        # The plant, the policy state and the learning are not touched; un-timed: none.
+        while clock.now() < -WARM_UNTIL_S:
+            arm.observe(s0.q, s0.qd, warm_views)
+            np.asarray(fns.step(jnp.array(ps_vec), sw_vec, warm_obs.copy())[1])
         try:
             j = 0
             while j < n:
@@ -458,9 +479,8 @@ def run_loop(
                 if estimates is not None and estimates.seq != seq:
                     seq, est = estimates.read()
                     if int(est["episode"]) == e:
-                        sw_vec = jnp.asarray(
-                            fns.sw.pack_np(sw_base._replace(eye=eye_input(est, guard, memory))),
-                            fns.dtype,
+                        sw_vec = fns.sw.pack_np(
+                            sw_base._replace(eye=eye_input(est, guard, memory)), sw_np_dtype
                         )
                         stamp = float(est["t_stamp"]) if est["seen"] > 0 else np.nan
                         arrivals.append(
@@ -555,10 +575,19 @@ class EyeProcess:
         q0: (nq,) qpos at the release (warm-up frame's arm posture).
         priority: SCHED_FIFO priority once ready (0: normal scheduling).
         nice: the eye process's nice value.
+        skip_unseen: the tracker predicts over frame times it never saw (``BoxTracker.skip``).
     """
 
     def __init__(
-        self, task, cam: CameraConfig, camera, dt: float, q0, priority: int = 0, nice: int = 0
+        self,
+        task,
+        cam: CameraConfig,
+        camera,
+        dt: float,
+        q0,
+        priority: int = 0,
+        nice: int = 0,
+        skip_unseen: bool = True,
     ):
         from hec_jax.realtime.plant import _child_env
 
@@ -576,6 +605,7 @@ class EyeProcess:
                     log_queue=self._log,
                     priority=priority,
                     nice=nice,
+                    skip_unseen=skip_unseen,
                 ),
                 daemon=True,
                 name="hec-eye",
@@ -650,12 +680,18 @@ class RealtimeResult:
 
 
 def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> ExperimentConfig:
-    """``exp`` as the real-time loop runs it: one seed; swings from ``rt.duration_s``."""
+    """``exp`` as the real-time loop runs it: one seed; swings from ``rt.duration_s``; the
+    camera's tracker with ``rt.eye_local_starts`` (the simulated twin runs the same).
+    """
     task = exp.task
     if rt.duration_s is not None:
         swings = max(int(math.ceil(rt.duration_s / task.swing_s - 1e-9)), 1)
         task = dataclasses.replace(task, swings=swings)
-    return dataclasses.replace(exp, task=task, seeds=1)
+    cam = exp.camera
+    cam = dataclasses.replace(
+        cam, track=dataclasses.replace(cam.track, local_starts=rt.eye_local_starts)
+    )
+    return dataclasses.replace(exp, task=task, seeds=1, camera=cam)
 
 
 def simulated_twins(exp: ExperimentConfig, loop: Loop, condition: str, which: str, progress=True):
@@ -701,7 +737,7 @@ def run_realtime(
     Raises:
         ValueError: un-timed mode with the camera (the camera loop in simulated time is
             :func:`hec_jax.loop.run_camera`); ``eye="paper"`` or camera defects (simulated time
-            only).
+            only); a scene other than ``"void"`` (simulated time only).
     """
     rt = RealtimeConfig() if rt is None else rt
     exp = realtime_experiment(exp, rt)
@@ -711,6 +747,8 @@ def run_realtime(
         raise ValueError("un-timed mode runs with eye='truth' (simulated camera: loop.run_camera)")
     if exp.camera.defects != CameraDefects():
         raise ValueError(REALTIME_DEFECTS)
+    if exp.camera.scene != "void":  # the camera process renders scene.xml
+        raise ValueError(REALTIME_SCENE)
     task = exp.task
     loop = build_loop(task)
     key = jax.random.split(jax.random.PRNGKey(exp.seed), 1)[0]
@@ -728,10 +766,18 @@ def run_realtime(
             if cam is not None:
                 plant.wait_camera(rt.startup_timeout_s)
                 eye = EyeProcess(
-                    task, cam, plant.camera(), plant.dt, plant.q_release, rt.eye_priority, nice
+                    task,
+                    cam,
+                    plant.camera(),
+                    plant.dt,
+                    plant.q_release,
+                    rt.eye_priority,
+                    nice,
+                    rt.eye_skips_unseen,
                 )
                 eye.wait_ready(rt.startup_timeout_s)
-            control_cpus = _pin_children(plant, eye) if rt.pin_cpus and rt.timed else None
+            children: dict = {}
+            control_cpus = _pin_children(plant, eye, children) if rt.pin_cpus and rt.timed else None
             clock = WallClock(rt.spin_us * 1e-6) if rt.timed else FreeClock()
             load["start"] = os.getloadavg()
             with pinned(control_cpus), realtime_priority(rt.rt_priority if rt.timed else 0):
@@ -764,6 +810,8 @@ def run_realtime(
     report["timed"] = rt.timed
     report["placement"] = {  # where the control process's threads ran
         "control_cpus": None if control_cpus is None else sorted(control_cpus),
+        **children,
+        "cpus": os.cpu_count(),
         "rt_priority": rt.rt_priority if rt.timed else 0,
         # JAX's CPU dispatch as configured (it takes effect when JAX creates its CPU client)
         "jax_cpu_async_dispatch": bool(jax.config.values["jax_cpu_enable_async_dispatch"]),
@@ -778,16 +826,24 @@ def run_realtime(
     )
 
 
-def _pin_children(plant: MujocoPlant, eye: EyeProcess | None) -> set[int] | None:
-    """The camera's and the eye's processes (all their threads) on every CPU but the first;
-    returns the first, for the control loop's process (:class:`~.clock.pinned`). None on a
-    single CPU.
+def _pin_children(plant: MujocoPlant, eye: EyeProcess | None, where: dict) -> set[int] | None:
+    """The camera's and the eye's processes (all their threads) on every CPU but the first (with
+    three or more: the camera on the second, the eye on the others); returns the first, for the
+    control loop's process (:class:`~.clock.pinned`). None on a single CPU. ``where`` receives
+    the CPUs of each child process (``camera_cpus``, ``eye_cpus``).
     """
     cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
     if len(cpus) < 2:
         return None
     rest = set(cpus[1:])
-    for proc in (plant._camera_proc, None if eye is None else eye.proc):
+    # with three CPUs or more the camera gets the second to itself and the eye the rest (the
+    # renderer's and the tracker's bursts then never wait for each other); else both share
+    camera_cpus, eye_cpus = ({cpus[1]}, set(cpus[2:])) if len(cpus) >= 3 else (rest, rest)
+    for name, proc, cpu_set in (
+        ("camera_cpus", plant._camera_proc, camera_cpus),
+        ("eye_cpus", eye and eye.proc, eye_cpus),
+    ):
         if proc is not None:
-            pin_process(proc.pid, rest)
+            pin_process(proc.pid, cpu_set)
+            where[name] = sorted(cpu_set)
     return {cpus[0]}

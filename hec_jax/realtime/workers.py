@@ -195,6 +195,7 @@ def eye_main(
     log_queue,
     priority=0,
     nice=0,
+    skip_unseen=True,
 ):
     """The eye process: the tracker compiled on the release frame, then the newest frames.
 
@@ -212,6 +213,8 @@ def eye_main(
         log_queue: receives the per-frame log (or ``{"error": ...}``).
         priority: SCHED_FIFO priority once the tracker is compiled (0: none).
         nice: the process's nice value (threads started later inherit it).
+        skip_unseen: tell the tracker the frame times it never saw before each frame
+            (``BoxTracker.skip``); False: each frame is taken as 1 / fps after the last seen.
     """
     rows: list[dict] = []
     try:
@@ -246,13 +249,11 @@ def eye_main(
         wait_for(lambda: camera.calibration.ready(1), 300.0, 0.01, "the calibration shots")
         tracker = BoxTracker(mcam.intrinsics, CUBE_EDGE, fps, cam.track, camera.background())
         warm = masked(camera.release_frame(), np.asarray(q0)[arm])
-        for _ in range(3):  # compile the search and the tracking paths
-            tracker.update(warm)
-        tracker.reset()
+        tracker.warm_up(warm)  # compile the search, tracking and re-acquisition paths
         if priority:
             set_scheduling(os.SCHED_FIFO, priority)
         ready.set()
-        last, episode, misses, published, dropped = -1, -1, 0, False, 0
+        last, episode, misses, published, dropped, number = -1, -1, 0, False, 0, -1
         while not stop.is_set():
             frame = camera.latest(last)
             if frame is None:
@@ -265,7 +266,15 @@ def eye_main(
             if frame.episode != episode:  # a new release: a new throw for the tracker
                 tracker.reset()
                 episode, misses, published = frame.episode, 0, False
+                # the tracker's frame 0 is the release frame (number 0), whatever came first
+                gap = frame.number
+            else:
+                gap = frame.number - number - 1
             number = frame.number
+            # frame times the eye never saw (dropped while it was busy, or not exposed): the
+            # tracker's filter predicts over them, so this frame is taken at its own time
+            if skip_unseen:
+                tracker.skip(max(gap, 0))
             st = tracker.update(masked(frame.image, frame.q_arm))
             misses = 0 if st.valid else misses + 1
             x = xd = xdd = np.full(2, np.nan)
@@ -299,6 +308,7 @@ def eye_main(
                     episode=episode,
                     number=number,
                     dropped_before=lost,
+                    frame_gap=gap,
                     t_exposure=frame.t_exposure,
                     t_wall_exposure=frame.t_wall_exposure,
                     t_wall_start=t0,
