@@ -59,6 +59,11 @@ BAD = {
         (["--no-such-flag"], "unrecognized arguments: --no-such-flag"),
         (["--out", USED], "exists and is not empty: choose another --out, or pass --overwrite"),
     ],
+    "experiments/realtime.py": [
+        (["--scene", "lab"], "--scene lab is simulated-time only, not --realtime"),
+        (["--eye-local-starts", "-1"], "eye_local_starts must be an integer in 0..256"),
+        (["--camera-model", "industrial"], "camera defects (--noise-grey, --blur-ren"),
+    ],
     "experiments/hitting.py": [
         (["--seeds", "0"], "seeds must be an integer >= 1"),
         (["--final-s", "-1"], "final_s must be finite and >= 0"),
