@@ -41,6 +41,7 @@ import mujoco
 import numpy as np
 
 from hec_jax.geometry import BoxTracker, PaperEye
+from hec_jax.geometry.box_model import project_corners_np
 from hec_jax.geometry.paper_eye import STATUSES
 from hec_jax.loop.config import CameraConfig, CameraDefects
 from hec_jax.loop.episodes import _float_dtype, run_conditions
@@ -265,6 +266,7 @@ def mask_robot(
     margin: float,
     inpaint_geoms=(),
     intrinsics=None,
+    keep=None,
 ) -> np.ndarray:
     """``frame`` with the robot's own image (:func:`robot_mask`) painted black (the backdrop
     colour), except ``inpaint_geoms``, whose image is filled from its surroundings (OpenCV Telea,
@@ -275,13 +277,19 @@ def mask_robot(
     and a black notch adds strong false edges across the cube's side (measured, short catching
     run: the eye lost the held cube on up to 52% of a swing's frames; inpainted, on none). A
     filled notch keeps the cube's colour inside and the backdrop's outside. ``intrinsics``: as
-    :func:`robot_mask`.
+    :func:`robot_mask`. ``keep``: optional (H, W) bool, pixels left as rendered (an object in
+    front of the robot there: :func:`front_object_mask`).
     """
     rest = [g for g in geoms if g not in set(inpaint_geoms)]
     out = frame.copy()
-    out[robot_mask(frame.shape, camera, rest, margin, intrinsics) > 0] = 0
+    arm = robot_mask(frame.shape, camera, rest, margin, intrinsics)
+    if keep is not None:
+        arm[keep] = 0
+    out[arm > 0] = 0
     if len(inpaint_geoms):
         hand = robot_mask(frame.shape, camera, inpaint_geoms, margin, intrinsics)
+        if keep is not None:
+            hand[keep] = 0
         ys, xs = np.nonzero(hand)
         if len(ys):
             h, w = hand.shape
@@ -291,6 +299,29 @@ def mask_robot(
                 out[y0:y1, x0:x1], hand[y0:y1, x0:x1], 3, cv2.INPAINT_TELEA
             )
     return out
+
+
+def front_object_mask(shape, prediction, camera: SceneCamera, hand_geoms, intrinsics, size):
+    """(H, W) bool: the box's predicted silhouette where the box is nearer the camera than the
+    hand (centre depths), else None (no prediction, or the hand in front).
+
+    The robot's mask (:func:`robot_mask`) ignores occlusion: drawn over a box held in front of
+    the hand, it inpaints part of the box's own image. The eye's prediction for this frame
+    (``prediction``: a :class:`~hec_jax.geometry.track.BoxPrediction` in the camera frame of
+    ``intrinsics``) says where the box is; there the mask is not applied. A depth test per
+    object, not per pixel: for a hand sphere touching a box, the nearer centre is the one in
+    front where their images overlap.
+    """
+    if prediction is None or not bool(prediction.initialised) or not len(hand_geoms):
+        return None
+    r_wc, t_wc = camera.world_from_camera
+    hand_depth = min(float((r_wc.T @ (camera.data.geom_xpos[g] - t_wc))[2]) for g in hand_geoms)
+    if float(prediction.position[2]) >= hand_depth:
+        return None
+    corners = project_corners_np(prediction.pose_rotation, prediction.position, size, intrinsics)
+    keep = np.zeros(shape[:2], np.uint8)
+    cv2.fillConvexPoly(keep, cv2.convexHull(np.round(corners).astype(np.int32)), 1)
+    return keep.astype(bool)
 
 
 def _draw_overlay(frame: np.ndarray, step, k: np.ndarray, r_cam_world, t_cam_world, x_true_world):
@@ -458,6 +489,10 @@ def run_camera(
                 x_true = camera.data.xpos[loop.ids.cube_body].copy()  # mid-exposure kinematics
                 shown = frame  # the video shows the camera's frame
                 if cam.self_mask_margin_m is not None:
+                    keep = None
+                    if cam.occlusion_aware_mask and isinstance(trackers[i], BoxTracker):
+                        ahead = trackers[i].predict(1.0 / fps)  # this frame, from the last
+                        keep = front_object_mask(frame.shape, ahead, camera, hand, k_eye, CUBE_EDGE)
                     frame = mask_robot(
                         frame,
                         camera,
@@ -465,6 +500,7 @@ def run_camera(
                         cam.self_mask_margin_m,
                         hand if cam.inpaint_hand else (),
                         k_eye,
+                        keep,
                     )
                 if corrupt is not None:
                     frame = corrupt(i, index, j, frame)

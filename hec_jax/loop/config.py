@@ -224,6 +224,11 @@ class CameraConfig:
     # next to a held cube is taken for a cube edge (measured: 10-16 mm jumps at rest).
     self_mask_margin_m: float | None = 0.005
     inpaint_hand: bool = True  # the hand's part of that mask is inpainted, not painted black
+    # The mask leaves the box tracker's predicted box silhouette alone where the box is nearer
+    # the camera than the hand (``camera_loop.front_object_mask``): the mask ignores occlusion
+    # and, from an oblique camera, inpaints part of a cube held in front of the hand. Off by
+    # default (the main job's setting; in the void scene the two are at the same depth)
+    occlusion_aware_mask: bool = False
     # After the hand last felt the object, estimates from frames exposed less than this many frame
     # periods later are not used (the eye's filter needs post-impact frames for the new velocity);
     # the object is extrapolated from the last touch (``object_state.TouchMemory``) until the

@@ -226,7 +226,7 @@ def eye_main(
             jax.config.update("jax_compilation_cache_dir", str(cache_dir))
             jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         from hec_jax.geometry import BoxTracker
-        from hec_jax.loop.camera_loop import mask_robot, robot_geoms
+        from hec_jax.loop.camera_loop import front_object_mask, mask_robot, robot_geoms
         from hec_jax.mjx_scene import CUBE_EDGE, scene_ids
         from hec_jax.realtime.clock import monotonic_s
         from hec_jax.realtime.plant import plant_model
@@ -240,11 +240,15 @@ def eye_main(
         hand = robot[m.geom_bodyid[robot] == ids.hand_body] if cam.inpaint_hand else ()
         r_wc, t_wc = mcam.world_from_camera
 
-        def masked(image, q_arm):
+        def masked(image, q_arm, tracker=None):
             if cam.self_mask_margin_m is None:
                 return image
             mcam.pose_arm(arm, q_arm)
-            return mask_robot(image, mcam, robot, cam.self_mask_margin_m, hand)
+            keep = None
+            if cam.occlusion_aware_mask and tracker is not None:  # as the simulated camera loop
+                ahead = tracker.predict(1.0 / fps)  # this frame (frames never seen: skipped)
+                keep = front_object_mask(image.shape, ahead, mcam, hand, mcam.intrinsics, CUBE_EDGE)
+            return mask_robot(image, mcam, robot, cam.self_mask_margin_m, hand, None, keep)
 
         wait_for(lambda: camera.calibration.ready(1), 300.0, 0.01, "the calibration shots")
         tracker = BoxTracker(mcam.intrinsics, CUBE_EDGE, fps, cam.track, camera.background())
@@ -275,7 +279,7 @@ def eye_main(
             # tracker's filter predicts over them, so this frame is taken at its own time
             if skip_unseen:
                 tracker.skip(max(gap, 0))
-            st = tracker.update(masked(frame.image, frame.q_arm))
+            st = tracker.update(masked(frame.image, frame.q_arm, tracker))
             misses = 0 if st.valid else misses + 1
             x = xd = xdd = np.full(2, np.nan)
             if st.initialised:
