@@ -487,9 +487,7 @@ def _make_local_search(cfg: TrackConfig):
         at the first centre's depth.
         """
         edge_px = intrinsics[0, 0] * size / centres[0, 2]
-        gates = jnp.concatenate(
-            [jnp.asarray(cfg.init_gates) * edge_px, jnp.asarray(cfg.gates_px)]
-        ).astype(segments.dtype)
+        gates = _search_gates(cfg, edge_px, segments.dtype)
         k, c = turns.shape[0], centres.shape[0]
         rots = jnp.tile((turns @ rotation).astype(segments.dtype), (c, 1, 1))
         trans = jnp.repeat(centres.astype(segments.dtype), k, axis=0)
@@ -497,12 +495,25 @@ def _make_local_search(cfg: TrackConfig):
         def one(r, t):
             return locate(Pose(r, t), segments, mask, size, intrinsics, gates, cfg)
 
-        locs = jax.vmap(one)(rots, trans)
-        score = locs.association.coverage - 0.1 * locs.rms + 1.0 * locs.valid
-        best = jnp.argmax(score)
-        return jax.tree.map(lambda x: x[best], locs)
+        return _best_start(jax.vmap(one)(rots, trans))
 
     return jax.jit(local)
+
+
+def _search_gates(cfg: TrackConfig, edge_px, dtype):
+    """Association gates of a multi-start search [px]: ``init_gates`` in box image sizes
+    (``edge_px``), then ``gates_px``.
+    """
+    return jnp.concatenate(
+        [jnp.asarray(cfg.init_gates) * edge_px, jnp.asarray(cfg.gates_px)]
+    ).astype(dtype)
+
+
+def _best_start(locs):
+    """The start of a vmapped ``locate`` with the best coverage - 0.1 rms (+1 if valid)."""
+    score = locs.association.coverage - 0.1 * locs.rms + 1.0 * locs.valid
+    best = jnp.argmax(score)
+    return jax.tree.map(lambda x: x[best], locs)
 
 
 def _make_search(cfg: TrackConfig):
@@ -514,17 +525,12 @@ def _make_search(cfg: TrackConfig):
         depth = f * size / edge_px
         ray = jnp.linalg.solve(intrinsics, jnp.concatenate([centre_px, jnp.ones(1)]))
         t0 = ray * depth
-        gates = jnp.concatenate(
-            [jnp.asarray(cfg.init_gates) * edge_px, jnp.asarray(cfg.gates_px)]
-        ).astype(segments.dtype)
+        gates = _search_gates(cfg, edge_px, segments.dtype)
 
         def one(r):
             return locate(Pose(r, t0), segments, mask, size, intrinsics, gates, cfg)
 
-        locs = jax.vmap(one)(rots)
-        score = locs.association.coverage - 0.1 * locs.rms + 1.0 * locs.valid
-        best = jnp.argmax(score)
-        return jax.tree.map(lambda x: x[best], locs)
+        return _best_start(jax.vmap(one)(rots))
 
     return jax.jit(search)
 
