@@ -9,7 +9,9 @@ Conditions: ``plain`` (F_o = 0), ``frozen`` (the initial networks, no learning) 
 field of it is a flag (``--help``). Writes ``config.json``, ``metrics.json``,
 ``trajectory_<condition>.npz``, ``fig6_catching.png``, ``virtual_impedance.png``,
 ``peak_force_per_swing.png`` and, with ``--eye camera`` (the box tracker) or ``--eye paper``
-(the paper's two-frame method, Eqs. 1-38), ``hand_eye.mp4``.
+(the paper's two-frame method, Eqs. 1-38), ``hand_eye.mp4``. The camera sees the lab scene
+through a simulated industrial camera by default; ``--scene void --camera-model perfect`` is
+the black void seen by a perfect camera (the default before 2026-11-26).
 """
 
 from __future__ import annotations

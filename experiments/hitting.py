@@ -11,7 +11,8 @@ the series' first, each under 50 ms). The set-up and every default are the ``hit
 (``hec_jax.loop.config.hitting``: the hitting pad, mu); every field is a flag (``--help``).
 Writes ``config.json``, ``metrics.json``, ``trajectory_<condition>.npz`` (the continuous run),
 ``fig7_hitting.png``, ``gain_beta.png`` and, with ``--eye camera`` or ``--eye paper``,
-``hand_eye.mp4``.
+``hand_eye.mp4``. The camera sees the lab scene through a simulated industrial camera by
+default; ``--scene void --camera-model perfect`` is the earlier black void and perfect camera.
 """
 
 from __future__ import annotations

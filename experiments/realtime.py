@@ -26,6 +26,7 @@ from hec_jax.loop.config import (
     PRESETS,
     REALTIME_DEFECTS,
     REALTIME_SCENE,
+    CameraConfig,
     CameraDefects,
     ExperimentConfig,
 )
@@ -45,7 +46,7 @@ class RealtimeRun:
     float32: bool = False  # float32 (default float64, as the simulated runs)
 
     def __post_init__(self):
-        if self.experiment.camera.defects != CameraDefects():
+        if self.experiment.camera.applied_defects != CameraDefects():
             raise ValueError(REALTIME_DEFECTS)
         if self.experiment.camera.scene != "void":
             raise ValueError(REALTIME_SCENE)
@@ -63,9 +64,9 @@ def main(argv=None) -> dict:
     pre = argparse.ArgumentParser(add_help=False)
     pre.add_argument("--preset", choices=sorted(PRESETS), default="catching")
     preset = pre.parse_known_args(argv)[0].preset
-    default = RealtimeRun(
-        preset=preset, experiment=PRESETS[preset](), out=Path(f"runs/realtime-{preset}")
-    )
+    # the camera process renders scene.xml without defects (``CameraConfig.void_perfect``)
+    experiment = PRESETS[preset](camera=CameraConfig.void_perfect())
+    default = RealtimeRun(preset=preset, experiment=experiment, out=Path(f"runs/realtime-{preset}"))
     run = parse(default, argv, __doc__)
     if run.preset != preset:
         raise SystemExit("--preset must be given once")
@@ -83,7 +84,9 @@ def main(argv=None) -> dict:
     enable_compile_cache()
     settings = dict(
         preset=run.preset,
-        experiment=dataclasses.asdict(run.experiment),
+        experiment=dataclasses.asdict(
+            dataclasses.replace(run.experiment, camera=run.experiment.camera.resolved())
+        ),
         realtime=dataclasses.asdict(run.realtime),
         out=str(run.out),
         float32=run.float32,

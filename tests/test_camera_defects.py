@@ -26,11 +26,12 @@ def camera():
         yield cam, m.qpos0.copy()
 
 
-def test_defects_are_off_by_default():
-    assert tl.CameraConfig().defects == tl.CameraDefects()
-    assert tl.catching().camera.defects == tl.CameraDefects()
+def test_the_perfect_camera_has_no_defects():
+    # the loop's default is the industrial camera (tests/test_mjx_scene_lab.py); "perfect" is off
+    assert tl.CameraDefects() == tl.CameraConfig(camera_model="perfect").applied_defects
+    assert tl.CameraConfig.void_perfect().applied_defects == tl.CameraDefects()
     # one render at mid-exposure, as the loop took it before defects existed
-    np.testing.assert_array_equal(he.exposure_offsets(tl.CameraConfig(), 1e-3), [2])
+    np.testing.assert_array_equal(he.exposure_offsets(tl.CameraConfig.void_perfect(), 1e-3), [2])
 
 
 def test_defects_off_give_the_rendered_frame_bit_for_bit(camera):
@@ -160,10 +161,11 @@ def test_jitter_stays_within_its_bound_and_is_seeded():
 def test_defect_flags_reach_the_config():
     run = parse(
         TaskRun(experiment=tl.catching()),
-        ["--eye", "camera", "--noise-grey", "2", "--focal-error", "-0.01", "--jitter-s", "0.002"],
+        ["--camera-model", "perfect", "--noise-grey", "2", "--focal-error", "-0.01"]
+        + ["--jitter-s", "0.002"],
     )
     want = tl.CameraDefects(noise_grey=2.0, focal_error=-0.01, jitter_s=0.002)
-    assert run.experiment.camera.defects == want
+    assert run.experiment.camera.applied_defects == want
 
 
 @pytest.mark.parametrize(

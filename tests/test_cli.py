@@ -56,6 +56,8 @@ BAD = {
         (["--noise-grey", "-1"], "--noise-grey: must be finite and >= 0, got -1.0"),
         (["--jitter-s", "0.02"], "--jitter-s: must be below half the frame period"),
         (["--realtime", "--focal-error", "0.01"], "camera defects (--noise-grey, --blur-ren"),
+        (["--realtime", "--camera-model", "industrial"], "camera defects (--noise-grey, --blur"),
+        (["--realtime", "--scene", "lab"], "--scene lab is simulated-time only, not --realtime"),
         (["--no-such-flag"], "unrecognized arguments: --no-such-flag"),
         (["--out", USED], "exists and is not empty: choose another --out, or pass --overwrite"),
     ],

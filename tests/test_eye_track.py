@@ -10,7 +10,7 @@ import pytest
 from hec_jax.geometry import TrackConfig, rotation_error_deg
 from hec_jax.geometry.smooth import SmootherConfig
 from hec_jax.geometry.track import UNSEEN_SCENES, track_box
-from hec_jax.loop.config import CameraConfig
+from hec_jax.loop.config import LAB_CHECKS, CameraConfig, scene_tracker
 from hec_jax.mjx_scene.render import render_swing
 
 FPS = 30.0
@@ -161,7 +161,7 @@ def _case(ref, case: str):
     background; every default (median background); a background with the cube in it."""
     frames = ref["frames"]
     return {
-        "loop": (frames, ref["background"], CameraConfig().track),
+        "loop": (frames, ref["background"], scene_tracker("void")),
         "plain": (frames, None, TrackConfig()),
         "ghost": (frames[:12], frames[3], TrackConfig()),
     }[case]
@@ -186,8 +186,16 @@ def _differences(tr, ref, case: str) -> list[str]:
 
 
 def test_the_new_checks_are_off_by_default():
-    for cfg in (TrackConfig(), CameraConfig().track):
+    for cfg in (TrackConfig(), scene_tracker("void"), CameraConfig.void_perfect().tracker):
         assert {name: getattr(cfg, name) for name in OFF} == OFF
+    # the lab scene (the loop's default) turns on the checks of UNSEEN_SCENES but the region
+    # fraction (in the loop the arm is the largest blob); the loop's impact settings stay
+    lab = CameraConfig().tracker
+    assert lab == dataclasses.replace(
+        scene_tracker("void"), **{k: getattr(UNSEEN_SCENES, k) for k in LAB_CHECKS}
+    )
+    assert lab.min_region_fraction == 0 and lab.maneuver_nis == 16.3 and lab.stop_hypothesis
+    assert CameraConfig(track=TrackConfig()).tracker == TrackConfig()  # a given tracker is kept
     assert SmootherConfig().max_gap_s is None
     on = {name: getattr(UNSEEN_SCENES, name) for name in OFF}
     assert on == OFF | {

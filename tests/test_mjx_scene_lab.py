@@ -10,7 +10,7 @@ import pytest
 
 from hec_jax import loop as tl
 from hec_jax.cli import parse
-from hec_jax.loop.cli import TaskRun
+from hec_jax.loop.cli import TaskRun, task_default
 from hec_jax.mjx_scene import CUBE_EDGE, load_mj_model
 from hec_jax.mjx_scene.camera import project
 from hec_jax.mjx_scene.lab import lab_model, scene_model
@@ -144,7 +144,13 @@ def test_lab_camera_sees_three_faces_of_the_cube(models, hinge_x, angle):
 
 
 def test_scene_model_and_config():
-    assert tl.CameraConfig().scene == "void" and tl.catching().camera.scene == "void"
+    # the lab is the loop's default scene (issue 24, point 5); real time keeps the void
+    assert tl.CameraConfig().scene == "lab" and tl.catching().camera.scene == "lab"
+    assert tl.CameraConfig.void_perfect().scene == "void"
+    assert (
+        parse(TaskRun(experiment=tl.catching()), ["--scene", "void"]).experiment.camera.scene
+        == "void"
+    )
     assert scene_model("void").ngeom == load_mj_model().ngeom
     with pytest.raises(ValueError, match="scene"):
         scene_model("moon")
@@ -152,25 +158,37 @@ def test_scene_model_and_config():
     assert run.experiment.camera.scene == "lab"
     with pytest.raises(SystemExit):
         parse(TaskRun(experiment=tl.catching()), ["--scene", "lab", "--realtime"])
+    # with --realtime the task scripts' default camera is the real-time one
+    argv = ["--realtime", "--eye", "camera"]
+    run = parse(task_default("catching", argv), argv)
+    assert run.experiment.camera == tl.CameraConfig.void_perfect()
+    assert task_default("hitting", []).experiment.camera == tl.CameraConfig()
 
 
-def test_industrial_preset_is_one_flag_and_off_by_default():
-    assert tl.CameraConfig().camera_model == "perfect"
-    assert tl.CameraConfig().defects == tl.CameraDefects()
+def test_industrial_camera_is_the_default_and_perfect_one_flag():
     ind = tl.CameraDefects.industrial()
+    assert tl.CameraConfig().camera_model == "industrial"
+    assert tl.CameraConfig().applied_defects == ind
+    assert tl.catching().camera.applied_defects == ind == tl.hitting().camera.applied_defects
+    perfect = parse(TaskRun(experiment=tl.catching()), ["--camera-model", "perfect"])
+    assert perfect.experiment.camera.applied_defects == tl.CameraDefects()
+    assert tl.CameraConfig.void_perfect().applied_defects == tl.CameraDefects()
+    # what a run folder records is what runs, and recording it again changes nothing
+    cam = tl.CameraConfig()
+    assert cam.resolved().defects == ind and cam.resolved().tracker == cam.tracker
+    assert cam.resolved().resolved() == cam.resolved()
     # the ranges argued in its docstring (issue 24: a plausible machine-vision camera)
     assert 1 <= ind.noise_grey <= 3 and ind.blur_renders > 1 and 0 < ind.defocus_px <= 1
     assert 0.005 <= ind.focal_error <= 0.02 and 1 <= ind.centre_error_px <= 2
     assert 0 < ind.jitter_s <= 0.002
     run = parse(TaskRun(experiment=tl.catching()), ["--camera-model", "industrial"])
-    assert run.experiment.camera.defects == ind
+    assert run.experiment.camera.applied_defects == ind
     # a defect flag given keeps its value, the seed too; the rest are the preset's
     run = parse(
         TaskRun(experiment=tl.catching()),
         ["--camera-model", "industrial", "--jitter-s", "0.002", "--defect-seed", "4"],
     )
-    assert run.experiment.camera.defects == dataclasses.replace(ind, jitter_s=0.002, defect_seed=4)
-    cam = run.experiment.camera
-    assert dataclasses.replace(cam, fps=30.0) == cam  # resolving twice changes nothing
+    want = dataclasses.replace(ind, jitter_s=0.002, defect_seed=4)
+    assert run.experiment.camera.applied_defects == want
     with pytest.raises(SystemExit):  # the real-time loop has no defects
         parse(TaskRun(experiment=tl.catching()), ["--camera-model", "industrial", "--realtime"])

@@ -220,7 +220,7 @@ def test_realtime_run_reports_itself(tmp_path):
 @pytest.mark.slow
 def test_realtime_camera_run_reports_itself():
     """The camera and the eye in their processes: frames and estimates add up."""
-    cam = L.CameraConfig(width=320, height=240)
+    cam = L.CameraConfig.void_perfect(width=320, height=240)
     exp = L.replace(L.catching(eye="camera", camera=cam), swings=1, swing_s=1.5, settle_s=0.3)
     result = RT.run_realtime(exp, RT.RealtimeConfig(twin="none"), progress=False)
     _check_report(result)

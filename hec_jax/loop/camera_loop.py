@@ -8,12 +8,14 @@ method :class:`~hec_jax.geometry.PaperEye`, ``eye="paper"``) and the hand with i
 * The camera takes a frame every 1/fps [s] (30 fps default), rounded to a whole number of 1 ms
   control steps (33 ms, i.e. 30.3 fps, for 30 fps; the eye is told the rounded rate). A frame
   shows the state at the middle of its exposure (``exposure_s``). The camera is perfect unless
-  ``cam.defects`` (:class:`~hec_jax.loop.config.CameraDefects`) says otherwise: motion blur
+  ``cam.applied_defects`` (:class:`~hec_jax.loop.config.CameraDefects`) says otherwise: motion blur
   (renders averaged over the exposure), defocus, sensor noise (:func:`camera_frame`), intrinsics
   known to the eye with an error (:func:`eye_intrinsics`) and jittered time stamps. The camera
-  sees scene.xml in front of a black void, or (``cam.scene = "lab"``) a room with shadows from
-  an oblique pose (:func:`hec_jax.mjx_scene.lab.lab_model`, rendering only: the simulated model
-  is ``loop``'s either way, and the eye's K and pose are read from the model rendered).
+  sees (``cam.scene = "lab"``, the default) a room with shadows from an oblique pose
+  (:func:`hec_jax.mjx_scene.lab.lab_model`), or scene.xml in front of a black void
+  (``"void"``); rendering only: the simulated model is ``loop``'s either way, and the eye's K
+  and pose are read from the model rendered. ``CameraConfig()`` is the lab through the
+  industrial camera (``CameraDefects.industrial()``).
 * Each frame goes through the eye (box tracker: LSD segments, box fit, constant-acceleration
   Kalman filter; paper's eye: a face's parallel edges, Eqs. 1-38 on this and the previous frame,
   the same kind of filter); its estimate reaches the controller ``latency_s`` after the end of
@@ -72,7 +74,7 @@ def exposure_offsets(cam: CameraConfig, dt: float) -> np.ndarray:
     the control grid (motion blur).
     """
     mid = int(round(0.5 * cam.exposure_s / dt))
-    n = cam.defects.blur_renders
+    n = cam.applied_defects.blur_renders
     if n == 1:
         return np.array([mid])
     back = np.array([int(round((k + 0.5) / n * cam.exposure_s / dt)) for k in range(n)])
@@ -347,11 +349,11 @@ def _draw_overlay(frame: np.ndarray, step, k: np.ndarray, r_cam_world, t_cam_wor
 
 def make_eye(eye: str, intrinsics, fps: float, cam: CameraConfig, background):
     """One seed's eye on the loop's camera: ``"camera"``, the box tracker
-    (:class:`~hec_jax.geometry.BoxTracker`, ``cam.track``), or ``"paper"``, the paper's two-frame
+    (:class:`~hec_jax.geometry.BoxTracker`, ``cam.tracker``), or ``"paper"``, the paper's two-frame
     method (:class:`~hec_jax.geometry.PaperEye`, ``cam.paper``); both take the RGB background.
     """
     if eye == "camera":
-        return BoxTracker(intrinsics, CUBE_EDGE, fps, cam.track, background)
+        return BoxTracker(intrinsics, CUBE_EDGE, fps, cam.tracker, background)
     if eye == "paper":
         return PaperEye(intrinsics, CUBE_EDGE, fps, cam.paper, background)
     raise ValueError(f"eye must be 'camera' or 'paper', got {eye!r}")
@@ -426,12 +428,12 @@ def run_camera(
     # taken by the same camera: its defocus and one shot's noise
     background = sensor(
         background,
-        defects_rng(cam.defects, 0, "background"),
-        cam.defects.noise_grey,
-        cam.defects.defocus_px,
+        defects_rng(cam.applied_defects, 0, "background"),
+        cam.applied_defects.noise_grey,
+        cam.applied_defects.defocus_px,
     )
     camera = SceneCamera(m_render, "eye", cam.width, cam.height, cam.fast_render, (), shadows)
-    k_eye = eye_intrinsics(camera.intrinsics, cam.defects)  # what the eye believes
+    k_eye = eye_intrinsics(camera.intrinsics, cam.applied_defects)  # what the eye believes
     r_wc, t_wc = camera.world_from_camera
     robot = robot_geoms(m_render, loop.ids.hand_body)
     hand = robot[m_render.geom_bodyid[robot] == loop.ids.hand_body]
@@ -469,7 +471,7 @@ def run_camera(
         f_prev = jnp.zeros((n_seeds, 3), dtype)
         for tr in trackers:
             tr.reset()
-        rngs = [defects_rng(cam.defects, i, index) for i in range(n_seeds)]
+        rngs = [defects_rng(cam.applied_defects, i, index) for i in range(n_seeds)]
         queues: list[list[_Estimate]] = [[] for _ in range(n_seeds)]
         misses = np.zeros(n_seeds, int)  # frames since the last valid fit
         qpos_hist = np.zeros((n_seeds, steps, m_c.nq))
@@ -483,7 +485,7 @@ def run_camera(
                 at = np.maximum(s - backs, 0)  # the exposure's steps
                 qpos = np.stack([d_qpos[i] if t == s else qpos_hist[i, t] for t in at])
                 t0 = time.perf_counter()
-                frame = camera_frame(camera, qpos, cam.defects, rngs[i])
+                frame = camera_frame(camera, qpos, cam.applied_defects, rngs[i])
                 if at[-1] != s_img:  # motion blur without a render at mid-exposure
                     camera.pose(d_qpos[i] if s_img == s else qpos_hist[i, s_img])
                 x_true = camera.data.xpos[loop.ids.cube_body].copy()  # mid-exposure kinematics
@@ -509,7 +511,7 @@ def run_camera(
                 rec["render_ms"][i, j] = 1e3 * (t1 - t0)
                 rec["eye_ms"][i, j] = 1e3 * (time.perf_counter() - t1)
                 rec["t_stamp"][i, j] = s_img * dt
-                jitter = stamp_jitter(cam.defects, rngs[i])
+                jitter = stamp_jitter(cam.applied_defects, rngs[i])
                 rec["stamp_error_s"][i, j] = jitter
                 rec["valid"][i, j] = bool(st.valid)
                 rec["initialised"][i, j] = bool(st.initialised)

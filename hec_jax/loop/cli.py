@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -11,6 +12,7 @@ from hec_jax.loop.config import (
     PRESETS,
     REALTIME_DEFECTS,
     REALTIME_SCENE,
+    CameraConfig,
     CameraDefects,
     ExperimentConfig,
 )
@@ -35,10 +37,21 @@ class TaskRun:
             raise ValueError(
                 "--realtime runs --eye truth or camera (the paper's eye: simulated time)"
             )
-        if self.realtime and self.experiment.camera.defects != CameraDefects():
+        if self.realtime and self.experiment.camera.applied_defects != CameraDefects():
             raise ValueError(REALTIME_DEFECTS)
         if self.realtime and self.experiment.camera.scene != "void":
             raise ValueError(REALTIME_SCENE)
+
+
+def task_default(preset: str, argv=None) -> TaskRun:
+    """The named preset as the flags' defaults; with ``--realtime`` in ``argv`` (default:
+    ``sys.argv[1:]``) its camera is ``CameraConfig.void_perfect()``, the real-time camera (the
+    simulated-time default, the lab through the industrial camera, is refused there).
+    """
+    experiment = PRESETS[preset]()
+    if "--realtime" in (sys.argv[1:] if argv is None else argv):
+        experiment = dataclasses.replace(experiment, camera=CameraConfig.void_perfect())
+    return TaskRun(experiment=experiment, out=Path(f"runs/{preset}"))
 
 
 @command
@@ -49,8 +62,7 @@ def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
     code 2 before anything is compiled; Ctrl-C or SIGTERM in a failed run folder and exit code
     130 or 143 (:func:`hec_jax.cli.command`).
     """
-    default = TaskRun(experiment=PRESETS[preset](), out=Path(f"runs/{preset}"))
-    run = parse(default, argv, doc)
+    run = parse(task_default(preset, argv), argv, doc)
     import jax
 
     jax.config.update("jax_enable_x64", not run.float32)
@@ -62,7 +74,7 @@ def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
 
     exp = run.experiment
     settings = dict(
-        experiment=dataclasses.asdict(exp),
+        experiment=dataclasses.asdict(dataclasses.replace(exp, camera=exp.camera.resolved())),
         preset=preset,
         out=str(run.out),
         float32=run.float32,

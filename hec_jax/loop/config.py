@@ -20,6 +20,7 @@ import tyro
 from hec_jax.cli import require
 from hec_jax.control import ControllerConfig
 from hec_jax.geometry import PaperEyeConfig, TrackConfig
+from hec_jax.geometry.track import UNSEEN_SCENES
 from hec_jax.mjx_scene import X_HOME, PendulumConfig
 from hec_jax.nets import LearnerConfig, NetConfig
 
@@ -196,9 +197,47 @@ class CameraDefects:
             )
 
 
+# The issue-24 checks of ``UNSEEN_SCENES`` that the loop's tracker takes in the lab scene
+# (``min_region_fraction`` stays off: in the loop the moving arm is the largest blob)
+LAB_CHECKS = (
+    "colour_background",
+    "foreground_edges",
+    "min_foreground",
+    "min_iou_acquire",
+    "min_inner_support",
+)
+
+
+def scene_tracker(scene: str) -> TrackConfig:
+    """The loop's box tracker for a scene (``CameraConfig.track`` left at None).
+
+    Both are set for impacts on the hand: a failed fit is tried again from the last fitted
+    position, and an innovation jump (chi-square 3 dof, p = 0.001) restarts the velocity.
+    ``"void"``: nothing else (black background; the tracker of every void-scene number in the
+    docs, tested against its record). ``"lab"``: plus ``UNSEEN_SCENES``' checks
+    (:data:`LAB_CHECKS`: colour differences to the calibration shot, the moving blob's edges
+    only, the fit confirmed by its silhouette and inner edges), which a background with clutter,
+    shadows and edges needs: without them the lab's held cube lost 40-156 of 546 frames, with
+    them none (``docs/eye_pipeline.md``). They stay off in the void scene, where they made the
+    main job worse (``docs/eye_randomized.md``, last section).
+    """
+    loop = TrackConfig(maneuver_nis=16.3, stop_hypothesis=True)
+    if scene == "void":
+        return loop
+    if scene == "lab":
+        return dataclasses.replace(loop, **{k: getattr(UNSEEN_SCENES, k) for k in LAB_CHECKS})
+    raise ValueError(f"--scene: must be 'void' or 'lab', got {scene!r}")
+
+
 @dataclass(frozen=True)
 class CameraConfig:
-    """Timing and resolution of the eye in the loop (``--eye camera`` and ``--eye paper``)."""
+    """Timing and resolution of the eye in the loop (``--eye camera`` and ``--eye paper``).
+
+    The defaults are a plausible lab (issue 24, point 5): the ``"lab"`` scene seen from an
+    oblique pose, through ``CameraDefects.industrial()``, with :func:`scene_tracker`'s tracker.
+    :meth:`void_perfect` is the camera of every number recorded before 2026-11-26 (scene.xml's
+    black void along the swing plane's normal, no defects) and the only one ``--realtime`` runs.
+    """
 
     fps: float = 30.0  # frame rate [1/s]; frames fall on whole control steps (33 ms at 30 fps)
     latency_s: float = 1.0 / 30.0  # end of exposure -> estimate at the controller [s]
@@ -211,11 +250,12 @@ class CameraConfig:
     # what the camera sees: "void", scene.xml (black background, the camera along the swing
     # plane's normal), or "lab", a room around it with shadows and an oblique camera
     # (``hec_jax.mjx_scene.lab``; rendering only, the simulated model is the same)
-    scene: Literal["void", "lab"] = "void"
+    scene: Literal["void", "lab"] = "lab"
     # "perfect": the defects are the flags below (all off by default); "industrial":
     # ``CameraDefects.industrial()``'s values for every defect flag left at its default (a flag
-    # given with a non-default value keeps it; --defect-seed is kept)
-    camera_model: Literal["perfect", "industrial"] = "perfect"
+    # given with a non-default value keeps it; --defect-seed is kept): to turn one defect off,
+    # use "perfect" with the others given
+    camera_model: Literal["perfect", "industrial"] = "industrial"
     # Frames without a valid fit after which the filter's extrapolation is no longer used: the
     # object counts as unseen (F_o = 0, no learning) until the eye finds it again.
     max_coast_frames: int = 2
@@ -234,16 +274,44 @@ class CameraConfig:
     # the object is extrapolated from the last touch (``object_state.TouchMemory``) until the
     # first post-guard estimate can have arrived, plus the coasting allowance.
     touch_guard_frames: float = 2.0
-    # The eye's tracker, set for impacts on the hand: a failed fit is tried again from the last
-    # fitted position, and an innovation jump (chi-square 3 dof, p = 0.001) restarts the velocity.
-    track: Annotated[TrackConfig, tyro.conf.Suppress] = field(
-        default_factory=lambda: TrackConfig(maneuver_nis=16.3, stop_hypothesis=True)
-    )
+    # The eye's box tracker; None: the scene's (:func:`scene_tracker`, read through
+    # :attr:`tracker`, which is what runs and what the run folder records)
+    track: Annotated[TrackConfig | None, tyro.conf.Suppress] = None
     # The paper's eye (``--eye paper``): face edges, Eqs. 1-38 between consecutive frames, the
     # composed pose and its filter (``geometry.paper_eye``; defaults argued there).
     paper: Annotated[PaperEyeConfig, tyro.conf.Suppress] = field(default_factory=PaperEyeConfig)
-    # sensor noise, blur, intrinsics error, time-stamp jitter (all off by default)
+    # sensor noise, blur, intrinsics error, time-stamp jitter: the flags (all off by default);
+    # what runs is :attr:`applied_defects` (camera_model "industrial", the default: the flags
+    # left unset take its values)
     defects: CameraDefects = field(default_factory=CameraDefects)
+
+    @classmethod
+    def void_perfect(cls, **overrides) -> CameraConfig:
+        """scene.xml's black void seen along the swing plane's normal by a perfect camera: the
+        set-up of every camera number recorded before 2026-11-26, and ``--realtime``'s (the
+        real-time camera process renders scene.xml, defects are simulated-time only).
+        """
+        return cls(**{"scene": "void", "camera_model": "perfect", **overrides})
+
+    @property
+    def tracker(self) -> TrackConfig:
+        """The box tracker that runs: ``track``, or the scene's (:func:`scene_tracker`)."""
+        return scene_tracker(self.scene) if self.track is None else self.track
+
+    @property
+    def applied_defects(self) -> CameraDefects:
+        """The defects the loop applies: ``defects`` (the flags) with ``camera_model``'s values
+        for the flags left at their defaults (``"perfect"``: the flags as given).
+        """
+        if self.camera_model == "industrial":
+            return _industrial_over(self.defects)
+        return self.defects
+
+    def resolved(self) -> CameraConfig:
+        """This camera with ``track`` and ``defects`` filled in (:attr:`tracker`,
+        :attr:`applied_defects`): what a run folder records; runs the same.
+        """
+        return dataclasses.replace(self, track=self.tracker, defects=self.applied_defects)
 
     def __post_init__(self):
         if self.scene not in ("void", "lab"):
@@ -252,20 +320,19 @@ class CameraConfig:
             raise ValueError(
                 f"--camera-model: must be 'perfect' or 'industrial', got {self.camera_model!r}"
             )
-        if self.camera_model == "industrial":  # resolved here, so config.json has the values
-            object.__setattr__(self, "defects", _industrial_over(self.defects))
         _positive(self, "fps", "width", "height")
         _positive(self, "latency_s", "exposure_s", "touch_guard_frames", allow_zero=True)
         if not (isinstance(self.max_coast_frames, int) and self.max_coast_frames >= 0):
             raise ValueError(
                 f"max_coast_frames must be an integer >= 0, got {self.max_coast_frames}"
             )
-        if not self.defects.jitter_s < 0.5 / self.fps:
+        applied = self.applied_defects
+        if not applied.jitter_s < 0.5 / self.fps:
             raise ValueError(
                 f"--jitter-s: must be below half the frame period ({0.5 / self.fps:.4g} s), "
-                f"got {self.defects.jitter_s!r}"
+                f"got {applied.jitter_s!r}"
             )
-        if self.defects.blur_renders > 1 and self.exposure_s <= 0:
+        if applied.blur_renders > 1 and self.exposure_s <= 0:
             raise ValueError("--blur-renders above 1 needs --exposure-s > 0")
 
 

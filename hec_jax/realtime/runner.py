@@ -689,7 +689,7 @@ def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> Experiment
         task = dataclasses.replace(task, swings=swings)
     cam = exp.camera
     cam = dataclasses.replace(
-        cam, track=dataclasses.replace(cam.track, local_starts=rt.eye_local_starts)
+        cam, track=dataclasses.replace(cam.tracker, local_starts=rt.eye_local_starts)
     )
     return dataclasses.replace(exp, task=task, seeds=1, camera=cam)
 
@@ -730,14 +730,15 @@ def run_realtime(
     deadline report, and the same run in simulated time.
 
     Args:
-        exp: the experiment (e.g. ``hec_jax.loop.catching(eye="camera")``).
+        exp: the experiment (e.g. ``hec_jax.loop.catching(eye="camera",
+            camera=CameraConfig.void_perfect())``: the real-time camera).
         rt: the real-time settings (default :class:`~hec_jax.realtime.config.RealtimeConfig`).
         progress: print one line per episode.
 
     Raises:
         ValueError: un-timed mode with the camera (the camera loop in simulated time is
-            :func:`hec_jax.loop.run_camera`); ``eye="paper"`` or camera defects (simulated time
-            only); a scene other than ``"void"`` (simulated time only).
+            :func:`hec_jax.loop.run_camera`); ``eye="paper"``; with ``eye="camera"``, camera
+            defects or a scene other than ``"void"`` (simulated time only).
     """
     rt = RealtimeConfig() if rt is None else rt
     exp = realtime_experiment(exp, rt)
@@ -745,9 +746,10 @@ def run_realtime(
         raise ValueError("the real-time eye is the box tracker: eye='truth' or 'camera'")
     if exp.eye == "camera" and not rt.timed:
         raise ValueError("un-timed mode runs with eye='truth' (simulated camera: loop.run_camera)")
-    if exp.camera.defects != CameraDefects():
+    # the camera (unused with the truth eye) must be ``CameraConfig.void_perfect()``'s
+    if exp.eye == "camera" and exp.camera.applied_defects != CameraDefects():
         raise ValueError(REALTIME_DEFECTS)
-    if exp.camera.scene != "void":  # the camera process renders scene.xml
+    if exp.eye == "camera" and exp.camera.scene != "void":  # the process renders scene.xml
         raise ValueError(REALTIME_SCENE)
     task = exp.task
     loop = build_loop(task)

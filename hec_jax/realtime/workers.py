@@ -251,7 +251,7 @@ def eye_main(
             return mask_robot(image, mcam, robot, cam.self_mask_margin_m, hand, None, keep)
 
         wait_for(lambda: camera.calibration.ready(1), 300.0, 0.01, "the calibration shots")
-        tracker = BoxTracker(mcam.intrinsics, CUBE_EDGE, fps, cam.track, camera.background())
+        tracker = BoxTracker(mcam.intrinsics, CUBE_EDGE, fps, cam.tracker, camera.background())
         warm = masked(camera.release_frame(), np.asarray(q0)[arm])
         tracker.warm_up(warm)  # compile the search, tracking and re-acquisition paths
         if priority:

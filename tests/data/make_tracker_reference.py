@@ -13,7 +13,7 @@ would split at) and with a grey bar over the cube's left half in frames 22-25 (a
 The background: the scene rendered with the cube and rod hidden, in colour (as the hand-eye loop
 gives it). Stored per case, with the frames' uint8 arrays compressed:
 
-* ``loop_*``: ``track_box`` with the hand-eye loop's tracker settings (``CameraConfig().track``)
+* ``loop_*``: ``track_box`` with the hand-eye loop's tracker settings (``scene_tracker("void")``)
   and the RGB background (the loop's ``BoxTracker`` path, ``causal_*``);
 * ``plain_*``: ``track_box`` with every default and no background (the median of the frames);
 * ``ghost_*``: every default on the first 12 frames with frame 3 as the (RGB) background (a
@@ -76,7 +76,7 @@ def main(out: str) -> None:
 
     jax.config.update("jax_enable_x64", True)
     frames, background, k = frames_and_background()
-    loop_track = TrackConfig(maneuver_nis=16.3, stop_hypothesis=True)  # CameraConfig().track
+    loop_track = TrackConfig(maneuver_nis=16.3, stop_hypothesis=True)  # scene_tracker("void")
     cases = {
         "loop": track_box(frames, k, CUBE_EDGE, FPS, loop_track, background=background),
         "plain": track_box(frames, k, CUBE_EDGE, FPS),
