@@ -57,12 +57,10 @@ BAD = {
         (["--jitter-s", "0.02"], "--jitter-s: must be below half the frame period"),
         (["--realtime", "--focal-error", "0.01"], "camera defects (--noise-grey, --blur-ren"),
         (["--realtime", "--camera-model", "industrial"], "camera defects (--noise-grey, --blur"),
-        (["--realtime", "--scene", "lab"], "--scene lab is simulated-time only, not --realtime"),
         (["--no-such-flag"], "unrecognized arguments: --no-such-flag"),
         (["--out", USED], "exists and is not empty: choose another --out, or pass --overwrite"),
     ],
     "experiments/realtime.py": [
-        (["--scene", "lab"], "--scene lab is simulated-time only, not --realtime"),
         (["--eye-local-starts", "-1"], "eye_local_starts must be an integer in 0..256"),
         (["--camera-model", "industrial"], "camera defects (--noise-grey, --blur-ren"),
     ],

@@ -156,12 +156,14 @@ def test_scene_model_and_config():
         scene_model("moon")
     run = parse(TaskRun(experiment=tl.catching()), ["--scene", "lab"])
     assert run.experiment.camera.scene == "lab"
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit):  # the default camera's defects are simulated-time only
         parse(TaskRun(experiment=tl.catching()), ["--scene", "lab", "--realtime"])
-    # with --realtime the task scripts' default camera is the real-time one
+    # with --realtime the task scripts' default camera is the real-time one; the lab is allowed
     argv = ["--realtime", "--eye", "camera"]
     run = parse(task_default("catching", argv), argv)
     assert run.experiment.camera == tl.CameraConfig.void_perfect()
+    run = parse(task_default("catching", argv + ["--scene", "lab"]), argv + ["--scene", "lab"])
+    assert run.experiment.camera == tl.CameraConfig.void_perfect(scene="lab")
     assert task_default("hitting", []).experiment.camera == tl.CameraConfig()
 
 

@@ -271,3 +271,34 @@ def test_in_contact_follows_the_episode_logs():
     tt = {"episode": np.array([0, 0, 0, 0, 1, 1, 1]), "index": np.array([0, 1, 2, 3, 0, 1, 2])}
     np.testing.assert_array_equal(in_contact(run, tt), [0, 0, 1, 0, 1, 0, 0])
     assert in_contact(SimpleNamespace(logs=[{"t": np.zeros(3)}]), tt) is None
+
+
+def test_the_real_time_camera_renders_the_simulated_loops_scene():
+    """``plant.camera_model``: the void is the plant's own model (no shadows); the lab is the
+    room around the plant's world with the lab camera's pose, as the simulated camera loop
+    renders it (``render_model_like(scene_model("lab"), ...)``)."""
+    import mujoco
+
+    from hec_jax.mjx_scene.lab import scene_model
+    from hec_jax.mjx_scene.render import render_model_like
+    from hec_jax.realtime.plant import camera_model, plant_model
+
+    task = L.catching().task
+    plant = plant_model(task)
+    void, shadows = camera_model(task, L.CameraConfig.void_perfect())
+    assert not shadows and void.ngeom == plant.ngeom
+    lab, shadows = camera_model(task, L.CameraConfig.void_perfect(scene="lab"))
+    assert shadows and lab.ngeom == scene_model("lab").ngeom > plant.ngeom
+    # the plant's world (moved hinge, rod) sits on scene.xml's rows, the room after them
+    np.testing.assert_array_equal(lab.body_pos[: plant.nbody], plant.body_pos)
+    np.testing.assert_array_equal(lab.geom_size[: plant.ngeom], plant.geom_size)
+    want = render_model_like(scene_model("lab"), plant)
+    poses = []
+    for m in (lab, want, void):  # the camera's pose only: no renderer needed
+        data = mujoco.MjData(m)
+        mujoco.mj_kinematics(m, data)
+        mujoco.mj_camlight(m, data)
+        cid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_CAMERA, "eye")
+        poses.append(np.concatenate([data.cam_xpos[cid], data.cam_xmat[cid]]))
+    np.testing.assert_array_equal(poses[0], poses[1])
+    assert np.linalg.norm(poses[0][:3] - poses[2][:3]) > 0.1  # the lab's camera is elsewhere

@@ -11,7 +11,6 @@ from hec_jax.cli import command, parse
 from hec_jax.loop.config import (
     PRESETS,
     REALTIME_DEFECTS,
-    REALTIME_SCENE,
     CameraConfig,
     CameraDefects,
     ExperimentConfig,
@@ -39,14 +38,12 @@ class TaskRun:
             )
         if self.realtime and self.experiment.camera.applied_defects != CameraDefects():
             raise ValueError(REALTIME_DEFECTS)
-        if self.realtime and self.experiment.camera.scene != "void":
-            raise ValueError(REALTIME_SCENE)
 
 
 def task_default(preset: str, argv=None) -> TaskRun:
     """The named preset as the flags' defaults; with ``--realtime`` in ``argv`` (default:
-    ``sys.argv[1:]``) its camera is ``CameraConfig.void_perfect()``, the real-time camera (the
-    simulated-time default, the lab through the industrial camera, is refused there).
+    ``sys.argv[1:]``) its camera is ``CameraConfig.void_perfect()``, real time's default (its
+    camera has no defects; the void scene is the one software rendering keeps up with).
     """
     experiment = PRESETS[preset]()
     if "--realtime" in (sys.argv[1:] if argv is None else argv):

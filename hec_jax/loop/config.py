@@ -126,8 +126,6 @@ class TaskConfig:
 REALTIME_DEFECTS = (
     "camera defects (--noise-grey, --blur-renders, ...) are simulated-time only, not --realtime"
 )
-# the same for a scene other than scene.xml's void: the real-time camera process renders scene.xml
-REALTIME_SCENE = "--scene lab is simulated-time only, not --realtime"
 
 
 @dataclass(frozen=True)

@@ -44,6 +44,8 @@ from hec_jax.mjx_scene import (
     scene_ids,
     set_solver_options,
 )
+from hec_jax.mjx_scene.lab import scene_model
+from hec_jax.mjx_scene.render import render_model_like
 from hec_jax.realtime.clock import Clock, monotonic_s
 from hec_jax.realtime.shared import _CTX, Board, FrameRing, Images, wait_for
 
@@ -148,6 +150,18 @@ def plant_model(task: TaskConfig) -> mujoco.MjModel:
     if task.contact_solimp is not None:
         m.pair_solimp[:] = np.asarray(task.contact_solimp)
     return m
+
+
+def camera_model(task: TaskConfig, cam: CameraConfig) -> tuple[mujoco.MjModel, bool]:
+    """The C model the real-time camera renders and the eye is calibrated on, and whether its
+    lights cast shadows: :func:`plant_model` itself in the ``"void"`` scene; in the ``"lab"``
+    the room around it (:func:`hec_jax.mjx_scene.lab.scene_model`, the plant's geometry copied
+    onto scene.xml's rows as the simulated camera loop does), shadows on.
+    """
+    m = plant_model(task)
+    if cam.scene == "void":
+        return m, False
+    return render_model_like(scene_model(cam.scene), m), True
 
 
 class ArmObs(NamedTuple):

@@ -49,7 +49,6 @@ from hec_jax.control import TaskObs
 from hec_jax.loop.camera_loop import run_camera, steps_per_frame
 from hec_jax.loop.config import (
     REALTIME_DEFECTS,
-    REALTIME_SCENE,
     CameraConfig,
     CameraDefects,
     ExperimentConfig,
@@ -738,7 +737,7 @@ def run_realtime(
     Raises:
         ValueError: un-timed mode with the camera (the camera loop in simulated time is
             :func:`hec_jax.loop.run_camera`); ``eye="paper"``; with ``eye="camera"``, camera
-            defects or a scene other than ``"void"`` (simulated time only).
+            defects (simulated time only).
     """
     rt = RealtimeConfig() if rt is None else rt
     exp = realtime_experiment(exp, rt)
@@ -746,11 +745,9 @@ def run_realtime(
         raise ValueError("the real-time eye is the box tracker: eye='truth' or 'camera'")
     if exp.eye == "camera" and not rt.timed:
         raise ValueError("un-timed mode runs with eye='truth' (simulated camera: loop.run_camera)")
-    # the camera (unused with the truth eye) must be ``CameraConfig.void_perfect()``'s
+    # the camera (unused with the truth eye) has no defects in real time
     if exp.eye == "camera" and exp.camera.applied_defects != CameraDefects():
         raise ValueError(REALTIME_DEFECTS)
-    if exp.eye == "camera" and exp.camera.scene != "void":  # the process renders scene.xml
-        raise ValueError(REALTIME_SCENE)
     task = exp.task
     loop = build_loop(task)
     key = jax.random.split(jax.random.PRNGKey(exp.seed), 1)[0]

@@ -86,16 +86,17 @@ def camera_main(
         from hec_jax.mjx_scene import scene_ids
         from hec_jax.mjx_scene.render import SceneCamera
         from hec_jax.realtime.clock import monotonic_s
-        from hec_jax.realtime.plant import plant_model
+        from hec_jax.realtime.plant import camera_model
 
-        m = plant_model(task)
+        m, shadows = camera_model(task, cam)  # the void: the plant's model; the lab around it
         if msaa is not None:
             m.vis.quality.offsamples = msaa
         ids = scene_ids(m)
         arm = np.array(ids.arm_qpos)
-        with SceneCamera(m, "eye", cam.width, cam.height, cam.fast_render, ("cube", "rod")) as bg:
+        view = (cam.width, cam.height, cam.fast_render)
+        with SceneCamera(m, "eye", *view, ("cube", "rod"), shadows) as bg:
             calibration.put(0, bg.render(q0))
-        camera = SceneCamera(m, "eye", cam.width, cam.height, cam.fast_render)
+        camera = SceneCamera(m, "eye", *view, (), shadows)
         calibration.put(1, camera.render(q0))
         if priority:
             set_scheduling(os.SCHED_FIFO, priority)
@@ -229,10 +230,10 @@ def eye_main(
         from hec_jax.loop.camera_loop import front_object_mask, mask_robot, robot_geoms
         from hec_jax.mjx_scene import CUBE_EDGE, scene_ids
         from hec_jax.realtime.clock import monotonic_s
-        from hec_jax.realtime.plant import plant_model
+        from hec_jax.realtime.plant import camera_model
         from hec_jax.realtime.shared import wait_for
 
-        m = plant_model(task)
+        m, _ = camera_model(task, cam)  # the camera's pose and K: the rendered model's
         ids = scene_ids(m)
         arm = np.array(ids.arm_qpos)
         mcam = _MaskCamera(m, cam.width, cam.height)
