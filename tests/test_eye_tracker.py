@@ -143,3 +143,51 @@ def test_local_search_reacquires_without_a_search_from_scratch(seq):
         assert st.valid
         assert np.linalg.norm(st.measured_position - seq.position[10]) < 0.005
         assert searched == ([] if starts else [1]), starts
+
+
+def _difference_numpy(image, background, shadow_ratio=(0.25, 0.92), shadow_tol=0.08):
+    """``detect.difference`` as first written, in NumPy (the reference for the OpenCV one)."""
+    diff = np.abs(image.astype(np.int16) - background.astype(np.int16)).astype(np.uint8)
+    if diff.ndim != 3:
+        return diff
+    out = diff.max(axis=-1)
+    bg = background.astype(np.float32)
+    ratio = image.astype(np.float32) / np.maximum(bg, 1.0)
+    mean = ratio.mean(axis=-1)
+    shadow = (
+        (mean >= shadow_ratio[0])
+        & (mean <= shadow_ratio[1])
+        & (np.abs(ratio - mean[..., None]).max(axis=-1) <= shadow_tol)
+        & (bg.min(axis=-1) >= 24)
+    )
+    out[shadow] = 0
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_colour_difference_is_the_numpy_one_bit_for_bit(seed):
+    """The OpenCV colour difference with its shadow test equals the NumPy reference on a
+    background with a darkened (shadow) patch, a differently coloured box, sensor noise, dark
+    pixels, windows (non-contiguous views) and gray images; shadows and the box are found."""
+    from hec_jax.geometry.detect import difference
+
+    rng = np.random.default_rng(seed)
+    h, w = 120, 160
+    background = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    background[:10] = rng.integers(0, 30, (10, w, 3))  # dark rows: not tested for shadows
+    background[30:60, 20:70] = rng.integers(60, 256, (30, 50, 3))  # lit: ratios well resolved
+    image = background.copy()
+    image[30:60, 20:70] = (background[30:60, 20:70] * rng.uniform(0.3, 0.9)).astype(np.uint8)
+    image[70:100, 90:140] = rng.integers(0, 256, 3, dtype=np.uint8)  # the box
+    noisy = np.clip(image + rng.normal(0, 2, image.shape), 0, 255).astype(np.uint8)
+    for img in (image, noisy):
+        for window in (np.s_[:, :], np.s_[5:90, 13:151]):
+            want = _difference_numpy(img[window], background[window])
+            np.testing.assert_array_equal(difference(img[window], background[window]), want)
+        gray_img, gray_bg = img[..., 1], background[..., 1]
+        np.testing.assert_array_equal(
+            difference(gray_img, gray_bg), _difference_numpy(gray_img, gray_bg)
+        )
+    got = difference(image, background)
+    assert np.all(got[30:60, 20:70] == 0)  # the shadow patch
+    assert (got[70:100, 90:140] > 0).mean() > 0.9  # the box
