@@ -215,7 +215,7 @@ def scene_tracker(scene: str) -> TrackConfig:
     docs, tested against its record). ``"lab"``: plus ``UNSEEN_SCENES``' checks
     (:data:`LAB_CHECKS`: colour differences to the calibration shot, the moving blob's edges
     only, the fit confirmed by its silhouette and inner edges), which a background with clutter,
-    shadows and edges needs: without them the lab's held cube lost 40-156 of 546 frames, with
+    shadows and edges needs: without them the lab's held cube lost 40-164 of 546 frames, with
     them none (``docs/eye_pipeline.md``). They stay off in the void scene, where they made the
     main job worse (``docs/eye_randomized.md``, last section).
     """
@@ -234,7 +234,8 @@ class CameraConfig:
     The defaults are a plausible lab (issue 24, point 5): the ``"lab"`` scene seen from an
     oblique pose, through ``CameraDefects.industrial()``, with :func:`scene_tracker`'s tracker.
     :meth:`void_perfect` is the camera of every number recorded before 2026-11-26 (scene.xml's
-    black void along the swing plane's normal, no defects) and the only one ``--realtime`` runs.
+    black void along the swing plane's normal, no defects) and ``--realtime``'s default
+    (real time has no defects; it renders the lab too, on a GPU renderer).
     """
 
     fps: float = 30.0  # frame rate [1/s]; frames fall on whole control steps (33 ms at 30 fps)
@@ -286,8 +287,8 @@ class CameraConfig:
     @classmethod
     def void_perfect(cls, **overrides) -> CameraConfig:
         """scene.xml's black void seen along the swing plane's normal by a perfect camera: the
-        set-up of every camera number recorded before 2026-11-26, and ``--realtime``'s (the
-        real-time camera process renders scene.xml, defects are simulated-time only).
+        set-up of every camera number recorded before 2026-11-26, and ``--realtime``'s default
+        (defects are simulated-time only; software rendering keeps 30 fps in the void only).
         """
         return cls(**{"scene": "void", "camera_model": "perfect", **overrides})
 
