@@ -286,13 +286,16 @@ def test_paper_eye_drives_the_loop():
     """``--eye paper`` (``-m slow``: compiles the loop): the paper's two-frame eye feeds the same
     loop; on the approach (frames before the first contact) it reports most frames within 15 mm
     (task plane) of the truth, every frame's reason is recorded, and the run stays finite and
-    bounded (in contact the hand hides a side of the face and touch takes over)."""
+    bounded (in contact the hand hides a side of the face and touch takes over). In the void
+    scene with a perfect camera, the paper's set-up (a face square to the camera): from the
+    lab's oblique view the method fails (``docs/eye_pipeline.md``, "The defaults switched")."""
     from hec_jax.geometry.paper_eye import STATUSES
 
     loop = tl.build_loop(dataclasses.replace(CONFIG, swings=1))
     keys = jax.random.split(jax.random.PRNGKey(0), 1)
+    cam = tl.CameraConfig.void_perfect()
     logs, eye, _ = he.run_camera(
-        loop, PENDULUM, keys, "learned", progress=False, eye_source="paper"
+        loop, PENDULUM, keys, "learned", cam, progress=False, eye_source="paper"
     )
     status = eye["status"][0, 0]
     assert np.all((status >= 0) & (status < len(STATUSES)))
