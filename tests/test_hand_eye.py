@@ -22,10 +22,17 @@ LOOP = tl.build_loop(CONFIG)
 PENDULUM = CONFIG.pendulum.conditions()
 
 
+# The loop's default scene (the lab) and its tracker, without the industrial camera's defects:
+# its motion blur triples the rendering, which the default suite's time cannot afford; the
+# defects are tested in tests/test_camera_defects.py, and the slow hitting test below runs the
+# default camera in full.
+CAM = tl.CameraConfig(camera_model="perfect")
+
+
 @pytest.fixture(scope="module")
 def camera_run():
     camera, truth, _, eyes, video = he.run_conditions_camera(
-        LOOP, PENDULUM, 0, SEEDS, progress=False
+        LOOP, PENDULUM, 0, SEEDS, CAM, progress=False
     )
     return camera, truth, eyes, video
 
@@ -218,7 +225,7 @@ def test_camera_loop_matches_ground_truth(camera_run):
         eye, logs = eyes[condition], camera[condition]
         m = mt.eye_metrics(eye, logs, 1e-3)
         # every frame of every seed and swing went through the eye (30 fps on the 1 ms grid)
-        per_swing = len(he.frame_steps(tl.CameraConfig(), 1e-3, LOOP.swing_steps))
+        per_swing = len(he.frame_steps(CAM, 1e-3, LOOP.swing_steps))
         assert m["frames"] == SEEDS * CONFIG.swings * per_swing
         # every frame before the first contact (the approach, where the virtual force acts on
         # the eye's estimate) has a valid fit; after impacts failures are allowed and counted
@@ -235,7 +242,7 @@ def test_camera_loop_matches_ground_truth(camera_run):
 
 def test_camera_loop_overlay_video(camera_run, tmp_path):
     *_, video = camera_run
-    assert len(video) == len(he.frame_steps(tl.CameraConfig(), 1e-3, LOOP.swing_steps))
+    assert len(video) == len(he.frame_steps(CAM, 1e-3, LOOP.swing_steps))
     # detected edges are drawn in pure green on some frames
     green = [np.any((f[..., 1] == 255) & (f[..., 0] == 0) & (f[..., 2] == 0)) for f in video]
     assert np.mean(green) > 0.8
