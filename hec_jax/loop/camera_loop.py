@@ -404,6 +404,7 @@ def run_camera(
         ``sim_ms`` per segment and the wall time; ``video``: BGR frames with overlays.
     """
     cam = CameraConfig() if cam is None else cam
+    defects = cam.applied_defects  # resolved once (camera_model's values over the flags)
     config = loop.config
     dt = loop.ids.timestep
     period = steps_per_frame(cam, dt)
@@ -428,12 +429,12 @@ def run_camera(
     # taken by the same camera: its defocus and one shot's noise
     background = sensor(
         background,
-        defects_rng(cam.applied_defects, 0, "background"),
-        cam.applied_defects.noise_grey,
-        cam.applied_defects.defocus_px,
+        defects_rng(defects, 0, "background"),
+        defects.noise_grey,
+        defects.defocus_px,
     )
     camera = SceneCamera(m_render, "eye", cam.width, cam.height, cam.fast_render, (), shadows)
-    k_eye = eye_intrinsics(camera.intrinsics, cam.applied_defects)  # what the eye believes
+    k_eye = eye_intrinsics(camera.intrinsics, defects)  # what the eye believes
     r_wc, t_wc = camera.world_from_camera
     robot = robot_geoms(m_render, loop.ids.hand_body)
     hand = robot[m_render.geom_bodyid[robot] == loop.ids.hand_body]
@@ -471,7 +472,7 @@ def run_camera(
         f_prev = jnp.zeros((n_seeds, 3), dtype)
         for tr in trackers:
             tr.reset()
-        rngs = [defects_rng(cam.applied_defects, i, index) for i in range(n_seeds)]
+        rngs = [defects_rng(defects, i, index) for i in range(n_seeds)]
         queues: list[list[_Estimate]] = [[] for _ in range(n_seeds)]
         misses = np.zeros(n_seeds, int)  # frames since the last valid fit
         qpos_hist = np.zeros((n_seeds, steps, m_c.nq))
@@ -485,7 +486,7 @@ def run_camera(
                 at = np.maximum(s - backs, 0)  # the exposure's steps
                 qpos = np.stack([d_qpos[i] if t == s else qpos_hist[i, t] for t in at])
                 t0 = time.perf_counter()
-                frame = camera_frame(camera, qpos, cam.applied_defects, rngs[i])
+                frame = camera_frame(camera, qpos, defects, rngs[i])
                 if at[-1] != s_img:  # motion blur without a render at mid-exposure
                     camera.pose(d_qpos[i] if s_img == s else qpos_hist[i, s_img])
                 x_true = camera.data.xpos[loop.ids.cube_body].copy()  # mid-exposure kinematics
@@ -511,7 +512,7 @@ def run_camera(
                 rec["render_ms"][i, j] = 1e3 * (t1 - t0)
                 rec["eye_ms"][i, j] = 1e3 * (time.perf_counter() - t1)
                 rec["t_stamp"][i, j] = s_img * dt
-                jitter = stamp_jitter(cam.applied_defects, rngs[i])
+                jitter = stamp_jitter(defects, rngs[i])
                 rec["stamp_error_s"][i, j] = jitter
                 rec["valid"][i, j] = bool(st.valid)
                 rec["initialised"][i, j] = bool(st.initialised)
