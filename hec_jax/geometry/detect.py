@@ -58,12 +58,39 @@ def clip_roi(roi, width: int, height: int):
     return x0, y0, x1, y1
 
 
+STRETCH_RANGE = 128.0  # grey levels a faint window's 1-99 percentile range is stretched to
+STRETCH_MAX_GAIN = 16.0  # the most a window is stretched by
+
+
+def stretch_contrast(patch: np.ndarray) -> np.ndarray:
+    """``patch`` (uint8 gray) with its 1-99 percentile range stretched linearly to
+    :data:`STRETCH_RANGE` grey levels if it spans fewer (gain at most :data:`STRETCH_MAX_GAIN`),
+    else unchanged. LSD's gradient threshold is absolute (about 5 grey levels per pixel), so the
+    edges of a box close to its background's grey pass it only stretched (its noise is stretched
+    too; LSD's a-contrario test keeps the segments that noise alone would not give).
+    """
+    if patch.size == 0:
+        return patch
+    lo, hi = np.percentile(patch, (1, 99))
+    if hi - lo >= STRETCH_RANGE:
+        return patch
+    gain = STRETCH_RANGE / max(hi - lo, STRETCH_RANGE / STRETCH_MAX_GAIN)
+    out = np.clip((patch.astype(np.float32) - np.float32(lo)) * np.float32(gain), 0, 255)
+    return out.astype(np.uint8)
+
+
 def detect_segments(
-    gray: np.ndarray, roi=None, method: str = "lsd", min_length: float = 5.0
+    gray: np.ndarray,
+    roi=None,
+    method: str = "lsd",
+    min_length: float = 5.0,
+    stretch: bool = False,
 ) -> np.ndarray:
     """Line segments (N, 2, 2) [px, intrinsics convention] in ``gray`` (optionally inside a ROI).
 
     ``roi`` = (x0, y0, x1, y1) in pixels; segments shorter than ``min_length`` [px] are dropped.
+    ``stretch``: a window (``roi`` given) of low contrast is stretched first
+    (:func:`stretch_contrast`).
     """
     h, w = gray.shape
     box = (0, 0, w, h) if roi is None else clip_roi(roi, w, h)
@@ -71,6 +98,8 @@ def detect_segments(
         return np.zeros((0, 2, 2))
     x0, y0, x1, y1 = box
     patch = np.ascontiguousarray(gray[y0:y1, x0:x1])
+    if stretch and roi is not None:
+        patch = stretch_contrast(patch)
     if method == "lsd":
         lines = _lsd().detect(patch)[0]
     elif method == "hough":
@@ -159,7 +188,35 @@ def foreground_regions(
     the caller tries each blob.
     """
     diff = difference(gray, background)
-    mask = (diff > threshold).astype(np.uint8)
+    return _largest_blobs(diff > threshold, open_px, count)
+
+
+def faint_foreground_regions(
+    image: np.ndarray,
+    background: np.ndarray,
+    blur_px: int = 5,
+    noise_factor: float = 4.0,
+    min_threshold: float = 6.0,
+    open_px: int = 5,
+    count: int = 3,
+) -> list[tuple[tuple[int, int, int, int], float]]:
+    """:func:`foreground_regions` for a box close to the background's colour: the difference
+    (:func:`difference`, shadows included) of both images blurred by a ``blur_px`` square (the
+    sensor noise averages out, a box's faces do not), thresholded at ``noise_factor`` x its
+    median over the frame (most pixels are background: the median is the noise's level), at
+    least ``min_threshold`` grey levels.
+    """
+    k = (blur_px, blur_px)
+    diff = difference(cv2.blur(image, k), cv2.blur(background, k))
+    threshold = max(min_threshold, noise_factor * float(np.median(diff)))
+    return _largest_blobs(diff > threshold, open_px, count)
+
+
+def _largest_blobs(mask: np.ndarray, open_px: int, count: int):
+    """Bounding boxes and areas of the ``count`` largest connected blobs (>= 16 px) of a bool
+    mask opened with an ``open_px`` square, largest first.
+    """
+    mask = mask.astype(np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((open_px, open_px), np.uint8))
     n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA])

@@ -149,6 +149,20 @@ class TrackConfig:
             of the largest (cost; 0: none skipped). 0.25 in ``benchmarks/eye_randomized.py``; not
             in :data:`UNSEEN_SCENES`, because in the hand-eye loop the moving arm is the largest
             blob.
+        search_keep: the search from scratch in two stages: every start through the coarse
+            ``init_gates`` rounds, then only the ``search_keep`` best of them (coverage - 0.1 rms,
+            +1 if valid) through the fine ``gates_px`` rounds. A kept start ends exactly where
+            the one-stage search takes it; the result differs only where the best start was not
+            among the kept. 0: one stage, every start through every round (as before).
+        blob_required: with a background, search from scratch only in moving blobs; a frame
+            with none gives no detection (False: the segments of the whole image are searched,
+            as before, which fits clutter when the box does not differ from the background).
+        low_contrast: for a box close to the background's colour: with no moving blob at the
+            usual threshold, the search from scratch looks for a faint one
+            (:func:`detect.faint_foreground_regions`: the difference of the blurred images over
+            its noise level), and LSD runs on contrast-stretched windows
+            (:func:`detect.stretch_contrast`; search, tracking and stop hypothesis). False: as
+            before.
     """
 
     max_segments: int = 48
@@ -190,6 +204,9 @@ class TrackConfig:
     min_inner_support: float = 0.0
     inner_edge_px: float = 10.0
     min_region_fraction: float = 0.0
+    search_keep: int = 0
+    blob_required: bool = False
+    low_contrast: bool = False
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -509,10 +526,14 @@ def _search_gates(cfg: TrackConfig, edge_px, dtype):
     ).astype(dtype)
 
 
+def _start_score(locs):
+    """Score of each start of a vmapped ``locate``: coverage - 0.1 rms (+1 if valid)."""
+    return locs.association.coverage - 0.1 * locs.rms + 1.0 * locs.valid
+
+
 def _best_start(locs):
-    """The start of a vmapped ``locate`` with the best coverage - 0.1 rms (+1 if valid)."""
-    score = locs.association.coverage - 0.1 * locs.rms + 1.0 * locs.valid
-    best = jnp.argmax(score)
+    """The start of a vmapped ``locate`` with the best :func:`_start_score`."""
+    best = jnp.argmax(_start_score(locs))
     return jax.tree.map(lambda x: x[best], locs)
 
 
@@ -530,7 +551,20 @@ def _make_search(cfg: TrackConfig):
         def one(r):
             return locate(Pose(r, t0), segments, mask, size, intrinsics, gates, cfg)
 
-        return _best_start(jax.vmap(one)(rots))
+        if cfg.search_keep <= 0:
+            return _best_start(jax.vmap(one)(rots))
+        # two stages: the coarse rounds for every start, the fine ones for the best few
+        n_coarse = len(cfg.init_gates)
+
+        def coarse(r):
+            return locate(Pose(r, t0), segments, mask, size, intrinsics, gates[:n_coarse], cfg)
+
+        def fine(pose):
+            return locate(pose, segments, mask, size, intrinsics, gates[n_coarse:], cfg)
+
+        first = jax.vmap(coarse)(rots)
+        _, keep = jax.lax.top_k(_start_score(first), min(cfg.search_keep, rots.shape[0]))
+        return _best_start(jax.vmap(fine)(jax.tree.map(lambda x: x[keep], first.pose)))
 
     return jax.jit(search)
 
@@ -629,6 +663,8 @@ _HOST_ONLY = {
         "min_inner_support",
         "inner_edge_px",
         "min_region_fraction",
+        "blob_required",
+        "low_contrast",
     )
 }
 
@@ -894,6 +930,8 @@ class BoxTracker:
             self._bg_dirty = False
         image, background = self._difference_pair(gray)
         regions = detect.foreground_regions(image, background) if background is not None else []
+        if not regions and background is not None and cfg.low_contrast:
+            regions = detect.faint_foreground_regions(image, background)
         if cfg.min_region_fraction > 0:
             # blobs much smaller than the largest (a shadow's edge, pieces of the rod): not tried
             regions = [r for r in regions if r[1] >= cfg.min_region_fraction * regions[0][1]]
@@ -901,12 +939,12 @@ class BoxTracker:
         for (x0, y0, x1, y1), area in regions:
             pad = 0.2 * max(x1 - x0, y1 - y0) + 4
             roi = (x0 - pad, y0 - pad, x1 + pad, y1 + pad)
-            seg = detect.detect_segments(gray, roi)
+            seg = detect.detect_segments(gray, roi, stretch=cfg.low_contrast)
             if cfg.foreground_edges:
                 seg = self._masked(seg, image, background, roi)
             centre = np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
             candidates.append((seg, centre, np.sqrt(area) / 1.2))
-        if not regions:
+        if not regions and not (cfg.blob_required and background is not None):
             seg = detect.detect_segments(gray)
             if len(seg):
                 pts = seg.reshape(-1, 2)
@@ -975,7 +1013,7 @@ class BoxTracker:
         """Segments in ``roi``; with ``foreground_edges`` and a background, only those on the
         moving blob's dilated mask (the edges of static clutter next to the box are not the box's).
         """
-        seg = detect.detect_segments(gray, roi)
+        seg = detect.detect_segments(gray, roi, stretch=self.config.low_contrast)
         if not self.config.foreground_edges or self.background is None:
             return seg
         return self._masked(seg, *self._difference_pair(gray), roi)
@@ -1161,7 +1199,9 @@ class BoxTracker:
                 # by a hand), where the constant-acceleration prediction carries it on
                 prior = (rot_prev, np.asarray(self._last_good[1]))
                 corners = project_corners_np(*prior, self.size, k)
-                seg = detect.detect_segments(gray, _window(corners, cfg.roi_margin))
+                seg = detect.detect_segments(
+                    gray, _window(corners, cfg.roi_margin), stretch=cfg.low_contrast
+                )
                 segp, mask = detect.pad_segments(seg, m)
                 fin = self._fit(prior, segp, mask, gray, False)
         if not gated(fin) and tracking and self._started and cfg.local_starts > 0:
