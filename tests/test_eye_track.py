@@ -147,6 +147,10 @@ OFF = {  # the issue-24 settings and their off values
     "min_iou_acquire": 0.0,
     "min_inner_support": 0.0,
     "min_region_fraction": 0.0,
+    "search_keep": 0,
+    "blob_required": False,
+    "low_contrast": False,
+    "blob_core": 0.0,
 }
 
 

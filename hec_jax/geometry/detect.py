@@ -179,16 +179,22 @@ def difference(
 
 
 def foreground_regions(
-    gray: np.ndarray, background: np.ndarray, threshold: int = 20, open_px: int = 5, count: int = 3
+    gray: np.ndarray,
+    background: np.ndarray,
+    threshold: int = 20,
+    open_px: int = 5,
+    count: int = 3,
+    core: float = 0.0,
 ) -> list[tuple[tuple[int, int, int, int], float]]:
     """Bounding boxes (x0, y0, x1, y1) and areas [px^2] of the ``count`` largest moving blobs.
 
     ``gray`` and ``background`` are both (H, W) gray or both (H, W, 3) RGB (:func:`difference`).
     Where the object was in the background image, the difference shows a blob too (a "ghost");
-    the caller tries each blob.
+    the caller tries each blob. ``core`` > 0: each blob cut to its compact core
+    (:func:`_compact_core`; a rod too thick for the opening is cut off the box).
     """
     diff = difference(gray, background)
-    return _largest_blobs(diff > threshold, open_px, count)
+    return _largest_blobs(diff > threshold, open_px, count, core)
 
 
 def faint_foreground_regions(
@@ -199,6 +205,7 @@ def faint_foreground_regions(
     min_threshold: float = 6.0,
     open_px: int = 5,
     count: int = 3,
+    core: float = 0.0,
 ) -> list[tuple[tuple[int, int, int, int], float]]:
     """:func:`foreground_regions` for a box close to the background's colour: the difference
     (:func:`difference`, shadows included) of both images blurred by a ``blur_px`` square (the
@@ -209,23 +216,52 @@ def faint_foreground_regions(
     k = (blur_px, blur_px)
     diff = difference(cv2.blur(image, k), cv2.blur(background, k))
     threshold = max(min_threshold, noise_factor * float(np.median(diff)))
-    return _largest_blobs(diff > threshold, open_px, count)
+    return _largest_blobs(diff > threshold, open_px, count, core)
 
 
-def _largest_blobs(mask: np.ndarray, open_px: int, count: int):
+def _largest_blobs(mask: np.ndarray, open_px: int, count: int, core: float = 0.0):
     """Bounding boxes and areas of the ``count`` largest connected blobs (>= 16 px) of a bool
-    mask opened with an ``open_px`` square, largest first.
+    mask opened with an ``open_px`` square, largest first; with ``core`` > 0 each cut to its
+    compact core first (:func:`_compact_core`).
     """
     mask = mask.astype(np.uint8)
     mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, np.ones((open_px, open_px), np.uint8))
-    n, _, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     order = 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA])
     out = []
     for b in order[:count]:
         x, y, w, h, area = stats[b]
-        if area >= 16:
-            out.append(((int(x), int(y), int(x + w), int(y + h)), float(area)))
-    return out
+        if area < 16:
+            continue
+        box = (int(x), int(y), int(x + w), int(y + h))
+        if core > 0:
+            got = _compact_core(labels[y : y + h, x : x + w] == b, core)
+            if got is None:
+                continue
+            (cx0, cy0, cx1, cy1), area = got
+            box = (box[0] + cx0, box[1] + cy0, box[0] + cx1, box[1] + cy1)
+        out.append((box, float(area)))
+    return sorted(out, key=lambda r: -r[1]) if core > 0 else out
+
+
+def _compact_core(blob: np.ndarray, core: float):
+    """Bounding box (in ``blob``'s window) and area of the largest piece of a bool blob that
+    survives an opening by a disk of radius ``core`` x its largest inscribed radius (at least
+    2 px): a box's square-ish silhouette keeps most of itself, a rod or string narrower than
+    that radius is cut off. None if nothing survives.
+    """
+    padded = np.pad(blob.astype(np.uint8), 1)
+    dist = cv2.distanceTransform(padded, cv2.DIST_L2, 3)[1:-1, 1:-1]
+    radius = max(2.0, core * float(dist.max()))
+    k = int(2 * np.ceil(radius) + 1)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    kept = cv2.dilate((dist >= radius).astype(np.uint8), disk) & blob.astype(np.uint8)
+    n, _, stats, _ = cv2.connectedComponentsWithStats(kept, connectivity=8)
+    if n <= 1:
+        return None
+    j = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    x, y, w, h, area = stats[j]
+    return (int(x), int(y), int(x + w), int(y + h)), float(area)
 
 
 def foreground_region(

@@ -1,0 +1,132 @@
+"""The tracker's opt-in search options of issue 24 point 3 (``TrackConfig.search_keep``,
+``blob_required``, ``low_contrast``) and the detectors under them, against synthetic truth and
+against the one-stage search they shorten."""
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from hec_jax.geometry import BoxTracker, TrackConfig, detect, track_box
+from hec_jax.mjx_scene.render import render_swing
+
+FPS = 30.0
+EDGE = 0.1
+
+
+@pytest.fixture(scope="module")
+def seq():
+    return render_swing(0.4, 4, FPS)
+
+
+def _flat(shape, rgb, noise, seed):
+    rng = np.random.default_rng(seed)
+    img = np.broadcast_to(np.asarray(rgb, float), (*shape, 3)) + rng.normal(0, noise, (*shape, 3))
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_faint_regions_find_a_box_near_the_background_colour(seed):
+    # a 30 px square 12 grey levels off the wall in one channel, sensor noise sigma 4: the usual
+    # threshold (20) sees nothing, the blurred difference over its noise level finds the square
+    bg = _flat((240, 320), (150, 110, 120), 4.0, seed)
+    img = _flat((240, 320), (150, 110, 120), 4.0, seed + 100)
+    x0, y0 = 100 + 20 * seed, 80
+    img[y0 : y0 + 30, x0 : x0 + 30] = _flat((30, 30), (150, 122, 120), 4.0, seed + 200)
+    assert detect.foreground_regions(img, bg) == []
+    regions = detect.faint_foreground_regions(img, bg)
+    assert regions, "no faint blob found"
+    (bx0, by0, bx1, by1), area = regions[0]
+    np.testing.assert_allclose([bx0, by0, bx1, by1], [x0, y0, x0 + 30, y0 + 30], atol=3)
+    assert 0.8 * 900 <= area <= 1.2 * 900
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_faint_regions_find_nothing_in_noise(seed):
+    bg = _flat((240, 320), (90, 140, 60), 4.0, seed)
+    img = _flat((240, 320), (90, 140, 60), 4.0, seed + 50)
+    assert detect.faint_foreground_regions(img, bg) == []
+
+
+def test_stretched_lsd_finds_a_faint_edge():
+    # a vertical step of 4 grey levels at x = 40 with noise: LSD's absolute gradient threshold
+    # misses it; in the stretched window it is found on the true line
+    rng = np.random.default_rng(3)
+    patch = np.full((80, 80), 120.0)
+    patch[:, 40:] += 4.0
+    gray = np.clip(np.round(patch + rng.normal(0, 0.7, patch.shape)), 0, 255).astype(np.uint8)
+    gray = cv2.GaussianBlur(gray, (3, 3), 0.6)
+    roi = (0, 0, 80, 80)
+
+    def on_line_px(seg):  # length of the segments on the step's line x = 40
+        return sum(np.ptp(s[:, 1]) for s in seg if np.abs(s[:, 0] - 40).max() < 1.0)
+
+    assert on_line_px(detect.detect_segments(gray, roi)) == 0
+    seg = detect.detect_segments(gray, roi, stretch=True)
+    assert on_line_px(seg) > 60, seg  # of the 80 px edge
+    assert len(seg) <= 6  # the stretched noise gives no clutter
+
+
+def test_stretch_leaves_a_contrasted_window_alone():
+    rng = np.random.default_rng(4)
+    patch = rng.integers(0, 256, (50, 60)).astype(np.uint8)
+    assert detect.stretch_contrast(patch) is patch
+    faint = (100 + rng.integers(0, 10, (50, 60))).astype(np.uint8)
+    out = detect.stretch_contrast(faint)
+    lo, hi = np.percentile(out, (1, 99))
+    assert hi - lo >= 0.9 * detect.STRETCH_RANGE
+
+
+def test_two_stage_search_keeping_every_start_is_the_one_stage_search(seq):
+    # search_keep = init_starts runs every start through every round, in two calls: the same
+    # tracker to round-off
+    one = track_box(seq.frames, seq.intrinsics, EDGE, FPS)
+    cfg = TrackConfig(search_keep=TrackConfig().init_starts)
+    two = track_box(seq.frames, seq.intrinsics, EDGE, FPS, cfg)
+    np.testing.assert_array_equal(one.valid, two.valid)
+    np.testing.assert_allclose(two.measured_position, one.measured_position, atol=1e-9)
+    np.testing.assert_allclose(two.pose_rotation, one.pose_rotation, atol=1e-9)
+
+
+def test_two_stage_search_of_eight_starts_acquires(seq):
+    tracker = BoxTracker(seq.intrinsics, EDGE, FPS, TrackConfig(search_keep=8))
+    st = tracker.update(seq.frames[0])  # the first frame: a search from scratch
+    assert st.valid
+    assert np.linalg.norm(st.measured_position - seq.position[0]) < 0.005
+
+
+@pytest.mark.parametrize("required", [True, False])
+def test_blob_required_skips_the_search_without_a_moving_blob(seq, required):
+    # the background is the frame itself: nothing moves. With blob_required no search runs (and
+    # nothing is detected); without it the segments of the whole image are searched
+    frame = seq.frames[0]
+    cfg = dataclasses.replace(TrackConfig(), blob_required=required)
+    tracker = BoxTracker(seq.intrinsics, EDGE, FPS, cfg, background=frame)
+    calls = []
+    search = tracker._search
+    tracker._search = lambda *a, _f=search: calls.append(1) or _f(*a)
+    st = tracker.update(frame)
+    assert calls == ([] if required else [1])
+    if required:
+        assert not st.valid and not st.initialised
+
+
+def test_blob_core_cuts_a_thick_rod_off_the_box():
+    # a 40 px square hanging from a 9 px wide rod to the top of the image: the 5 px opening keeps
+    # the rod, so the blob's box is the rod's and the square's; its compact core is the square
+    bg = np.zeros((200, 200, 3), np.uint8)
+    img = bg.copy()
+    img[110:150, 80:120] = 200
+    img[0:110, 96:105] = 200
+    (box, area), *_ = detect.foreground_regions(img, bg)
+    assert box[1] == 0  # the rod is in the plain blob
+    (box, area), *_ = detect.foreground_regions(img, bg, core=0.4)
+    # the core's disk (8 px radius here) keeps a stub of the rod a few px long
+    np.testing.assert_allclose(box, (80, 110, 120, 150), atol=4)
+    assert abs(area - 1600) < 0.1 * 1600
+    # a compact blob keeps its box (the disk rounds its corners: a few % of its area)
+    img2 = bg.copy()
+    img2[50:90, 60:100] = 200
+    [(box, area)] = detect.foreground_regions(img2, bg, core=0.4)
+    assert box == (60, 50, 100, 90) and 0.9 * 1600 <= area <= 1600
