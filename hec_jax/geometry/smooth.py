@@ -76,7 +76,7 @@ class SmootherConfig:
             extrapolated beyond a short gap (issue 24: over 50 unacquired frames the unsegmented
             smoother had carried the centre 3 m away). None (the default, the smoother as it was
             before issue 24): one segment over all frames, the priors extrapolating to both ends.
-            0.2 in ``benchmarks/eye_randomized.py``.
+            0.2 in ``benchmarks/eye_randomized.py`` (:data:`NO_EXTRAPOLATION`).
     """
 
     angular_accel_psd: float = 20.0
@@ -87,6 +87,11 @@ class SmootherConfig:
     hinge_iters: int = 10
     hinge_max_cost: float = 0.5
     max_gap_s: float | None = None
+
+
+# The smoother of the randomized benchmark (``benchmarks/eye_randomized.py``): no extrapolation
+# across gaps over 0.2 s
+NO_EXTRAPOLATION = SmootherConfig(max_gap_s=0.2)
 
 
 class SmoothedTrack(NamedTuple):
