@@ -71,8 +71,8 @@ class TrackConfig:
     was tuned with (on in the loop, they made the camera-driven catching worse,
     ``docs/eye_randomized.md``); :data:`UNSEEN_SCENES` turns the checks on, and
     :data:`RANDOMIZED_BENCHMARK` also the search options from ``search_keep`` on. They need a
-    background (given, or the median of the frames seen) and are skipped without one (but
-    ``search_keep``).
+    background (given, or the median of the frames seen) and are skipped without one
+    (``search_keep`` excepted).
 
     Attributes:
         max_segments: segments kept per frame (longest first) [-].
