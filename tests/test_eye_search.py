@@ -78,6 +78,7 @@ def test_stretch_leaves_a_contrasted_window_alone():
     assert hi - lo >= 0.9 * detect.STRETCH_RANGE
 
 
+@pytest.mark.slow  # its own compilation of the 96-start search (~20 s on the 2 CI cores)
 def test_two_stage_search_keeping_every_start_is_the_one_stage_search(seq):
     # search_keep = init_starts runs every start through every round, in two calls: the same
     # tracker to round-off
