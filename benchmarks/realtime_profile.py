@@ -38,6 +38,9 @@ class TickProfile:
     idle_us: float = 800.0  # [us] wait before each tick ("after idle")
     spin_us: float = 200.0  # [us] of that wait spun rather than slept
     rt_priority: int = 0  # SCHED_FIFO priority of the loop (root); 0: none
+    # [us] CPU wake-up latency asked of the kernel while measuring (PM QoS, root; 0: idle CPUs
+    # poll instead of halting); None: nothing asked
+    cpu_latency_us: int | None = None
     pin_cpus: bool = False  # the process on its first CPU while it runs
     async_dispatch: bool = False  # JAX's default CPU dispatch (default: inline)
     float32: bool = False  # float32 (default float64)
@@ -57,7 +60,7 @@ def main(argv=None) -> dict:
     jax.config.update("jax_enable_x64", not args.float32)
     jax.config.update("jax_cpu_enable_async_dispatch", args.async_dispatch)
     from hec_jax import loop as L
-    from hec_jax.realtime.clock import FreeClock, realtime_priority
+    from hec_jax.realtime.clock import FreeClock, cpu_latency_request, realtime_priority
     from hec_jax.realtime.plant import ArmModel, MujocoPlant, plant_model
     from hec_jax.realtime.profile import IdleClock, stage_table
     from hec_jax.realtime.runner import make_step_fns, run_loop
@@ -85,7 +88,8 @@ def main(argv=None) -> dict:
             return contextlib.nullcontext()
 
     results = {}
-    with pinned(cpus), realtime_priority(args.rt_priority):
+    latency = cpu_latency_request(args.cpu_latency_us)
+    with pinned(cpus), realtime_priority(args.rt_priority), latency:
         for name, clock in (
             ("hot", FreeClock()),
             ("after idle", IdleClock(args.idle_us * 1e-6, args.spin_us * 1e-6)),
@@ -93,7 +97,8 @@ def main(argv=None) -> dict:
             results[name] = stage_table(run(clock, [args.ticks]).ticks)
     print(
         f"load average {os.getloadavg()}; async dispatch {args.async_dispatch}; "
-        f"rt priority {args.rt_priority}; pinned {cpus}; float{'32' if args.float32 else '64'}"
+        f"rt priority {args.rt_priority}; pinned {cpus}; cpu latency {args.cpu_latency_us} us; "
+        f"float{'32' if args.float32 else '64'}"
     )
     for name in ("hot", "after idle"):
         tab = results[name]

@@ -2,7 +2,7 @@
 and the eye in their own processes, MuJoCo C physics stepping at 1 kHz behind a robot-driver
 interface (``hec_jax.realtime``), and the same run in simulated time beside it.
 
-    python experiments/realtime.py --preset catching --eye camera --camera-msaa 0 --duration-s 60 --rt-priority 50 --out runs/realtime-catching
+    python experiments/realtime.py --preset catching --eye camera --camera-msaa 0 --duration-s 60 --rt-priority 50 --cpu-latency-us 0 --out runs/realtime-catching
 
 Writes ``config.json``, ``deadline.json`` (tick latency p50/p99/p99.9/max and histogram, missed
 1 ms deadlines, the eye's exposure-to-state latency and age, dropped frames, load average),
@@ -29,7 +29,7 @@ from hec_jax.loop.config import (
     CameraDefects,
     ExperimentConfig,
 )
-from hec_jax.realtime.clock import realtime_refused
+from hec_jax.realtime.clock import cpu_latency_refused, realtime_refused
 from hec_jax.realtime.config import RealtimeConfig
 
 
@@ -49,6 +49,9 @@ class RealtimeRun:
             raise ValueError(REALTIME_DEFECTS)
         rt = self.realtime
         refused = realtime_refused(max(rt.rt_priority, rt.camera_priority, rt.eye_priority))
+        if refused:
+            raise ValueError(refused)
+        refused = cpu_latency_refused(rt.cpu_latency_us if rt.timed else None)
         if refused:
             raise ValueError(refused)
 

@@ -256,6 +256,49 @@ def test_realtime_refused_says_why_and_leaves_the_scheduling(monkeypatch):
     assert "SCHED_FIFO 50" in why and "--rt-priority" in why
 
 
+def test_cpu_latency_request_writes_holds_and_withdraws(tmp_path):
+    import os
+    import struct
+
+    from hec_jax.realtime import clock
+    from hec_jax.realtime.config import RealtimeConfig
+
+    # on a stand-in file: the int32 request is written on entry and the file closed on exit
+    path = tmp_path / "cpu_dma_latency"
+    path.write_bytes(b"")
+    req = clock.cpu_latency_request(25, str(path))
+    with req:
+        assert struct.unpack("i", path.read_bytes()) == (25,)
+        assert req._fd is not None and os.fstat(req._fd).st_ino == path.stat().st_ino
+    assert req._fd is None
+    with clock.cpu_latency_request(None, str(tmp_path / "absent")):
+        pass  # None asks nothing: the file is never opened
+    assert clock.cpu_latency_refused(None, str(tmp_path / "absent")) is None
+    missing = str(tmp_path / "absent")
+    assert "--cpu-latency-us" in clock.cpu_latency_refused(0, missing)
+    with pytest.raises(FileNotFoundError), clock.cpu_latency_request(0, missing):
+        pass
+    for bad in (-1, 2.0, 2**31):
+        with pytest.raises(ValueError, match="latency_us"):
+            clock.cpu_latency_request(bad)
+        with pytest.raises(ValueError, match="cpu_latency_us"):
+            RealtimeConfig(cpu_latency_us=bad)
+    # on Linux's own PM QoS file (root): reading it gives the CPUs' current target, which the
+    # request sets while held and which returns to its previous value afterwards
+    device = clock.CPU_LATENCY_DEVICE
+    if clock.cpu_latency_refused(0) is not None:
+        pytest.skip("the PM QoS request needs root and /dev/cpu_dma_latency")
+
+    def target():
+        with open(device, "rb") as f:
+            return struct.unpack("i", f.read(4))[0]
+
+    before = target()
+    with clock.cpu_latency_request(0):
+        assert target() == 0
+    assert target() == before
+
+
 def test_in_contact_follows_the_episode_logs():
     from types import SimpleNamespace
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import struct
 import threading
 import time
 from typing import Protocol
@@ -201,3 +202,68 @@ def pin_process(pid: int, cpus) -> None:
     for tid in os.listdir(f"/proc/{pid}/task"):
         with contextlib.suppress(ProcessLookupError):
             os.sched_setaffinity(int(tid), set(cpus))
+
+
+# Linux's PM QoS interface for the CPUs' wake-up latency: a request holds while the file is open
+CPU_LATENCY_DEVICE = "/dev/cpu_dma_latency"
+
+
+class cpu_latency_request:
+    """Context manager: asks the kernel for a CPU wake-up latency of at most ``latency_us``
+    [us] while the loop runs (Linux PM QoS: an ``int32`` written to :data:`CPU_LATENCY_DEVICE`,
+    held while the file stays open, withdrawn on exit); None: nothing is asked.
+
+    With 0 (what ``cyclictest`` asks by default, and a real-time Linux controller's usual
+    setting) an idle CPU polls instead of halting. On the 2-core KVM guest the loop sleeps
+    most of each 1 ms period: every halt left the virtual CPU to the host, and the next tick
+    found its caches cold (a tick's CPU time 2x its hot cost, a tail of 3-5x; measured in
+    docs/realtime.md, "Idle CPUs that poll"). Polling costs the CPUs' idle time (power on a
+    real machine, host CPU time on a virtual one). Needs root.
+
+    Args:
+        latency_us: [us] the largest wake-up latency allowed (0 .. 2**31 - 1); None: no request.
+        device: the PM QoS file (tests pass a temporary file).
+
+    Raises:
+        ValueError: ``latency_us`` out of range.
+        PermissionError, FileNotFoundError: on entry, the request cannot be made here.
+    """
+
+    def __init__(self, latency_us: int | None, device: str = CPU_LATENCY_DEVICE):
+        if latency_us is not None and not (isinstance(latency_us, int) and 0 <= latency_us < 2**31):
+            raise ValueError(f"latency_us must be None or an integer >= 0, got {latency_us!r}")
+        self.latency_us, self.device = latency_us, device
+        self._fd: int | None = None
+
+    def __enter__(self):
+        if self.latency_us is not None:
+            fd = os.open(self.device, os.O_WRONLY)
+            try:
+                os.write(fd, struct.pack("i", self.latency_us))
+            except BaseException:
+                os.close(fd)
+                raise
+            self._fd = fd
+        return self
+
+    def __exit__(self, *exc):
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
+def cpu_latency_refused(latency_us: int | None, device: str = CPU_LATENCY_DEVICE) -> str | None:
+    """Why :class:`cpu_latency_request` of ``latency_us`` cannot be made here, as one line
+    (None: it can, or ``latency_us`` is None). Opens the file for writing and closes it at once
+    (no request is made), so a run can say so before it compiles anything.
+    """
+    if latency_us is None:
+        return None
+    try:
+        os.close(os.open(device, os.O_WRONLY))
+    except OSError as err:
+        return (
+            f"the CPU wake-up latency request ({device}) cannot be made here ({err.strerror}):"
+            " it needs Linux's PM QoS interface and root; run without --cpu-latency-us"
+        )
+    return None

@@ -449,6 +449,10 @@ class MujocoPlant:
         self._counts[kind] += 1
         self.j += 1
         self._publish()
+        # the next sample's stages now, after the torques were taken, rather than in the next
+        # read: the simulator's work leaves the tick's latency (a robot's read costs a few us).
+        # The same calls in the same order as a lazy stage: the same numbers.
+        self._stage()
 
     def _publish(self) -> None:
         if self._camera_proc is not None:

@@ -20,8 +20,10 @@ Each tick records its clock times and the control thread's CPU time per stage
 (:data:`TICK_TIMES`, :data:`TICK_CPU`). :func:`run_realtime` runs the loop with every thread of
 the control process (XLA's pool threads, which run parts of each jitted step, included) on one
 CPU and, at real-time priority, XLA's threads one priority below the loop
-(:class:`~hec_jax.realtime.clock.pinned`, :class:`~hec_jax.realtime.clock.realtime_priority`);
-``experiments/realtime.py`` also makes JAX's CPU dispatch inline (docs/realtime.md).
+(:class:`~hec_jax.realtime.clock.pinned`, :class:`~hec_jax.realtime.clock.realtime_priority`),
+with ``RealtimeConfig.cpu_latency_us`` set, idle CPUs polling rather than halting
+(:class:`~hec_jax.realtime.clock.cpu_latency_request`); ``experiments/realtime.py`` also makes
+JAX's CPU dispatch inline (docs/realtime.md).
 
 Episodes (swings) are as in :mod:`hec_jax.loop.episodes`: the world restarts at the release,
 the controller state restarts, the learner's weights carry over. Un-timed mode
@@ -62,6 +64,7 @@ from hec_jax.realtime.clock import (
     Clock,
     FreeClock,
     WallClock,
+    cpu_latency_request,
     monotonic_s,
     pin_process,
     pinned,
@@ -779,7 +782,9 @@ def run_realtime(
             control_cpus = _pin_children(plant, eye, children) if rt.pin_cpus and rt.timed else None
             clock = WallClock(rt.spin_us * 1e-6) if rt.timed else FreeClock()
             load["start"] = os.getloadavg()
-            with pinned(control_cpus), realtime_priority(rt.rt_priority if rt.timed else 0):
+            latency = cpu_latency_request(rt.cpu_latency_us if rt.timed else None)
+            priority = realtime_priority(rt.rt_priority if rt.timed else 0)
+            with pinned(control_cpus), priority, latency:
                 run = run_loop(
                     loop,
                     plant,
@@ -812,6 +817,8 @@ def run_realtime(
         **children,
         "cpus": os.cpu_count(),
         "rt_priority": rt.rt_priority if rt.timed else 0,
+        # the CPUs' wake-up latency asked of the kernel while the loop ran (None: nothing)
+        "cpu_latency_us": rt.cpu_latency_us if rt.timed else None,
         # JAX's CPU dispatch as configured (it takes effect when JAX creates its CPU client)
         "jax_cpu_async_dispatch": bool(jax.config.values["jax_cpu_enable_async_dispatch"]),
     }
