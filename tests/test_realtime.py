@@ -332,6 +332,10 @@ def test_the_real_time_camera_renders_the_simulated_loops_scene():
     assert not shadows and void.ngeom == plant.ngeom
     lab, shadows = camera_model(task, L.CameraConfig.void_perfect(scene="lab"))
     assert shadows and lab.ngeom == scene_model("lab").ngeom > plant.ngeom
+    # RealtimeConfig.camera_shadows overrides the scene's, the model unchanged
+    lab_flat, shadows = camera_model(task, L.CameraConfig.void_perfect(scene="lab"), False)
+    assert shadows is False and lab_flat.ngeom == lab.ngeom
+    assert camera_model(task, L.CameraConfig.void_perfect(), True)[1] is True
     # the plant's world (moved hinge, rod) sits on scene.xml's rows, the room after them
     np.testing.assert_array_equal(lab.body_pos[: plant.nbody], plant.body_pos)
     np.testing.assert_array_equal(lab.geom_size[: plant.ngeom], plant.geom_size)

@@ -58,6 +58,11 @@ class RealtimeConfig:
     # at 320x240) at the price of aliased edges: a real camera costs the computer nothing, the
     # simulated one competes with the eye and the loop for the CPU
     camera_msaa: int | None = None
+    # the rendered lights cast shadows; None: the scene's (the lab's do, the void's do not).
+    # False makes the lab's software rendering 3x cheaper (30 -> 10 ms a 640x480 frame without
+    # multisampling on the 2-core VM); the eye's calibration shots are rendered alike, the
+    # simulated twin keeps the scene's shadows
+    camera_shadows: bool | None = None
     # nice value of the camera and eye processes (-20..19; below 0 needs root): under normal
     # scheduling a lower value gives them a larger share of the CPU than other processes
     child_nice: int = 0

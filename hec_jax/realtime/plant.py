@@ -152,16 +152,19 @@ def plant_model(task: TaskConfig) -> mujoco.MjModel:
     return m
 
 
-def camera_model(task: TaskConfig, cam: CameraConfig) -> tuple[mujoco.MjModel, bool]:
+def camera_model(
+    task: TaskConfig, cam: CameraConfig, shadows: bool | None = None
+) -> tuple[mujoco.MjModel, bool]:
     """The C model the real-time camera renders and the eye is calibrated on, and whether its
-    lights cast shadows: :func:`plant_model` itself in the ``"void"`` scene; in the ``"lab"``
-    the room around it (:func:`hec_jax.mjx_scene.lab.scene_model`, the plant's geometry copied
-    onto scene.xml's rows as the simulated camera loop does), shadows on.
+    lights cast shadows: :func:`plant_model` itself in the ``"void"`` scene (no shadows); in
+    the ``"lab"`` the room around it (:func:`hec_jax.mjx_scene.lab.scene_model`, the plant's
+    geometry copied onto scene.xml's rows as the simulated camera loop does), shadows on.
+    ``shadows`` given: that instead of the scene's.
     """
     m = plant_model(task)
-    if cam.scene == "void":
-        return m, False
-    return render_model_like(scene_model(cam.scene), m), True
+    if cam.scene != "void":
+        m = render_model_like(scene_model(cam.scene), m)
+    return m, (cam.scene != "void") if shadows is None else bool(shadows)
 
 
 class ArmObs(NamedTuple):
@@ -268,6 +271,7 @@ class MujocoPlant:
         camera_priority: SCHED_FIFO priority of the camera process (0: normal scheduling).
         camera_nice: nice value of the camera process.
         camera_msaa: the renderer's multisample anti-aliasing (None: the scene's).
+        camera_shadows: the lights cast shadows (None: the scene's; the lab's do).
     """
 
     def __init__(
@@ -279,6 +283,7 @@ class MujocoPlant:
         camera_priority: int = 0,
         camera_nice: int = 0,
         camera_msaa: int | None = None,
+        camera_shadows: bool | None = None,
     ):
         self.task = task
         self.m = plant_model(task)
@@ -300,10 +305,12 @@ class MujocoPlant:
         self.frames: FrameRing | None = None
         self.calibration: Images | None = None
         if camera is not None:
-            self._start_camera(camera, camera_priority, camera_nice, camera_msaa)
+            self._start_camera(camera, camera_priority, camera_nice, camera_msaa, camera_shadows)
 
     # -- camera process ------------------------------------------------------------------------
-    def _start_camera(self, cam: CameraConfig, priority: int, nice: int, msaa) -> None:
+    def _start_camera(
+        self, cam: CameraConfig, priority: int, nice: int, msaa, shadows: bool | None
+    ) -> None:
         from hec_jax.realtime import workers
 
         meta = {
@@ -330,6 +337,7 @@ class MujocoPlant:
                     priority=priority,
                     nice=nice,
                     msaa=msaa,
+                    shadows=shadows,
                 ),
                 daemon=True,
                 name="hec-camera",

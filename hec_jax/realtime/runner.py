@@ -762,7 +762,14 @@ def run_realtime(
     nice = rt.child_nice if rt.timed else 0
     control_cpus = None
     with MujocoPlant(
-        task, loop.q_home, cam, True, rt.camera_priority, nice, rt.camera_msaa
+        task,
+        loop.q_home,
+        cam,
+        True,
+        rt.camera_priority,
+        nice,
+        rt.camera_msaa,
+        rt.camera_shadows,
     ) as plant:
         try:
             if cam is not None:

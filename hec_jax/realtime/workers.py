@@ -62,6 +62,7 @@ def camera_main(
     priority=0,
     nice=0,
     msaa=None,
+    shadows=None,
 ):
     """The camera process: calibration shots, then frames on the plant's clock until ``stop``.
 
@@ -79,6 +80,7 @@ def camera_main(
         priority: SCHED_FIFO priority once the calibration shots are taken (0: none).
         nice: the process's nice value (threads started later inherit it).
         msaa: multisample anti-aliasing samples (None: the model's).
+        shadows: the lights cast shadows (None: the scene's, :func:`~.plant.camera_model`).
     """
     rows: list[dict] = []
     try:
@@ -88,7 +90,7 @@ def camera_main(
         from hec_jax.realtime.clock import monotonic_s
         from hec_jax.realtime.plant import camera_model
 
-        m, shadows = camera_model(task, cam)  # the void: the plant's model; the lab around it
+        m, shadows = camera_model(task, cam, shadows)  # void: the plant's model; lab: around it
         if msaa is not None:
             m.vis.quality.offsamples = msaa
         ids = scene_ids(m)
