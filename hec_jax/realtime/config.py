@@ -31,7 +31,7 @@ class RealtimeConfig:
     rt_priority: int = 0
     # [us] the CPUs' wake-up latency asked of the kernel while the loop runs (Linux PM QoS,
     # /dev/cpu_dma_latency; root): 0 makes idle CPUs poll instead of halting, as cyclictest
-    # does. On the 2-core KVM guest this took the missed deadlines from 0.4-0.6% to 0-0.04%
+    # does. On the 2-core KVM guest this took the missed deadlines from 0.35-1.0% to 0.01-0.05%
     # (docs/realtime.md, "Idle CPUs that poll"). None: nothing asked (the machine's setting)
     cpu_latency_us: int | None = None
     # SCHED_FIFO priority of the camera process once ready (below rt_priority); 0: normal
