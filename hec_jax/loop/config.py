@@ -273,6 +273,10 @@ class CameraConfig:
     # the object is extrapolated from the last touch (``object_state.TouchMemory``) until the
     # first post-guard estimate can have arrived, plus the coasting allowance.
     touch_guard_frames: float = 2.0
+    # Multisample anti-aliasing of the rendered frames (MuJoCo's ``offsamples``); None: the
+    # scene's (4). 0 is what the real-time camera renders on a software renderer
+    # (``RealtimeConfig.camera_msaa``); set it here to render the simulated loop alike.
+    msaa: int | None = None
     # The eye's box tracker; None: the scene's (:func:`scene_tracker`, read through
     # :attr:`tracker`, which is what runs and what the run folder records)
     track: Annotated[TrackConfig | None, tyro.conf.Suppress] = None
@@ -325,6 +329,8 @@ class CameraConfig:
             raise ValueError(
                 f"max_coast_frames must be an integer >= 0, got {self.max_coast_frames}"
             )
+        if self.msaa is not None and not (isinstance(self.msaa, int) and 0 <= self.msaa <= 16):
+            raise ValueError(f"--msaa: must be None or an integer in 0..16, got {self.msaa!r}")
         applied = self.applied_defects
         if not applied.jitter_s < 0.5 / self.fps:
             raise ValueError(

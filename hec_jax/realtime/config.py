@@ -53,6 +53,13 @@ class RealtimeConfig:
     # 2-core CPU it turned most of the eye's 0.3-0.8 s searches into 64-101 ms recoveries
     # (docs/realtime.md); 0: the search from scratch only, as the simulated task runs
     eye_local_starts: int = 12
+    # the eye's manoeuvre restart (``TrackConfig.maneuver_nis`` of the scene's tracker: a fit far
+    # outside the filter's prediction restarts its velocity from that one fit), for the run and
+    # its twin alike. Off by default: on frames without anti-aliasing the held cube's fit at
+    # times flips to a tilted twin for a frame or two; the restart took the flip's jump for an
+    # impact, the prediction ran away and the eye lost the cube (docs/realtime.md, "The eye's
+    # CPU and the held cube"). True: the scene's tracker's restart
+    eye_maneuver_restart: bool = False
     # multisample anti-aliasing of the rendered camera (MuJoCo's offsamples); None: the scene's
     # (4, as the simulated camera loop). 0 makes software rendering about 3x cheaper (13 -> 4 ms
     # at 320x240) at the price of aliased edges: a real camera costs the computer nothing, the

@@ -338,6 +338,7 @@ class MujocoPlant:
                     nice=nice,
                     msaa=msaa,
                     shadows=shadows,
+                    dt=self.dt,
                 ),
                 daemon=True,
                 name="hec-camera",

@@ -200,6 +200,9 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
             "eye_ms": percentiles(eye_log["eye_ms"][eye_log["number"] > 0]),
             "acquisition_ms": percentiles(eye_log["eye_ms"][eye_log["number"] == 0]),
         }
+        for stage in ("mask_ms", "detection_ms", "estimation_ms"):  # logs since session 20
+            if stage in eye_log:
+                out["eye"][stage] = percentiles(eye_log[stage][eye_log["number"] > 0])
         if camera_log:
             # accuracy of the eye at its frames against the rendered truth
             truth = dict(zip(camera_log["index"].tolist(), camera_log["x_true"], strict=True))
@@ -325,6 +328,16 @@ def deadline_table(report: dict) -> list[str]:
                 ),
                 ("eye p50 / p99 / max [ms]", ms(e["eye_ms"])),
             ]
+            if "mask_ms" in e:
+                rows.append(
+                    (
+                        "... of which p50: mask / detection / estimation [ms]",
+                        " / ".join(
+                            "-" if e[k]["p50"] is None else f"{e[k]['p50']:.1f}"
+                            for k in ("mask_ms", "detection_ms", "estimation_ms")
+                        ),
+                    )
+                )
     return markdown_table(["quantity", "value"], rows)
 
 

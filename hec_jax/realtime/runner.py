@@ -578,6 +578,8 @@ class EyeProcess:
         priority: SCHED_FIFO priority once ready (0: normal scheduling).
         nice: the eye process's nice value.
         skip_unseen: the tracker predicts over frame times it never saw (``BoxTracker.skip``).
+        gc_off: no Python garbage collection while an episode runs (collected at each release
+            frame, which the loop waits for anyway).
     """
 
     def __init__(
@@ -590,6 +592,7 @@ class EyeProcess:
         priority: int = 0,
         nice: int = 0,
         skip_unseen: bool = True,
+        gc_off: bool = False,
     ):
         from hec_jax.realtime.plant import _child_env
 
@@ -608,6 +611,7 @@ class EyeProcess:
                     priority=priority,
                     nice=nice,
                     skip_unseen=skip_unseen,
+                    gc_off=gc_off,
                 ),
                 daemon=True,
                 name="hec-eye",
@@ -683,16 +687,17 @@ class RealtimeResult:
 
 def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> ExperimentConfig:
     """``exp`` as the real-time loop runs it: one seed; swings from ``rt.duration_s``; the
-    camera's tracker with ``rt.eye_local_starts`` (the simulated twin runs the same).
+    camera's tracker with ``rt.eye_local_starts`` and without its manoeuvre restart unless
+    ``rt.eye_maneuver_restart`` (the simulated twin runs the same).
     """
     task = exp.task
     if rt.duration_s is not None:
         swings = max(int(math.ceil(rt.duration_s / task.swing_s - 1e-9)), 1)
         task = dataclasses.replace(task, swings=swings)
-    cam = exp.camera
-    cam = dataclasses.replace(
-        cam, track=dataclasses.replace(cam.tracker, local_starts=rt.eye_local_starts)
-    )
+    track = dataclasses.replace(exp.camera.tracker, local_starts=rt.eye_local_starts)
+    if not rt.eye_maneuver_restart:
+        track = dataclasses.replace(track, maneuver_nis=None)
+    cam = dataclasses.replace(exp.camera, track=track)
     return dataclasses.replace(exp, task=task, seeds=1, camera=cam)
 
 
@@ -783,6 +788,7 @@ def run_realtime(
                     rt.eye_priority,
                     nice,
                     rt.eye_skips_unseen,
+                    rt.gc_off and rt.timed,
                 )
                 eye.wait_ready(rt.startup_timeout_s)
             children: dict = {}

@@ -16,6 +16,7 @@ Each process keeps a per-frame log and puts it on its queue when told to stop.
 
 from __future__ import annotations
 
+import gc
 import os
 import time
 import traceback
@@ -63,6 +64,7 @@ def camera_main(
     nice=0,
     msaa=None,
     shadows=None,
+    dt=1e-3,
 ):
     """The camera process: calibration shots, then frames on the plant's clock until ``stop``.
 
@@ -81,6 +83,8 @@ def camera_main(
         nice: the process's nice value (threads started later inherit it).
         msaa: multisample anti-aliasing samples (None: the model's).
         shadows: the lights cast shadows (None: the scene's, :func:`~.plant.camera_model`).
+        dt: [s] the plant's time step (the camera sleeps until two steps before a frame is
+            due, then polls every ``_POLL_S``).
     """
     rows: list[dict] = []
     try:
@@ -114,7 +118,10 @@ def camera_main(
                 episode, number = int(rec["episode"]), 0
             step = int(rec["step"])
             if step < number * period:
-                time.sleep(_POLL_S)
+                # asleep until two steps before the frame is due: polling every _POLL_S here woke
+                # this real-time process about once a step, each time preempting the eye on its
+                # CPU (docs/realtime.md, "The eye's CPU and the held cube")
+                time.sleep(max(_POLL_S, (number * period - step - 2) * dt))
                 continue
             t0 = monotonic_s()
             image = camera.render(rec["qpos"])
@@ -199,6 +206,7 @@ def eye_main(
     priority=0,
     nice=0,
     skip_unseen=True,
+    gc_off=False,
 ):
     """The eye process: the tracker compiled on the release frame, then the newest frames.
 
@@ -218,6 +226,8 @@ def eye_main(
         nice: the process's nice value (threads started later inherit it).
         skip_unseen: tell the tracker the frame times it never saw before each frame
             (``BoxTracker.skip``); False: each frame is taken as 1 / fps after the last seen.
+        gc_off: Python's garbage collector off while an episode runs, run at each release
+            frame instead (a collection in mid-swing delays that frame's estimate).
     """
     rows: list[dict] = []
     try:
@@ -271,6 +281,10 @@ def eye_main(
             dropped += lost
             last = frame.index
             if frame.episode != episode:  # a new release: a new throw for the tracker
+                if gc_off:  # between throws: the loop waits for the release frame's answer
+                    gc.enable()
+                    gc.collect()
+                    gc.disable()
                 tracker.reset()
                 episode, misses, published = frame.episode, 0, False
                 # the tracker's frame 0 is the release frame (number 0), whatever came first
@@ -282,7 +296,9 @@ def eye_main(
             # tracker's filter predicts over them, so this frame is taken at its own time
             if skip_unseen:
                 tracker.skip(max(gap, 0))
-            st = tracker.update(masked(frame.image, frame.q_arm, tracker))
+            image = masked(frame.image, frame.q_arm, tracker)
+            t_masked = monotonic_s()
+            st = tracker.update(image)
             misses = 0 if st.valid else misses + 1
             x = xd = xdd = np.full(2, np.nan)
             if st.initialised:
@@ -321,12 +337,17 @@ def eye_main(
                     t_wall_start=t0,
                     t_wall_done=t1,
                     eye_ms=1e3 * (t1 - t0),
+                    # the eye's stages: the robot's mask, then the tracker's own split
+                    mask_ms=1e3 * (t_masked - t0),
+                    detection_ms=st.timing_ms["detection_ms"],
+                    estimation_ms=st.timing_ms["estimation_ms"],
                     valid=bool(st.valid),
                     initialised=bool(st.initialised),
                     x_est=x,
                     xd_est=xd,
                 )
             )
+        gc.enable()
         out = _stack(rows)
         out["dropped"] = dropped
         log_queue.put(out)

@@ -1,0 +1,174 @@
+"""Ablation of the loop's box tracker on the real-time camera's frames, in simulated time.
+
+The real-time camera on a software renderer draws the void without multisampling
+(``--camera-msaa 0``); there the eye lost the held cube in 2-3 of 20 episodes (docs/realtime.md,
+"The eye's CPU and the held cube"). This runs the simulated camera loop (``loop.run_camera``)
+of the real-time preset (``realtime_experiment``: one seed, the swings of ``--duration-s``, the
+scene's tracker with the real-time ``eye_local_starts``) on frames rendered as the real-time camera renders
+them (``CameraConfig.msaa``), once per tracker variant (``VARIANTS``: fields of the loop's
+tracker replaced), and tabulates what the eye did (frames valid, swings with a loss, the
+longest run of invalid frames) beside the task's metrics and, for reference, the same task
+with the simulator's object state (``--eye truth``, no camera).
+
+Deterministic: same seed, same frames, same numbers (CPU).
+
+    python benchmarks/eye_loop_ablation.py --task catching --out runs/eye_loop_ablation_catching
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import jax
+import numpy as np
+
+from hec_jax.cli import command, parse
+from hec_jax.loop.camera_loop import run_camera
+from hec_jax.loop.config import PRESETS, CameraConfig
+from hec_jax.loop.episodes import make_episodes
+from hec_jax.loop.experiment import condition_metrics
+from hec_jax.loop.policy import build_loop, switches
+from hec_jax.realtime.config import RealtimeConfig
+from hec_jax.realtime.runner import realtime_experiment
+from hec_jax.runs import run_folder, write_json, write_text
+
+VARIANTS = {  # name: fields of the loop's tracker (with the real-time local starts) replaced
+    "loop tracker (manoeuvre restart at NIS 16.3)": {},
+    "no manoeuvre restart": {"maneuver_nis": None},
+    "inner-edge check 0.05": {"min_inner_support": 0.05},
+}
+
+# the task metrics tabulated (catching: last swing; hitting: the continuous run)
+METRICS = {
+    "catching": ("peak_force", "settle_force"),
+    "hitting": ("hits", "periodic_hits", "peak_force"),
+}
+
+
+@dataclass(frozen=True)
+class LoopAblation:
+    """Which task, how long, how the frames are rendered, and where to write."""
+
+    task: Literal["catching", "hitting"] = "catching"
+    out: Path = Path("runs/eye_loop_ablation")  # run folder
+    overwrite: bool = False  # replace an existing non-empty out
+    duration_s: float = 60.0  # [s] as the real-time run (its number of swings)
+    msaa: int = 0  # multisample anti-aliasing of the frames (0: as the real-time camera)
+    width: int = 640  # [px]
+    height: int = 480  # [px]
+    variants: tuple[str, ...] = tuple(VARIANTS)  # names of VARIANTS to run
+
+    def __post_init__(self):
+        unknown = [v for v in self.variants if v not in VARIANTS]
+        if unknown:
+            raise ValueError(f"--variants: unknown {unknown}; known: {list(VARIANTS)}")
+
+
+def _scalar(metrics: dict, key: str):
+    """A metric's value for one seed (a ``{"mean": ...}`` summary or a number)."""
+    v = metrics.get(key)
+    if isinstance(v, dict):
+        v = v.get("mean")
+    return None if v is None else float(v)
+
+
+def eye_summary(eye: dict, lost_after: int) -> dict:
+    """What the eye did over the run (seed 0): valid fraction, swings with a run of at least
+    ``lost_after`` invalid frames after the first valid one (a loss), the longest such run.
+    """
+    valid = np.asarray(eye["valid"])[0]  # (swings, frames)
+    longest, lost = [], 0
+    for row in valid:
+        seen = np.flatnonzero(row)
+        run = best = 0
+        for v in row[seen[0] :] if len(seen) else row:
+            run = 0 if v else run + 1
+            best = max(best, run)
+        longest.append(best)
+        lost += int(best >= lost_after)
+    err = np.linalg.norm(np.asarray(eye["x_est"])[0] - np.asarray(eye["x_true"])[0], axis=-1)
+    err = err[valid & np.isfinite(err)]
+    return {
+        # [mm] task-plane centre of the valid frames against the simulator's
+        "position_error_mm_p50": float(1e3 * np.median(err)) if err.size else None,
+        "position_error_mm_max": float(1e3 * err.max()) if err.size else None,
+        "frames": int(valid.size),
+        "frames_valid_fraction": float(valid.mean()),
+        "swings": int(valid.shape[0]),
+        "swings_fully_valid": int(np.all(valid, axis=1).sum()),
+        "swings_with_a_loss": lost,
+        "longest_invalid_run_frames": int(max(longest)),
+        "eye_ms_p50": float(np.median(np.asarray(eye["eye_ms"]))),
+    }
+
+
+@command
+def main(argv=None) -> dict:
+    """Runs the ablation (flags: ``--help``); returns its results."""
+    a = parse(LoopAblation(), argv, __doc__)
+    jax.config.update("jax_enable_x64", True)
+    cam = CameraConfig.void_perfect(width=a.width, height=a.height, msaa=a.msaa)
+    exp = realtime_experiment(
+        PRESETS[a.task](camera=cam, eye="camera"),
+        RealtimeConfig(duration_s=a.duration_s, eye_maneuver_restart=True),  # the loop's tracker
+    )
+    loop = build_loop(exp.task)
+    conditions = exp.task.pendulum.conditions()
+    keys = jax.random.split(jax.random.PRNGKey(exp.seed), 1)
+    settings = dataclasses.asdict(a) | {"variants_fields": {v: VARIANTS[v] for v in a.variants}}
+    with run_folder(a.out, exp.seed, settings, a.overwrite) as folder:
+        logs = make_episodes(loop)(keys, switches("learned"), conditions)
+        truth = condition_metrics(loop, jax.tree_util.tree_map(np.asarray, logs), "learned")
+        results = {"truth": {"metrics": truth}}
+        for name in a.variants:
+            track = dataclasses.replace(exp.camera.tracker, **VARIANTS[name])
+            c = dataclasses.replace(exp.camera, track=track)
+            t0 = time.perf_counter()
+            logs, eye, _ = run_camera(loop, conditions, keys, "learned", c, progress=False)
+            results[name] = {
+                "metrics": condition_metrics(loop, logs, "learned"),
+                "eye": eye_summary(eye, track.lost_after),
+                "wall_s": time.perf_counter() - t0,
+            }
+            print(name, results[name]["eye"], flush=True)
+        write_json(folder / "results.json", results)
+        write_text(folder / "table.md", "\n".join(table(results, a.task)) + "\n")
+    print("\n".join(table(results, a.task)))
+    return results
+
+
+def table(results: dict, task: str) -> list[str]:
+    """Markdown rows: the eye's record and the task's metrics per variant."""
+    keys = METRICS[task]
+    head = ["variant", "frames valid", "swings fully valid", "swings with a loss"]
+    head += ["longest invalid run [frames]", "error p50 / max [mm]", *keys]
+    rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for name, r in results.items():
+        e = r.get("eye")
+        cells = [name]
+        cells += (
+            [
+                f"{100 * e['frames_valid_fraction']:.2f}%",
+                f"{e['swings_fully_valid']} / {e['swings']}",
+                str(e["swings_with_a_loss"]),
+                str(e["longest_invalid_run_frames"]),
+                "-"
+                if e.get("position_error_mm_p50") is None
+                else f"{e['position_error_mm_p50']:.1f} / {e['position_error_mm_max']:.1f}",
+            ]
+            if e
+            else ["-"] * 5
+        )
+        for k in keys:
+            v = _scalar(r["metrics"], k)
+            cells.append("-" if v is None else f"{v:.4g}")
+        rows.append("| " + " | ".join(cells) + " |")
+    return rows
+
+
+if __name__ == "__main__":
+    main()
