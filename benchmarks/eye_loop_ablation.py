@@ -26,7 +26,7 @@ from typing import Literal
 import jax
 import numpy as np
 
-from hec_jax.cli import command, parse
+from hec_jax.cli import command, parse, require
 from hec_jax.loop.camera_loop import run_camera
 from hec_jax.loop.config import PRESETS, CameraConfig
 from hec_jax.loop.episodes import make_episodes
@@ -61,8 +61,10 @@ class LoopAblation:
     width: int = 640  # [px]
     height: int = 480  # [px]
     variants: tuple[str, ...] = tuple(VARIANTS)  # names of VARIANTS to run
+    seed: int = 0  # the networks' initialisation (the preset's, 0, is the real-time runs')
 
     def __post_init__(self):
+        require(self, "seed", "seed")
         unknown = [v for v in self.variants if v not in VARIANTS]
         if unknown:
             raise ValueError(f"--variants: unknown {unknown}; known: {list(VARIANTS)}")
@@ -113,7 +115,7 @@ def main(argv=None) -> dict:
     jax.config.update("jax_enable_x64", True)
     cam = CameraConfig.void_perfect(width=a.width, height=a.height, msaa=a.msaa)
     exp = realtime_experiment(
-        PRESETS[a.task](camera=cam, eye="camera"),
+        PRESETS[a.task](camera=cam, eye="camera", seed=a.seed),
         RealtimeConfig(duration_s=a.duration_s, eye_maneuver_restart=True),  # the loop's tracker
     )
     loop = build_loop(exp.task)
