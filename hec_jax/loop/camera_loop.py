@@ -286,13 +286,13 @@ def mask_robot(
     arm = robot_mask(frame.shape, camera, rest, margin, intrinsics)
     if keep is not None:
         arm[keep] = 0
-    # black where the mask is set (OpenCV's masked AND: 4x NumPy's boolean assignment)
+    # black where the mask is set (OpenCV's masked AND; NumPy's boolean assignment is slower)
     out = cv2.bitwise_and(frame, frame, mask=cv2.bitwise_not(arm))
     if len(inpaint_geoms):
         hand = robot_mask(frame.shape, camera, inpaint_geoms, margin, intrinsics)
         if keep is not None:
             hand[keep] = 0
-        bx, by, bw, bh = cv2.boundingRect(hand)  # of the nonzero pixels (20x np.nonzero)
+        bx, by, bw, bh = cv2.boundingRect(hand)  # of the nonzero pixels
         if bw > 0:
             h, w = hand.shape
             y0, y1 = max(by - 8, 0), min(by + bh + 8, h)
