@@ -121,7 +121,8 @@ def main(argv=None) -> dict:
     loop = build_loop(exp.task)
     conditions = exp.task.pendulum.conditions()
     keys = jax.random.split(jax.random.PRNGKey(exp.seed), 1)
-    settings = dataclasses.asdict(a) | {"variants_fields": {v: VARIANTS[v] for v in a.variants}}
+    settings = {k: v for k, v in dataclasses.asdict(a).items() if k != "seed"}  # the folder's
+    settings |= {"variants_fields": {v: VARIANTS[v] for v in a.variants}}
     with run_folder(a.out, exp.seed, settings, a.overwrite) as folder:
         logs = make_episodes(loop)(keys, switches("learned"), conditions)
         truth = condition_metrics(loop, jax.tree_util.tree_map(np.asarray, logs), "learned")
