@@ -29,11 +29,10 @@ import numpy as np
 from hec_jax.cli import command, parse, require
 from hec_jax.loop.camera_loop import run_camera
 from hec_jax.loop.config import PRESETS, CameraConfig
-from hec_jax.loop.episodes import make_episodes
 from hec_jax.loop.experiment import condition_metrics
-from hec_jax.loop.policy import build_loop, switches
+from hec_jax.loop.policy import build_loop
 from hec_jax.realtime.config import RealtimeConfig
-from hec_jax.realtime.runner import realtime_experiment
+from hec_jax.realtime.runner import realtime_experiment, simulated_twins
 from hec_jax.runs import run_folder, write_json, write_text
 
 VARIANTS = {  # name: fields of the loop's tracker (with the real-time local starts) replaced
@@ -79,7 +78,7 @@ def _scalar(metrics: dict, key: str):
 
 
 def eye_summary(eye: dict, lost_after: int) -> dict:
-    """What the eye did over the run (seed 0): valid fraction, swings with a run of at least
+    """What the eye did over the run (its one network initialisation): valid fraction, swings with a run of at least
     ``lost_after`` invalid frames after the first valid one (a loss), the longest such run.
     """
     valid = np.asarray(eye["valid"])[0]  # (swings, frames)
@@ -124,9 +123,8 @@ def main(argv=None) -> dict:
     settings = {k: v for k, v in dataclasses.asdict(a).items() if k != "seed"}  # the folder's
     settings |= {"variants_fields": {v: VARIANTS[v] for v in a.variants}}
     with run_folder(a.out, exp.seed, settings, a.overwrite) as folder:
-        logs = make_episodes(loop)(keys, switches("learned"), conditions)
-        truth = condition_metrics(loop, jax.tree_util.tree_map(np.asarray, logs), "learned")
-        results = {"truth": {"metrics": truth}}
+        truth = simulated_twins(exp, loop, "learned", "truth", progress=False)["truth"]
+        results = {"truth": {"metrics": truth["metrics"]}}
         for name in a.variants:
             track = dataclasses.replace(exp.camera.tracker, **VARIANTS[name])
             c = dataclasses.replace(exp.camera, track=track)
