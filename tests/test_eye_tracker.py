@@ -122,12 +122,19 @@ def test_skip_rejects_bad_counts(seq):
     assert tracker.frame == 0 and not tracker.predict(0.0).initialised
 
 
+def _offset_prediction(tracker, dx_m):
+    """Move the tracker's prediction ``dx_m`` [m] along camera x (as after an unmodelled push)."""
+    mean = np.array(tracker._predicted.mean)
+    mean[0] += dx_m
+    tracker._predicted = kf.FilterState(mean, tracker._predicted.cov)
+
+
 def test_local_search_reacquires_without_a_search_from_scratch(seq):
     # the filter's prediction 6 cm off the cube (as after an unmodelled push): the tracked fit
     # fails; with local_starts the search around the prediction and the last fit finds the cube
     # again (measured 3.4 mm, ~10 ms), without it the search from scratch runs (~0.25 s)
     bg = background_model(seq.frames)
-    for starts in (12, 0):
+    for starts in (12, 1, 0):
         tracker = BoxTracker(
             seq.intrinsics, EDGE, FPS, TrackConfig(local_starts=starts), background=bg
         )
@@ -136,13 +143,43 @@ def test_local_search_reacquires_without_a_search_from_scratch(seq):
         searched = []
         acquire = tracker._acquire
         tracker._acquire = lambda *a, _f=acquire, _s=searched: _s.append(1) or _f(*a)
-        mean = np.array(tracker._predicted.mean)
-        mean[0] += 0.06
-        tracker._predicted = kf.FilterState(mean, tracker._predicted.cov)
+        _offset_prediction(tracker, 0.06)
         st = tracker.update(seq.frames[10])
         assert st.valid
         assert np.linalg.norm(st.measured_position - seq.position[10]) < 0.005
         assert searched == ([] if starts else [1]), starts
+
+
+def test_local_search_runs_its_turned_starts_only_when_the_predicted_rotation_fails(seq):
+    # the local search's two stages: the predicted rotation at both centres, then its turns;
+    # a passing first stage ends the search, a failing one (forced here) hands on to the turns
+    bg = background_model(seq.frames)
+    for force_first_to_fail in (False, True):
+        tracker = BoxTracker(seq.intrinsics, EDGE, FPS, TrackConfig(local_starts=6), background=bg)
+        for f in seq.frames[:10]:
+            tracker.update(f)
+        first, rest = tracker._local
+        calls = []
+
+        def first_stage(*a, _f=first, _c=calls, _fail=force_first_to_fail):
+            _c.append("first")
+            loc = _f(*a)
+            return loc._replace(valid=loc.valid & (not _fail))
+
+        def rest_stage(*a, _f=rest, _c=calls):
+            _c.append("rest")
+            return _f(*a)
+
+        tracker._local = (first_stage, rest_stage)
+        acquire = tracker._acquire
+        tracker._acquire = lambda *a, _f=acquire, _c=calls: _c.append("scratch") or _f(*a)
+        _offset_prediction(tracker, 0.06)
+        st = tracker.update(seq.frames[10])
+        assert calls == (["first", "rest"] if force_first_to_fail else ["first"])
+        assert st.valid
+        assert np.linalg.norm(st.measured_position - seq.position[10]) < 0.005
+    one = BoxTracker(seq.intrinsics, EDGE, FPS, TrackConfig(local_starts=1), background=bg)
+    assert one._local[1] is None  # no turns: the first stage only
 
 
 def _difference_numpy(image, background, shadow_ratio=(0.25, 0.92), shadow_tol=0.08):

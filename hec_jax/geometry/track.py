@@ -145,7 +145,8 @@ class TrackConfig:
             predicted one and random turns of up to ``local_spread_deg`` about it, each at the
             predicted centre and at the last fitted one) before the search from scratch; the
             search from scratch tries ``init_starts`` rotations on every moving blob (about
-            0.2 s on one core), this one 2 x ``local_starts`` on one window. 0: off (the search
+            0.2 s on one core), this one 2 x ``local_starts`` on one window, the predicted
+            rotation's 2 first (they end the search if their fit passes). 0: off (the search
             from scratch only, as before). Its fit must pass the same gates and checks.
         min_region_fraction: the search from scratch skips moving blobs smaller than this fraction
             of the largest (cost; 0: none skipped). 0.25 in ``benchmarks/eye_randomized.py``; not
@@ -511,6 +512,10 @@ def _inner_support(rotation, translation, size, edges_px, usable, ids, cfg: Trac
 
 
 def _make_local_search(cfg: TrackConfig):
+    """The local search's two stages (:meth:`BoxTracker._reacquire_locally`): jitted
+    ``(first, rest)``, ``first`` the predicted rotation at each centre, ``rest`` the
+    ``local_starts - 1`` random turns of it (None when there are none).
+    """
     n = max(cfg.local_starts - 1, 0)
     rng = np.random.default_rng(cfg.seed + 1)
     axis = rng.normal(size=(n, 3))
@@ -519,23 +524,26 @@ def _make_local_search(cfg: TrackConfig):
     turns = [np.eye(3)] + [cv2.Rodrigues(w.reshape(3, 1))[0] for w in axis * angle]
     turns = jnp.asarray(np.stack(turns))
 
-    def local(rotation, centres, segments, mask, size, intrinsics):
-        """Multi-start search around a predicted pose: (K,) turns of ``rotation`` [R_cam_box] x
-        the (C, 3) ``centres`` [m]; gates as the search from scratch, from the box's image size
-        at the first centre's depth.
-        """
-        edge_px = intrinsics[0, 0] * size / centres[0, 2]
-        gates = _search_gates(cfg, edge_px, segments.dtype)
-        k, c = turns.shape[0], centres.shape[0]
-        rots = jnp.tile((turns @ rotation).astype(segments.dtype), (c, 1, 1))
-        trans = jnp.repeat(centres.astype(segments.dtype), k, axis=0)
+    def make(turns):
+        def local(rotation, centres, segments, mask, size, intrinsics):
+            """Multi-start search around a predicted pose: (K,) turns of ``rotation``
+            [R_cam_box] x the (C, 3) ``centres`` [m]; gates as the search from scratch, from
+            the box's image size at the first centre's depth.
+            """
+            edge_px = intrinsics[0, 0] * size / centres[0, 2]
+            gates = _search_gates(cfg, edge_px, segments.dtype)
+            k, c = turns.shape[0], centres.shape[0]
+            rots = jnp.tile((turns @ rotation).astype(segments.dtype), (c, 1, 1))
+            trans = jnp.repeat(centres.astype(segments.dtype), k, axis=0)
 
-        def one(r, t):
-            return locate(Pose(r, t), segments, mask, size, intrinsics, gates, cfg)
+            def one(r, t):
+                return locate(Pose(r, t), segments, mask, size, intrinsics, gates, cfg)
 
-        return _best_start(jax.vmap(one)(rots, trans))
+            return _best_start(jax.vmap(one)(rots, trans))
 
-    return jax.jit(local)
+        return jax.jit(local)
+
+    return make(turns[:1]), (make(turns[1:]) if n else None)
 
 
 def _search_gates(cfg: TrackConfig, edge_px, dtype):
@@ -907,7 +915,9 @@ class BoxTracker:
         for _ in range(3):
             self.update(frame)
         if self.config.local_starts > 0 and self._started and self._rot_prev is not None:
-            self._reacquire_locally(detect.to_gray(_check_frame(frame)), self._rot_prev, bool)
+            gray = detect.to_gray(_check_frame(frame))
+            for stage in (0, 1):  # each stage on its own: the first may pass
+                self._reacquire_locally(gray, self._rot_prev, bool, (stage,))
         self.reset()
 
     def skip(self, frames: int) -> None:
@@ -998,10 +1008,19 @@ class BoxTracker:
             rot = snap_to_symmetry(rot, self._rot_anchor)
         return (rot, np.asarray(cand.pose.translation)), segp_c, mask_c
 
-    def _reacquire_locally(self, gray, rotation, gated) -> Finished | None:
+    def _reacquire_locally(
+        self, gray, rotation, gated, stages: tuple[int, ...] = (0, 1)
+    ) -> Finished | None:
         """The local search (``config.local_starts``) around ``rotation`` [R_cam_box] at the
         filter's predicted centre and the last fitted one; its refined fit if it passes
         ``gated``, else None.
+
+        In two stages, each refined and gated before the next: first the predicted rotation
+        itself at both centres (the coarse-to-fine gates of the search from scratch, from the
+        tracked fit's own prior: on the real-time camera's frames this alone recovered every
+        failed tracked fit of the held cube, in about a fifth of the 2 x 12 starts' time,
+        docs/realtime.md), then its ``local_starts - 1`` random turns. ``stages``: which of the
+        two to run (:meth:`warm_up` compiles each).
         """
         cfg, k = self.config, self.intrinsics
         centres = [np.asarray(self._predicted.mean[:3], np.float64)]
@@ -1012,16 +1031,22 @@ class BoxTracker:
         segp, mask = detect.pad_segments(seg, cfg.max_segments)
         if not mask.any():
             return None
-        loc = jax.device_get(
-            self._local(np.asarray(rotation), centres, segp, mask, np.float64(self.size), k)
-        )
-        if not bool(loc.valid):
-            return None
-        rot = np.asarray(loc.pose.rotation)
-        if self._rot_anchor is not None:
-            rot = snap_to_symmetry(rot, self._rot_anchor)
-        fin = self._fit((rot, np.asarray(loc.pose.translation)), segp, mask, gray, False)
-        return fin if gated(fin) else None
+        for stage in stages:
+            search = self._local[stage]
+            if search is None:
+                continue
+            loc = jax.device_get(
+                search(np.asarray(rotation), centres, segp, mask, np.float64(self.size), k)
+            )
+            if not bool(loc.valid):
+                continue
+            rot = np.asarray(loc.pose.rotation)
+            if self._rot_anchor is not None:
+                rot = snap_to_symmetry(rot, self._rot_anchor)
+            fin = self._fit((rot, np.asarray(loc.pose.translation)), segp, mask, gray, False)
+            if gated(fin):
+                return fin
+        return None
 
     def _difference_pair(self, gray) -> tuple[np.ndarray, np.ndarray | None]:
         """(image, background) whose difference finds the moving things: the RGB frame and
