@@ -138,16 +138,18 @@ def test_local_search_reacquires_without_a_search_from_scratch(seq):
         tracker = BoxTracker(
             seq.intrinsics, EDGE, FPS, TrackConfig(local_starts=starts), background=bg
         )
-        for f in seq.frames[:10]:
+        for f in seq.frames[:9]:
             tracker.update(f)
         searched = []
         acquire = tracker._acquire
         tracker._acquire = lambda *a, _f=acquire, _s=searched: _s.append(1) or _f(*a)
+        assert tracker.update(seq.frames[9]).fit_source == "tracked"
         _offset_prediction(tracker, 0.06)
         st = tracker.update(seq.frames[10])
         assert st.valid
         assert np.linalg.norm(st.measured_position - seq.position[10]) < 0.005
         assert searched == ([] if starts else [1]), starts
+        assert st.fit_source == ("local" if starts else "search")
 
 
 def test_local_search_runs_its_turned_starts_only_when_the_predicted_rotation_fails(seq):
@@ -177,6 +179,7 @@ def test_local_search_runs_its_turned_starts_only_when_the_predicted_rotation_fa
         st = tracker.update(seq.frames[10])
         assert calls == (["first", "rest"] if force_first_to_fail else ["first"])
         assert st.valid
+        assert st.fit_source == ("local_turned" if force_first_to_fail else "local")
         assert np.linalg.norm(st.measured_position - seq.position[10]) < 0.005
     one = BoxTracker(seq.intrinsics, EDGE, FPS, TrackConfig(local_starts=1), background=bg)
     assert one._local[1] is None  # no turns: the first stage only

@@ -240,6 +240,11 @@ def test_realtime_camera_run_reports_itself():
     assert np.all(eye_log["mask_ms"] >= 0) and np.all(eye_log["estimation_ms"] > 0)
     assert np.all(stages <= eye_log["eye_ms"] + 1e-6)
     assert set(eye["eye"]) >= {"mask_ms", "detection_ms", "estimation_ms"}
+    # every frame after the release has one source: a hypothesis of the tracker, or invalid
+    by_source = eye["eye"]["fits_by_source"]
+    later = eye_log["number"] > 0
+    assert sum(by_source.values()) == int(later.sum())
+    assert by_source["invalid"] == int(np.sum(~eye_log["valid"][later]))
 
 
 def test_realtime_experiment_sets_the_eyes_tracker():

@@ -764,6 +764,11 @@ class TrackStep(NamedTuple):
         segments: (M, 2, 2) the associated segments (clipped) [px], NaN where unassigned.
         edge_ids: (M,) their model edge ids (-1 where unassigned).
         timing_ms: {"detection_ms", "estimation_ms", "total_ms"} of this frame [ms].
+        fit_source: which hypothesis gave a valid frame's fit (:data:`FIT_SOURCES`): the
+            tracked fit from the prediction ``"tracked"``, the box stopped at its last fit
+            ``"stopped"`` (``stop_hypothesis``), the local search's predicted rotation
+            ``"local"`` or its turns ``"local_turned"`` (``local_starts``), the search from
+            scratch ``"search"``; ``""`` where the frame is not valid.
     """
 
     frame: int
@@ -782,6 +787,11 @@ class TrackStep(NamedTuple):
     segments: np.ndarray
     edge_ids: np.ndarray
     timing_ms: dict
+    fit_source: str = ""
+
+
+# the values of TrackStep.fit_source, in the order the hypotheses are tried ("" : not valid)
+FIT_SOURCES = ("", "tracked", "stopped", "local", "local_turned", "search")
 
 
 class BoxPrediction(NamedTuple):
@@ -1010,10 +1020,10 @@ class BoxTracker:
 
     def _reacquire_locally(
         self, gray, rotation, gated, stages: tuple[int, ...] = (0, 1)
-    ) -> Finished | None:
+    ) -> tuple[Finished | None, int]:
         """The local search (``config.local_starts``) around ``rotation`` [R_cam_box] at the
-        filter's predicted centre and the last fitted one; its refined fit if it passes
-        ``gated``, else None.
+        filter's predicted centre and the last fitted one: its refined fit if it passes
+        ``gated`` and the stage that found it, else (None, -1).
 
         In two stages, each refined and gated before the next: first the predicted rotation
         itself at both centres (the coarse-to-fine gates of the search from scratch, from the
@@ -1030,7 +1040,7 @@ class BoxTracker:
         seg = self._moving_segments(gray, _window(corners, cfg.roi_margin))
         segp, mask = detect.pad_segments(seg, cfg.max_segments)
         if not mask.any():
-            return None
+            return None, -1
         for stage in stages:
             search = self._local[stage]
             if search is None:
@@ -1045,8 +1055,8 @@ class BoxTracker:
                 rot = snap_to_symmetry(rot, self._rot_anchor)
             fin = self._fit((rot, np.asarray(loc.pose.translation)), segp, mask, gray, False)
             if gated(fin):
-                return fin
-        return None
+                return fin, stage
+        return None, -1
 
     def _difference_pair(self, gray) -> tuple[np.ndarray, np.ndarray | None]:
         """(image, background) whose difference finds the moving things: the RGB frame and
@@ -1236,8 +1246,10 @@ class BoxTracker:
                 return False
             return self._confirmed(gray, f.rotation, t_f)
 
+        source = ""  # which hypothesis gave this frame's fit (TrackStep.fit_source)
         if tracking:
             fin = self._fit(prior, segp, mask, gray, not self._started)
+            source = "tracked"
             if (
                 cfg.stop_hypothesis
                 and not gated(fin)
@@ -1253,9 +1265,11 @@ class BoxTracker:
                 )
                 segp, mask = detect.pad_segments(seg, m)
                 fin = self._fit(prior, segp, mask, gray, False)
+                source = "stopped"
         if not gated(fin) and tracking and self._started and cfg.local_starts > 0:
             # the tracked fit failed while the filter runs: search around the prediction first
-            fin = self._reacquire_locally(gray, _rodrigues(omega) @ rot_prev, gated)
+            fin, stage = self._reacquire_locally(gray, _rodrigues(omega) @ rot_prev, gated)
+            source = ("local", "local_turned")[stage] if fin is not None else ""
         if not gated(fin):
             # lost, or the tracked fit failed: search this frame from scratch (near the
             # prediction while the filter runs; anywhere, with a new filter, once lost)
@@ -1266,7 +1280,7 @@ class BoxTracker:
                 first = not (self._started and self._misses < cfg.lost_after)
                 fin2 = self._fit(prior, segp, mask, gray, first)
                 if gated(fin2) and self._confirmed(gray, fin2.rotation, fin2.translation, True):
-                    fin = fin2
+                    fin, source = fin2, "search"
                     if first or not self._started:
                         self._started = False
         ok = fin is not None and bool(fin.valid)
@@ -1329,6 +1343,7 @@ class BoxTracker:
             segments=segs,
             edge_ids=edge_ids,
             timing_ms=timing,
+            fit_source=source if ok else "",
         )
 
 

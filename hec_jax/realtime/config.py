@@ -51,7 +51,9 @@ class RealtimeConfig:
     # this many start rotations before the search from scratch (``TrackConfig.local_starts``);
     # set in the camera's tracker for the real-time run and its simulated twin alike. On the
     # 2-core CPU it turned most of the eye's 0.3-0.8 s searches into 64-101 ms recoveries
-    # (docs/realtime.md); 0: the search from scratch only, as the simulated task runs
+    # (docs/realtime.md); since its first stage (the predicted rotation alone) ends the search
+    # when it passes, the held cube's failed fits cost about 7 ms more instead of about 36.
+    # 0: the search from scratch only, as the simulated task runs
     eye_local_starts: int = 12
     # the eye's manoeuvre restart (``TrackConfig.maneuver_nis`` of the scene's tracker: a fit far
     # outside the filter's prediction restarts its velocity from that one fit), for the run and

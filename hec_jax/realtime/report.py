@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hec_jax.geometry.track import FIT_SOURCES
 from hec_jax.report import markdown_table
 from hec_jax.runs import save_figure, write_json, write_npz
 
@@ -203,6 +204,13 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
         for stage in ("mask_ms", "detection_ms", "estimation_ms"):  # logs since session 20
             if stage in eye_log:
                 out["eye"][stage] = percentiles(eye_log[stage][eye_log["number"] > 0])
+        if "fit_source" in eye_log:  # logs since session 21
+            # which hypothesis gave each frame's fit after the release (a failed tracked fit
+            # recovered within its frame shows as "stopped", "local" or "local_turned")
+            later = eye_log["fit_source"][eye_log["number"] > 0]
+            out["eye"]["fits_by_source"] = {
+                name or "invalid": int(np.sum(later == i)) for i, name in enumerate(FIT_SOURCES)
+            }
         if camera_log:
             # accuracy of the eye at its frames against the rendered truth
             truth = dict(zip(camera_log["index"].tolist(), camera_log["x_true"], strict=True))
@@ -336,6 +344,14 @@ def deadline_table(report: dict) -> list[str]:
                             "-" if e[k]["p50"] is None else f"{e[k]['p50']:.1f}"
                             for k in ("mask_ms", "detection_ms", "estimation_ms")
                         ),
+                    )
+                )
+            if "fits_by_source" in e:
+                by = e["fits_by_source"]
+                rows.append(
+                    (
+                        "eye fits after the release: " + " / ".join(by),
+                        " / ".join(str(v) for v in by.values()),
                     )
                 )
     return markdown_table(["quantity", "value"], rows)

@@ -23,6 +23,7 @@ import traceback
 
 import numpy as np
 
+from hec_jax.geometry.track import FIT_SOURCES
 from hec_jax.realtime.clock import set_scheduling
 
 ESTIMATE_FIELDS = {
@@ -343,6 +344,8 @@ def eye_main(
                     estimation_ms=st.timing_ms["estimation_ms"],
                     valid=bool(st.valid),
                     initialised=bool(st.initialised),
+                    # which of the tracker's hypotheses gave the fit (index into FIT_SOURCES)
+                    fit_source=FIT_SOURCES.index(getattr(st, "fit_source", "")),
                     x_est=x,
                     xd_est=xd,
                 )
