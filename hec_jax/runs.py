@@ -1,9 +1,9 @@
 """Run folders: one folder per experiment or benchmark run, written atomically.
 
-Every run writes ``config.json`` (seed, command line, package versions, device, its own settings),
-then its metrics, plots (PNG) and videos (MP4), into the folder given by ``--out``. Files are
-written to a temporary name and moved into place, so an interrupted run never leaves a
-half-written file.
+Every run writes ``config.json`` (seed, command line, package versions, git commit, device, its
+own settings), then its metrics, plots (PNG) and videos (MP4), into the folder given by
+``--out``. Files are written to a temporary name and moved into place, so an interrupted run
+never leaves a half-written file.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ import json
 import os
 import platform
 import shutil
+import subprocess
 import sys
 import tempfile
 import threading
@@ -47,6 +48,29 @@ def package_versions() -> dict[str, str]:
         except metadata.PackageNotFoundError:
             out[name] = "not installed"
     return out
+
+
+def code_version() -> dict[str, Any]:
+    """The source tree the run imported ``hec_jax`` from: ``commit`` (git HEAD, 40 hex digits) and
+    ``dirty`` (tracked files changed since it); both None where that tree is not a git checkout
+    or git is not installed (e.g. a copied tree on a GPU machine).
+    """
+    root = Path(__file__).resolve().parent.parent
+
+    def git(*args: str) -> str | None:
+        try:
+            done = subprocess.run(
+                ["git", "-C", str(root), *args], capture_output=True, text=True, timeout=10
+            )
+        except (OSError, subprocess.SubprocessError):
+            return None
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    commit = git("rev-parse", "--verify", "HEAD")
+    if commit is None or git("rev-parse", "--show-toplevel") != str(root):
+        return {"commit": None, "dirty": None}  # not this package's own checkout
+    status = git("status", "--porcelain", "--untracked-files=no")
+    return {"commit": commit, "dirty": None if status is None else bool(status)}
 
 
 def device_description() -> dict[str, Any]:
@@ -272,10 +296,12 @@ def write_video(path: str | os.PathLike, frames, fps: float) -> str:
 def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Path:
     """Create the run folder and write its ``config.json``; returns the folder.
 
-    ``config.json`` holds ``seed``, ``command``, ``argv``, ``versions``, ``device`` and, at the top
-    level beside them, the run's own ``settings`` (so e.g. ``m_e`` is ``config["m_e"]``).
+    ``config.json`` holds ``seed``, ``command``, ``argv``, ``versions``, ``code`` (git commit,
+    :func:`code_version`), ``device`` and, at the top level beside them, the run's own
+    ``settings`` (so e.g. ``m_e`` is ``config["m_e"]``).
     """
-    reserved = {"seed", "command", "argv", "versions", "device", "started_utc"} & set(settings)
+    reserved = {"seed", "command", "argv", "versions", "code", "device", "started_utc"}
+    reserved &= set(settings)
     if reserved:
         raise ValueError(f"settings may not use the reserved keys {sorted(reserved)}")
     folder = Path(out)
@@ -288,6 +314,7 @@ def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Pa
             "command": " ".join([sys.executable, *sys.argv]),
             "argv": list(sys.argv),
             "versions": package_versions(),
+            "code": code_version(),
             "device": device_description(),
             **settings,
         },

@@ -110,6 +110,32 @@ def test_run_folder_appears_complete_or_not_at_all(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["run"]  # nothing left beside it
 
 
+def test_config_records_the_code_it_ran(tmp_path, monkeypatch):
+    # the commit and the dirty flag are git's own answers for the package's checkout
+    root = runs.Path(runs.__file__).resolve().parent.parent
+
+    def git(*args):
+        done = subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True)
+        return done.stdout.strip() if done.returncode == 0 else None
+
+    with runs.run_folder(tmp_path / "run", 0, _settings()) as folder:
+        code = json.loads((folder / "config.json").read_text())["code"]
+    if git("rev-parse", "--show-toplevel") == str(root):
+        assert code["commit"] == git("rev-parse", "HEAD") and len(code["commit"]) == 40
+        assert code["dirty"] == bool(git("status", "--porcelain", "--untracked-files=no"))
+    else:  # a copied tree
+        assert code == {"commit": None, "dirty": None}
+
+    # no git at all: recorded as unknown, the run goes on
+    def no_git(*a, **k):
+        raise FileNotFoundError("git")
+
+    monkeypatch.setattr(runs.subprocess, "run", no_git)
+    assert runs.code_version() == {"commit": None, "dirty": None}
+    with pytest.raises(ValueError, match="reserved keys"):
+        runs.start_run(tmp_path / "other", 0, {"code": 1})
+
+
 def test_a_failed_run_never_looks_complete(tmp_path):
     out = tmp_path / "run"
     with pytest.raises(ZeroDivisionError):
