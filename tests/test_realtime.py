@@ -260,6 +260,9 @@ def test_realtime_experiment_sets_the_eyes_tracker():
     kept = RT.runner.realtime_experiment(exp, rt)
     assert kept.camera.tracker == L.replace(scene, local_starts=0)
     assert kept.task.swings == 3 and kept.seeds == 1
+    # the camera's multisampling: the scene's unless given, then the twin renders alike
+    assert kept.camera.msaa is exp.camera.msaa is None
+    assert RT.runner.realtime_experiment(exp, RT.RealtimeConfig(camera_msaa=0)).camera.msaa == 0
 
 
 def test_realtime_refused_says_why_and_leaves_the_scheduling(monkeypatch):

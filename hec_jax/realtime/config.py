@@ -65,7 +65,8 @@ class RealtimeConfig:
     # multisample anti-aliasing of the rendered camera (MuJoCo's offsamples); None: the scene's
     # (4, as the simulated camera loop). 0 makes software rendering about 3x cheaper (13 -> 4 ms
     # at 320x240) at the price of aliased edges: a real camera costs the computer nothing, the
-    # simulated one competes with the eye and the loop for the CPU
+    # simulated one competes with the eye and the loop for the CPU. The simulated twin renders
+    # alike (``CameraConfig.msaa``; before 2026-11-26 it kept the scene's 4 samples)
     camera_msaa: int | None = None
     # the rendered lights cast shadows; None: the scene's (the lab's do, the void's do not).
     # False makes the lab's software rendering 3x cheaper (30 -> 10 ms a 640x480 frame without

@@ -688,7 +688,9 @@ class RealtimeResult:
 def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> ExperimentConfig:
     """``exp`` as the real-time loop runs it: one seed; swings from ``rt.duration_s``; the
     camera's tracker with ``rt.eye_local_starts`` and without its manoeuvre restart unless
-    ``rt.eye_maneuver_restart`` (the simulated twin runs the same).
+    ``rt.eye_maneuver_restart``; the camera's multisampling ``rt.camera_msaa`` where given.
+    The simulated twin runs the same, so that its camera loop sees frames rendered as the
+    real-time camera renders them.
     """
     task = exp.task
     if rt.duration_s is not None:
@@ -698,6 +700,8 @@ def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> Experiment
     if not rt.eye_maneuver_restart:
         track = dataclasses.replace(track, maneuver_nis=None)
     cam = dataclasses.replace(exp.camera, track=track)
+    if rt.camera_msaa is not None:
+        cam = dataclasses.replace(cam, msaa=rt.camera_msaa)
     return dataclasses.replace(exp, task=task, seeds=1, camera=cam)
 
 
