@@ -23,7 +23,6 @@ import traceback
 
 import numpy as np
 
-from hec_jax.geometry.track import FIT_SOURCES
 from hec_jax.realtime.clock import set_scheduling
 
 ESTIMATE_FIELDS = {
@@ -240,6 +239,7 @@ def eye_main(
             jax.config.update("jax_compilation_cache_dir", str(cache_dir))
             jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         from hec_jax.geometry import BoxTracker
+        from hec_jax.geometry.track import FIT_SOURCES
         from hec_jax.loop.camera_loop import front_object_mask, mask_robot, robot_geoms
         from hec_jax.mjx_scene import CUBE_EDGE, scene_ids
         from hec_jax.realtime.clock import monotonic_s
