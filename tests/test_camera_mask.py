@@ -6,7 +6,12 @@ import numpy as np
 
 from hec_jax.geometry.box_model import project_corners_np
 from hec_jax.geometry.track import BoxPrediction
-from hec_jax.loop.camera_loop import front_object_mask, mask_robot
+from hec_jax.loop.camera_loop import (
+    front_object_mask,
+    mask_robot,
+    mask_robot_and_replaced,
+    robot_mask,
+)
 
 K = np.array([[200.0, 0.0, 80.0], [0.0, 200.0, 60.0], [0.0, 0.0, 1.0]])
 SHAPE = (120, 160, 3)
@@ -118,3 +123,9 @@ def test_mask_robot_matches_the_numpy_reference_bit_for_bit():
                 mask_robot(frame, camera, [0, 1], 0.005, **kw),
                 _mask_robot_numpy(frame, camera, [0, 1], 0.005, **kw),
             )
+            # the pixels replaced (painted or inpainted): both spheres' discs, less the kept ones
+            out, replaced = mask_robot_and_replaced(frame, camera, [0, 1], 0.005, **kw)
+            expected = robot_mask(SHAPE, camera, [0, 1], 0.005) > 0
+            expected &= ~kw.get("keep", np.zeros(SHAPE[:2], bool))
+            np.testing.assert_array_equal(replaced, expected)
+            np.testing.assert_array_equal(out[~replaced], frame[~replaced])

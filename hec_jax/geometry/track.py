@@ -244,8 +244,9 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
 
 class Association(NamedTuple):
     """Segments clipped to their model edges. Attributes: endpoints (M, 2, 2) [px], edge_ids (M,),
-    weights (M,) [px] (overlap length, 0 = unassigned), coverage (fraction of visible edge length),
-    families (number of edge families with an assigned segment).
+    weights (M,) [px] (overlap length, 0 = unassigned), coverage (fraction of the visible edge
+    length outside the occluded pixels, at most 1), families (number of edge families with an
+    assigned segment).
     """
 
     endpoints: Array
@@ -253,6 +254,29 @@ class Association(NamedTuple):
     weights: Array
     coverage: Array
     families: Array
+
+
+# samples along a projected model edge for its occluded fraction
+_OCCLUSION_SAMPLES = 16
+
+
+def occluded_fraction(edges_px: Array, occluded: Array | None) -> Array:
+    """(E,) fraction of each projected edge (E, 2, 2) [px] that lies on ``occluded`` pixels
+    ((H, W) bool, row y column x, pixel (x, y) covering [x, x + 1) x [y, y + 1); samples at the
+    centres of ``_OCCLUSION_SAMPLES`` equal pieces; outside the image: not occluded). None: zeros.
+    Pure JAX.
+    """
+    if occluded is None:
+        return jnp.zeros(edges_px.shape[0], edges_px.dtype)
+    s = (jnp.arange(_OCCLUSION_SAMPLES, dtype=edges_px.dtype) + 0.5) / _OCCLUSION_SAMPLES
+    a, b = edges_px[:, None, 0, :], edges_px[:, None, 1, :]
+    pts = jnp.nan_to_num(a + s[None, :, None] * (b - a), nan=-1.0)  # (E, S, 2)
+    h, w = occluded.shape
+    col = jnp.floor(pts[..., 0]).astype(jnp.int32)
+    row = jnp.floor(pts[..., 1]).astype(jnp.int32)
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    hit = occluded[jnp.clip(row, 0, h - 1), jnp.clip(col, 0, w - 1)] & inside
+    return jnp.mean(hit.astype(edges_px.dtype), axis=-1)
 
 
 def associate(
@@ -264,8 +288,15 @@ def associate(
     gate_px,
     gate_cos,
     min_edge_px,
+    occluded: Array | None = None,
 ) -> Association:
-    """Each segment to the nearest visible model edge within the gates (pure JAX)."""
+    """Each segment to the nearest visible model edge within the gates (pure JAX).
+
+    ``occluded``: optional (H, W) bool, pixels whose image content is not the scene's (the
+    robot's mask, painted or inpainted: ``hec_jax.loop.camera_loop.mask_robot_and_replaced``).
+    The coverage counts only the visible edge length outside them: an edge the mask hides is
+    not missing from the image, it is unobservable. Segments are associated as without it.
+    """
     edges = project_edges(pose, size, intrinsics)  # (12, 2, 2)
     a = edges[:, 0]
     d = edges[:, 1] - a
@@ -303,7 +334,9 @@ def associate(
     weight = jnp.where(assigned, ov * length[best], 0.0)
     per_edge = jnp.zeros(12, weight.dtype).at[best].add(jnp.where(assigned, ov, 0.0))
     vis_len = jnp.where(vis, length, 0.0)
-    coverage = jnp.sum(vis_len * jnp.minimum(per_edge, 1.0)) / jnp.maximum(jnp.sum(vis_len), 1e-9)
+    observable = vis_len * (1.0 - occluded_fraction(edges, occluded))
+    explained = jnp.sum(vis_len * jnp.minimum(per_edge, 1.0))
+    coverage = jnp.minimum(explained / jnp.maximum(jnp.sum(observable), 1e-9), 1.0)
     fam_w = jnp.zeros(3, weight.dtype).at[jnp.asarray(EDGE_FAMILY)[best]].add(weight)
     return Association(clipped, best, weight, coverage, jnp.sum(fam_w > 0))
 
@@ -326,11 +359,16 @@ def locate(
     intrinsics: Array,
     gates: Array,
     cfg: TrackConfig,
+    occluded: Array | None = None,
 ) -> Located:
-    """Association and robust LM, one round per gate in ``gates`` (px), then the validity check."""
+    """Association and robust LM, one round per gate in ``gates`` (px), then the validity check
+    (``occluded``: as :func:`associate`).
+    """
     gate_cos = jnp.cos(jnp.deg2rad(cfg.gate_deg))
     for i in range(gates.shape[0]):
-        asc = associate(pose, segments, mask, size, intrinsics, gates[i], gate_cos, cfg.min_edge_px)
+        asc = associate(
+            pose, segments, mask, size, intrinsics, gates[i], gate_cos, cfg.min_edge_px, occluded
+        )
         fit = refine_edges(
             pose,
             asc.endpoints,
@@ -342,7 +380,9 @@ def locate(
             cfg.huber_px,
         )
         pose = fit.pose
-    asc = associate(pose, segments, mask, size, intrinsics, gates[-1], gate_cos, cfg.min_edge_px)
+    asc = associate(
+        pose, segments, mask, size, intrinsics, gates[-1], gate_cos, cfg.min_edge_px, occluded
+    )
     used = jnp.sum(asc.weights > 0)
     finite = jnp.all(jnp.isfinite(pose.rotation)) & jnp.all(jnp.isfinite(pose.translation))
     valid = (
@@ -408,8 +448,9 @@ def refine_points(
 
 
 def _make_locate(cfg: TrackConfig):
-    def run(prior, segments, mask, size, intrinsics):
-        return locate(prior, segments, mask, size, intrinsics, jnp.asarray(cfg.gates_px), cfg)
+    def run(prior, segments, mask, size, intrinsics, occluded):
+        gates = jnp.asarray(cfg.gates_px)
+        return locate(prior, segments, mask, size, intrinsics, gates, cfg, occluded)
 
     return jax.jit(run)
 
@@ -525,7 +566,7 @@ def _make_local_search(cfg: TrackConfig):
     turns = jnp.asarray(np.stack(turns))
 
     def make(turns):
-        def local(rotation, centres, segments, mask, size, intrinsics):
+        def local(rotation, centres, segments, mask, size, intrinsics, occluded):
             """Multi-start search around a predicted pose: (K,) turns of ``rotation``
             [R_cam_box] x the (C, 3) ``centres`` [m]; gates as the search from scratch, from
             the box's image size at the first centre's depth.
@@ -537,7 +578,7 @@ def _make_local_search(cfg: TrackConfig):
             trans = jnp.repeat(centres.astype(segments.dtype), k, axis=0)
 
             def one(r, t):
-                return locate(Pose(r, t), segments, mask, size, intrinsics, gates, cfg)
+                return locate(Pose(r, t), segments, mask, size, intrinsics, gates, cfg, occluded)
 
             return _best_start(jax.vmap(one)(rots, trans))
 
@@ -569,7 +610,7 @@ def _best_start(locs):
 def _make_search(cfg: TrackConfig):
     rots = jnp.asarray(random_rotation(np.random.default_rng(cfg.seed), (cfg.init_starts,)))
 
-    def search(centre_px, edge_px, segments, mask, size, intrinsics):
+    def search(centre_px, edge_px, segments, mask, size, intrinsics, occluded):
         """Multi-start search from a window centre [px] and box image size [px]."""
         f = intrinsics[0, 0]
         depth = f * size / edge_px
@@ -578,7 +619,7 @@ def _make_search(cfg: TrackConfig):
         gates = _search_gates(cfg, edge_px, segments.dtype)
 
         def one(r):
-            return locate(Pose(r, t0), segments, mask, size, intrinsics, gates, cfg)
+            return locate(Pose(r, t0), segments, mask, size, intrinsics, gates, cfg, occluded)
 
         if cfg.search_keep <= 0:
             return _best_start(jax.vmap(one)(rots))
@@ -586,10 +627,13 @@ def _make_search(cfg: TrackConfig):
         n_coarse = len(cfg.init_gates)
 
         def coarse(r):
-            return locate(Pose(r, t0), segments, mask, size, intrinsics, gates[:n_coarse], cfg)
+            coarse_gates = gates[:n_coarse]
+            return locate(
+                Pose(r, t0), segments, mask, size, intrinsics, coarse_gates, cfg, occluded
+            )
 
         def fine(pose):
-            return locate(pose, segments, mask, size, intrinsics, gates[n_coarse:], cfg)
+            return locate(pose, segments, mask, size, intrinsics, gates[n_coarse:], cfg, occluded)
 
         first = jax.vmap(coarse)(rots)
         _, keep = jax.lax.top_k(_start_score(first), min(cfg.search_keep, rots.shape[0]))
@@ -862,6 +906,8 @@ class BoxTracker:
         self.background = background
         self._given_background = background is not None
         self._locate, self._finish, self._search, self._fcfg, self._local = _compiled(config, fps)
+        self._no_occlusion = None  # all-False occluded pixels of the last frame size
+        self._occluded = None  # the frame's occluded pixels (update)
         self._f, self._q = (np.asarray(x) for x in kf.transition(self._fcfg))
         self.reset()
 
@@ -916,14 +962,14 @@ class BoxTracker:
         mean, cov = self._state.mean, self._state.cov
         self._predicted = kf.FilterState(f @ mean, f @ cov @ f.T + q)
 
-    def warm_up(self, frame) -> None:
-        """Compile every path of :meth:`update` on ``frame`` (a frame showing the box): the
-        search from scratch, the tracked fit and, with ``config.local_starts``, the local
-        search; then :meth:`reset`. A real-time consumer calls it before its first frame (each
-        path compiles in seconds on first use).
+    def warm_up(self, frame, occluded=None) -> None:
+        """Compile every path of :meth:`update` on ``frame`` (a frame showing the box; its
+        ``occluded`` pixels as :meth:`update`): the search from scratch, the tracked fit and, with
+        ``config.local_starts``, the local search; then :meth:`reset`. A real-time consumer calls
+        it before its first frame (each path compiles in seconds on first use).
         """
         for _ in range(3):
-            self.update(frame)
+            self.update(frame, occluded)
         if self.config.local_starts > 0 and self._started and self._rot_prev is not None:
             gray = detect.to_gray(_check_frame(frame))
             for stage in (0, 1):  # each stage on its own: the first may pass
@@ -1000,7 +1046,15 @@ class BoxTracker:
             if not mask_c.any():
                 continue
             cand = jax.device_get(
-                self._search(centre, np.float64(edge_px), segp_c, mask_c, np.float64(self.size), k)
+                self._search(
+                    centre,
+                    np.float64(edge_px),
+                    segp_c,
+                    mask_c,
+                    np.float64(self.size),
+                    k,
+                    self._occluded,
+                )
             )
             score = float(cand.association.coverage) - 0.1 * float(cand.rms)
             t_c = np.asarray(cand.pose.translation)
@@ -1046,7 +1100,15 @@ class BoxTracker:
             if search is None:
                 continue
             loc = jax.device_get(
-                search(np.asarray(rotation), centres, segp, mask, np.float64(self.size), k)
+                search(
+                    np.asarray(rotation),
+                    centres,
+                    segp,
+                    mask,
+                    np.float64(self.size),
+                    k,
+                    self._occluded,
+                )
             )
             if not bool(loc.valid):
                 continue
@@ -1057,6 +1119,19 @@ class BoxTracker:
             if gated(fin):
                 return fin, stage
         return None, -1
+
+    def _occluded_pixels(self, occluded, shape) -> Array:
+        """``occluded`` as a (H, W) bool device array (all False for None; one per shape, so
+        every jitted path compiles once per frame size).
+        """
+        if occluded is None:
+            if self._no_occlusion is None or self._no_occlusion.shape != shape:
+                self._no_occlusion = jnp.zeros(shape, bool)
+            return self._no_occlusion
+        occluded = np.asarray(occluded)
+        if occluded.shape != shape:
+            raise ValueError(f"occluded must be the frame's {shape}, got {occluded.shape}")
+        return jnp.asarray(occluded.astype(bool, copy=False))
 
     def _difference_pair(self, gray) -> tuple[np.ndarray, np.ndarray | None]:
         """(image, background) whose difference finds the moving things: the RGB frame and
@@ -1150,7 +1225,7 @@ class BoxTracker:
 
     def _fit(self, prior, segp, mask, gray, first) -> Finished:
         cfg, k, size_a = self.config, self.intrinsics, np.float64(self.size)
-        loc = self._locate(Pose(*prior), segp, mask, size_a, k)
+        loc = self._locate(Pose(*prior), segp, mask, size_a, k, self._occluded)
         pose_np = jax.device_get(loc.pose)
         edges_px, usable = usable_edges(pose_np.rotation, pose_np.translation, self.size, k, cfg)
         pts, ids = detect.edge_points(
@@ -1195,14 +1270,21 @@ class BoxTracker:
             fin = fin._replace(valid=np.bool_(False))
         return fin
 
-    def update(self, frame) -> TrackStep:
+    def update(self, frame, occluded=None) -> TrackStep:
         """Process the next camera frame ((H, W, 3) uint8 RGB, 1 / fps after the previous one;
         frame times in between that were never seen are told with :meth:`skip` first).
 
+        ``occluded``: optional (H, W) bool, the frame's pixels whose content is not the scene's
+        (a known occluder such as the robot, masked out by the caller). A fit's coverage check
+        then counts only the model edge length outside them (:func:`associate`); None: no such
+        pixels.
+
         Raises:
-            ValueError: frame not (H, W, 3) uint8, or not the background's size.
+            ValueError: frame not (H, W, 3) uint8, or not the background's size; ``occluded``
+                not (H, W).
         """
         frame = _check_frame(frame)
+        self._occluded = self._occluded_pixels(occluded, frame.shape[:2])
         shape = self.background.shape if self._given_background else None
         if shape is None and self._bg_frames:
             shape = self._bg_frames[0].shape

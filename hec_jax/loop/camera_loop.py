@@ -270,9 +270,26 @@ def mask_robot(
     intrinsics=None,
     keep=None,
 ) -> np.ndarray:
-    """``frame`` with the robot's own image (:func:`robot_mask`) painted black (the backdrop
+    """``frame`` with the robot's own image masked out: :func:`mask_robot_and_replaced`'s
+    frame.
+    """
+    return mask_robot_and_replaced(frame, camera, geoms, margin, inpaint_geoms, intrinsics, keep)[0]
+
+
+def mask_robot_and_replaced(
+    frame: np.ndarray,
+    camera: SceneCamera,
+    geoms,
+    margin: float,
+    inpaint_geoms=(),
+    intrinsics=None,
+    keep=None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(``frame`` with the robot's own image (:func:`robot_mask`) painted black (the backdrop
     colour), except ``inpaint_geoms``, whose image is filled from its surroundings (OpenCV Telea,
-    radius 3 px, in the bounding box of their mask + 8 px).
+    radius 3 px, in the bounding box of their mask + 8 px); (H, W) bool, the pixels replaced,
+    painted or inpainted: what the eye cannot see there is unobservable, not missing
+    (``BoxTracker.update``'s ``occluded``)).
 
     Inpainting is for the hand: its silhouette ignores occlusion, so next to a held cube it cuts
     a notch into the cube's image (the cube's nearer front face covers part of the hand's disc),
@@ -288,6 +305,7 @@ def mask_robot(
         arm[keep] = 0
     # black where the mask is set (OpenCV's masked AND; NumPy's boolean assignment is slower)
     out = cv2.bitwise_and(frame, frame, mask=cv2.bitwise_not(arm))
+    replaced = arm
     if len(inpaint_geoms):
         hand = robot_mask(frame.shape, camera, inpaint_geoms, margin, intrinsics)
         if keep is not None:
@@ -300,7 +318,8 @@ def mask_robot(
             out[y0:y1, x0:x1] = cv2.inpaint(
                 out[y0:y1, x0:x1], hand[y0:y1, x0:x1], 3, cv2.INPAINT_TELEA
             )
-    return out
+            replaced = cv2.bitwise_or(arm, hand)
+    return out, replaced.astype(bool)
 
 
 def front_object_mask(shape, prediction, camera: SceneCamera, hand_geoms, intrinsics, size):
@@ -493,12 +512,13 @@ def run_camera(
                     camera.pose(d_qpos[i] if s_img == s else qpos_hist[i, s_img])
                 x_true = camera.data.xpos[loop.ids.cube_body].copy()  # mid-exposure kinematics
                 shown = frame  # the video shows the camera's frame
+                occluded = None  # the pixels the mask replaced, if the eye is told them
                 if cam.self_mask_margin_m is not None:
                     keep = None
                     if cam.occlusion_aware_mask and isinstance(trackers[i], BoxTracker):
                         ahead = trackers[i].predict(1.0 / fps)  # this frame, from the last
                         keep = front_object_mask(frame.shape, ahead, camera, hand, k_eye, CUBE_EDGE)
-                    frame = mask_robot(
+                    frame, replaced = mask_robot_and_replaced(
                         frame,
                         camera,
                         robot,
@@ -507,10 +527,12 @@ def run_camera(
                         k_eye,
                         keep,
                     )
+                    if cam.mask_aware_coverage and isinstance(trackers[i], BoxTracker):
+                        occluded = replaced
                 if corrupt is not None:
                     frame = corrupt(i, index, j, frame)
                 t1 = time.perf_counter()
-                st = trackers[i].update(frame)
+                st = trackers[i].update(*((frame,) if occluded is None else (frame, occluded)))
                 rec["render_ms"][i, j] = 1e3 * (t1 - t0)
                 rec["eye_ms"][i, j] = 1e3 * (time.perf_counter() - t1)
                 rec["t_stamp"][i, j] = s_img * dt

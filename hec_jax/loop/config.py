@@ -268,6 +268,11 @@ class CameraConfig:
     # and, from an oblique camera, inpaints part of a cube held in front of the hand. Off by
     # default (the main job's setting; in the void scene the two are at the same depth)
     occlusion_aware_mask: bool = False
+    # The eye is told which pixels the mask replaced (painted or inpainted): its fits' coverage
+    # check counts only the cube's edge length outside them (``geometry.track.associate``). An
+    # edge under the hand is then unobservable, not missing: without it, fits of the held cube
+    # failed that check (``docs/realtime.md``). False: as before 2026-11-26 (the ablation).
+    mask_aware_coverage: bool = True
     # After the hand last felt the object, estimates from frames exposed less than this many frame
     # periods later are not used (the eye's filter needs post-impact frames for the new velocity);
     # the object is extrapolated from the last touch (``object_state.TouchMemory``) until the

@@ -240,7 +240,7 @@ def eye_main(
             jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         from hec_jax.geometry import BoxTracker
         from hec_jax.geometry.track import FIT_SOURCES
-        from hec_jax.loop.camera_loop import front_object_mask, mask_robot, robot_geoms
+        from hec_jax.loop.camera_loop import front_object_mask, mask_robot_and_replaced, robot_geoms
         from hec_jax.mjx_scene import CUBE_EDGE, scene_ids
         from hec_jax.realtime.clock import monotonic_s
         from hec_jax.realtime.plant import camera_model
@@ -255,19 +255,23 @@ def eye_main(
         r_wc, t_wc = mcam.world_from_camera
 
         def masked(image, q_arm, tracker=None):
+            """(the eye's image, its occluded pixels or None), as the simulated camera loop."""
             if cam.self_mask_margin_m is None:
-                return image
+                return image, None
             mcam.pose_arm(arm, q_arm)
             keep = None
-            if cam.occlusion_aware_mask and tracker is not None:  # as the simulated camera loop
+            if cam.occlusion_aware_mask and tracker is not None:
                 ahead = tracker.predict(1.0 / fps)  # this frame (frames never seen: skipped)
                 keep = front_object_mask(image.shape, ahead, mcam, hand, mcam.intrinsics, CUBE_EDGE)
-            return mask_robot(image, mcam, robot, cam.self_mask_margin_m, hand, None, keep)
+            out, replaced = mask_robot_and_replaced(
+                image, mcam, robot, cam.self_mask_margin_m, hand, None, keep
+            )
+            return out, (replaced if cam.mask_aware_coverage else None)
 
         wait_for(lambda: camera.calibration.ready(1), 300.0, 0.01, "the calibration shots")
         tracker = BoxTracker(mcam.intrinsics, CUBE_EDGE, fps, cam.tracker, camera.background())
-        warm = masked(camera.release_frame(), np.asarray(q0)[arm])
-        tracker.warm_up(warm)  # compile the search, tracking and re-acquisition paths
+        warm, warm_occluded = masked(camera.release_frame(), np.asarray(q0)[arm])
+        tracker.warm_up(warm, warm_occluded)  # compile the search, tracking, re-acquisition
         if priority:
             set_scheduling(os.SCHED_FIFO, priority)
         ready.set()
@@ -297,9 +301,9 @@ def eye_main(
             # tracker's filter predicts over them, so this frame is taken at its own time
             if skip_unseen:
                 tracker.skip(max(gap, 0))
-            image = masked(frame.image, frame.q_arm, tracker)
+            image, occluded = masked(frame.image, frame.q_arm, tracker)
             t_masked = monotonic_s()
-            st = tracker.update(image)
+            st = tracker.update(image, occluded)
             misses = 0 if st.valid else misses + 1
             x = xd = xdd = np.full(2, np.nan)
             if st.initialised:
