@@ -73,6 +73,21 @@ def code_version() -> dict[str, Any]:
     return {"commit": commit, "dirty": None if status is None else bool(status)}
 
 
+def cpu_model() -> str | None:
+    """The processor's model name (Linux: ``/proc/cpuinfo``; else ``platform.processor()``), or
+    None where neither says: two machines of one kind may have different processors, and
+    timings are comparable only on the same.
+    """
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.lower().startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or None
+
+
 def device_description() -> dict[str, Any]:
     """The machine and JAX backend the run used."""
     import jax
@@ -80,6 +95,7 @@ def device_description() -> dict[str, Any]:
     return {
         "platform": platform.platform(),
         "python": sys.version.split()[0],
+        "cpu_model": cpu_model(),
         "cpu_count": os.cpu_count(),
         "jax_backend": jax.default_backend(),
         "jax_devices": [str(d) for d in jax.devices()],

@@ -173,3 +173,18 @@ def test_a_killed_run_leaves_no_run_folder(tmp_path):
     partial = [p for p in tmp_path.iterdir() if p.name.startswith(".run.partial-")]
     assert len(partial) == 1
     assert json.loads((partial[0] / "config.json").read_text())["status"] == "running"
+
+
+def test_device_records_the_processor(tmp_path):
+    # the processor's model name, as the kernel reports it (timings compare only on the same)
+    model = None
+    try:
+        lines = runs.Path("/proc/cpuinfo").read_text().splitlines()
+        model = next(ln.split(":", 1)[1].strip() for ln in lines if ln.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    with runs.run_folder(tmp_path / "run", 0, _settings()) as folder:
+        device = json.loads((folder / "config.json").read_text())["device"]
+    if model is not None:
+        assert device["cpu_model"] == model
+    assert device["cpu_count"] >= 1
