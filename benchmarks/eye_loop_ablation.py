@@ -5,14 +5,19 @@ The real-time camera on a software renderer draws the void without multisampling
 "The eye's CPU and the held cube"). This runs the simulated camera loop (``loop.run_camera``)
 of the real-time preset (``realtime_experiment``: one seed, the swings of ``--duration-s``, the
 scene's tracker with the real-time ``eye_local_starts``) on frames rendered as the real-time camera renders
-them (``CameraConfig.msaa``), once per tracker variant (``VARIANTS``: fields of the loop's
-tracker replaced), and tabulates what the eye did (frames valid, swings with a loss, the
-longest run of invalid frames) beside the task's metrics and, for reference, the same task
-with the simulator's object state (``--eye truth``, no camera).
+them (``CameraConfig.msaa``), once per variant (``VARIANTS``: fields of the loop's tracker and of
+its camera replaced), and tabulates what the eye did (frames valid, swings with a loss, the
+longest run of invalid frames, which hypothesis gave each fit) beside the task's metrics and,
+for reference, the same task with the simulator's object state (``--eye truth``, no camera).
+``--no-maneuver-restart`` starts every variant from the real-time eye's tracker instead of the
+loop's (``RealtimeConfig.eye_maneuver_restart``).
 
 Deterministic: same seed, same frames, same numbers (CPU).
 
     python benchmarks/eye_loop_ablation.py --task catching --out runs/eye_loop_ablation_catching
+    python benchmarks/eye_loop_ablation.py --task catching --no-maneuver-restart --seed 1 \
+        --variants "loop tracker (manoeuvre restart at NIS 16.3)" "coverage blind to the mask" \
+        --out runs/eye_loop_ablation_coverage_seed1
 """
 
 from __future__ import annotations
@@ -27,6 +32,7 @@ import jax
 import numpy as np
 
 from hec_jax.cli import command, parse, require
+from hec_jax.geometry.track import FIT_SOURCES
 from hec_jax.loop.camera_loop import run_camera
 from hec_jax.loop.config import PRESETS, CameraConfig
 from hec_jax.loop.experiment import condition_metrics
@@ -35,10 +41,14 @@ from hec_jax.realtime.config import RealtimeConfig
 from hec_jax.realtime.runner import realtime_experiment, simulated_twins
 from hec_jax.runs import run_folder, write_json, write_text
 
-VARIANTS = {  # name: fields of the loop's tracker (with the real-time local starts) replaced
-    "loop tracker (manoeuvre restart at NIS 16.3)": {},
-    "no manoeuvre restart": {"maneuver_nis": None},
-    "inner-edge check 0.05": {"min_inner_support": 0.05},
+# name: (fields of the tracker (the loop's, with the real-time local starts), fields of the
+# camera) replaced
+VARIANTS = {
+    "loop tracker (manoeuvre restart at NIS 16.3)": ({}, {}),
+    "no manoeuvre restart": ({"maneuver_nis": None}, {}),
+    "inner-edge check 0.05": ({"min_inner_support": 0.05}, {}),
+    # the eye not told which pixels the robot's mask replaced (as before 2026-11-26)
+    "coverage blind to the mask": ({}, {"mask_aware_coverage": False}),
 }
 
 # the task metrics tabulated (catching: last swing; hitting: the continuous run)
@@ -61,6 +71,9 @@ class LoopAblation:
     height: int = 480  # [px]
     variants: tuple[str, ...] = tuple(VARIANTS)  # names of VARIANTS to run
     seed: int = 0  # the networks' initialisation (the preset's, 0, is the real-time runs')
+    # every variant from the loop's tracker (True) or the real-time eye's, without the
+    # manoeuvre restart (False)
+    maneuver_restart: bool = True
 
     def __post_init__(self):
         require(self, "seed", "seed")
@@ -104,6 +117,11 @@ def eye_summary(eye: dict, lost_after: int) -> dict:
         "swings_with_a_loss": lost,
         "longest_invalid_run_frames": int(max(longest)),
         "eye_ms_p50": float(np.median(np.asarray(eye["eye_ms"]))),
+        # frames by the hypothesis that gave their fit (FIT_SOURCES; "" : not valid)
+        "fits_by_source": {
+            (name or "invalid"): int(np.sum(np.asarray(eye["fit_source"]) == k))
+            for k, name in enumerate(FIT_SOURCES)
+        },
     }
 
 
@@ -115,19 +133,21 @@ def main(argv=None) -> dict:
     cam = CameraConfig.void_perfect(width=a.width, height=a.height, msaa=a.msaa)
     exp = realtime_experiment(
         PRESETS[a.task](camera=cam, eye="camera", seed=a.seed),
-        RealtimeConfig(duration_s=a.duration_s, eye_maneuver_restart=True),  # the loop's tracker
+        RealtimeConfig(duration_s=a.duration_s, eye_maneuver_restart=a.maneuver_restart),
     )
     loop = build_loop(exp.task)
     conditions = exp.task.pendulum.conditions()
     keys = jax.random.split(jax.random.PRNGKey(exp.seed), 1)
     settings = {k: v for k, v in dataclasses.asdict(a).items() if k != "seed"}  # the folder's
-    settings |= {"variants_fields": {v: VARIANTS[v] for v in a.variants}}
+    fields = {v: {"track": VARIANTS[v][0], "camera": VARIANTS[v][1]} for v in a.variants}
+    settings |= {"variants_fields": fields}
     with run_folder(a.out, exp.seed, settings, a.overwrite) as folder:
         truth = simulated_twins(exp, loop, "learned", "truth", progress=False)["truth"]
         results = {"truth": {"metrics": truth["metrics"]}}
         for name in a.variants:
-            track = dataclasses.replace(exp.camera.tracker, **VARIANTS[name])
-            c = dataclasses.replace(exp.camera, track=track)
+            track_fields, camera_fields = VARIANTS[name]
+            track = dataclasses.replace(exp.camera.tracker, **track_fields)
+            c = dataclasses.replace(exp.camera, track=track, **camera_fields)
             t0 = time.perf_counter()
             logs, eye, _ = run_camera(loop, conditions, keys, "learned", c, progress=False)
             results[name] = {
@@ -146,7 +166,8 @@ def table(results: dict, task: str) -> list[str]:
     """Markdown rows: the eye's record and the task's metrics per variant."""
     keys = METRICS[task]
     head = ["variant", "frames valid", "swings fully valid", "swings with a loss"]
-    head += ["longest invalid run [frames]", "error p50 / max [mm]", *keys]
+    head += ["longest invalid run [frames]", "error p50 / max [mm]"]
+    head += ["fits: tracked / stopped / local / local_turned / search", *keys]
     rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, r in results.items():
         e = r.get("eye")
@@ -164,6 +185,9 @@ def table(results: dict, task: str) -> list[str]:
             if e
             else ["-"] * 5
         )
+        fits = (e or {}).get("fits_by_source")
+        names = ("tracked", "stopped", "local", "local_turned", "search")
+        cells.append(" / ".join(str(fits[n]) for n in names) if fits else "-")
         for k in keys:
             v = _scalar(r["metrics"], k)
             cells.append("-" if v is None else f"{v:.4g}")

@@ -6,6 +6,7 @@ import pytest
 from hec_jax.geometry import BoxTracker, TrackConfig, TrackStep, track_box
 from hec_jax.geometry import filter as kf
 from hec_jax.geometry.detect import background_model
+from hec_jax.geometry.synthetic import rotation_from_axis_angle
 from hec_jax.mjx_scene.render import render_swing
 
 FPS = 30.0
@@ -155,9 +156,11 @@ def test_local_search_reacquires_without_a_search_from_scratch(seq):
 def test_local_search_runs_its_turned_starts_only_when_the_predicted_rotation_fails(seq):
     # the local search's two stages: the predicted rotation at both centres, then its turns;
     # a passing first stage ends the search, a failing one (forced here) hands on to the turns
+    # (``local_keep`` 3: the turned starts' fine gates for the 3 best of 2 x 5 only)
     bg = background_model(seq.frames)
-    for force_first_to_fail in (False, True):
-        tracker = BoxTracker(seq.intrinsics, EDGE, FPS, TrackConfig(local_starts=6), background=bg)
+    for force_first_to_fail, keep in ((False, 0), (True, 0), (True, 3)):
+        cfg = TrackConfig(local_starts=6, local_keep=keep)
+        tracker = BoxTracker(seq.intrinsics, EDGE, FPS, cfg, background=bg)
         for f in seq.frames[:10]:
             tracker.update(f)
         first, rest = tracker._local
@@ -183,6 +186,24 @@ def test_local_search_runs_its_turned_starts_only_when_the_predicted_rotation_fa
         assert np.linalg.norm(st.measured_position - seq.position[10]) < 0.005
     one = BoxTracker(seq.intrinsics, EDGE, FPS, TrackConfig(local_starts=1), background=bg)
     assert one._local[1] is None  # no turns: the first stage only
+
+
+@pytest.mark.parametrize("keep", [0, 4])
+def test_local_search_recovers_a_sudden_turn_from_its_turned_starts(seq, keep):
+    # the last rotations turned by 25 deg (as by an impact): the tracked fit and the predicted
+    # rotation fail, a turned start finds the cube; with ``local_keep`` 4 only the 4 best
+    # turned starts after the coarse gates go through the fine ones (a fraction of the time)
+    bg = background_model(seq.frames)
+    cfg = TrackConfig(local_starts=12, local_keep=keep)
+    tracker = BoxTracker(seq.intrinsics, EDGE, FPS, cfg, background=bg)
+    for f in seq.frames[:14]:
+        tracker.update(f)
+    axis = np.random.default_rng(5).normal(size=(8, 3))[6]
+    turn = rotation_from_axis_angle(axis / np.linalg.norm(axis), np.deg2rad(25.0))
+    tracker._rot_prev, tracker._rot_prev2 = turn @ tracker._rot_prev, turn @ tracker._rot_prev2
+    st = tracker.update(seq.frames[14])
+    assert st.valid and st.fit_source == "local_turned"
+    assert np.linalg.norm(st.measured_position - seq.position[14]) < 0.002
 
 
 def _difference_numpy(image, background, shadow_ratio=(0.25, 0.92), shadow_tol=0.08):

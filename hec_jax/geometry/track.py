@@ -148,6 +148,10 @@ class TrackConfig:
             0.2 s on one core), this one 2 x ``local_starts`` on one window, the predicted
             rotation's 2 first (they end the search if their fit passes). 0: off (the search
             from scratch only, as before). Its fit must pass the same gates and checks.
+        local_keep: the local search's turned starts in two stages, as ``search_keep``: every
+            turned start through the coarse ``init_gates`` rounds, then only the ``local_keep``
+            best of them through the fine ``gates_px`` rounds (a kept start ends where the
+            one-stage search takes it). 0: every turned start through every round (as before).
         min_region_fraction: the search from scratch skips moving blobs smaller than this fraction
             of the largest (cost; 0: none skipped). 0.25 in ``benchmarks/eye_randomized.py``; not
             in :data:`UNSEEN_SCENES`, because in the hand-eye loop the moving arm is the largest
@@ -208,6 +212,7 @@ class TrackConfig:
     min_iou_acquire: float = 0.0
     local_starts: int = 0
     local_spread_deg: float = 25.0
+    local_keep: int = 0
     min_inner_support: float = 0.0
     inner_edge_px: float = 10.0
     min_region_fraction: float = 0.0
@@ -565,11 +570,12 @@ def _make_local_search(cfg: TrackConfig):
     turns = [np.eye(3)] + [cv2.Rodrigues(w.reshape(3, 1))[0] for w in axis * angle]
     turns = jnp.asarray(np.stack(turns))
 
-    def make(turns):
+    def make(turns, keep):
         def local(rotation, centres, segments, mask, size, intrinsics, occluded):
             """Multi-start search around a predicted pose: (K,) turns of ``rotation``
             [R_cam_box] x the (C, 3) ``centres`` [m]; gates as the search from scratch, from
-            the box's image size at the first centre's depth.
+            the box's image size at the first centre's depth; with ``0 < keep < K C``, only the
+            ``keep`` best starts after the coarse gates go through the fine ones.
             """
             edge_px = intrinsics[0, 0] * size / centres[0, 2]
             gates = _search_gates(cfg, edge_px, segments.dtype)
@@ -577,14 +583,21 @@ def _make_local_search(cfg: TrackConfig):
             rots = jnp.tile((turns @ rotation).astype(segments.dtype), (c, 1, 1))
             trans = jnp.repeat(centres.astype(segments.dtype), k, axis=0)
 
-            def one(r, t):
-                return locate(Pose(r, t), segments, mask, size, intrinsics, gates, cfg, occluded)
+            def one(r, t, g=gates):
+                return locate(Pose(r, t), segments, mask, size, intrinsics, g, cfg, occluded)
 
-            return _best_start(jax.vmap(one)(rots, trans))
+            if not 0 < keep < k * c:
+                return _best_start(jax.vmap(one)(rots, trans))
+            n_coarse = len(cfg.init_gates)
+            first = jax.vmap(lambda r, t: one(r, t, gates[:n_coarse]))(rots, trans)
+            _, best = jax.lax.top_k(_start_score(first), keep)
+            kept = jax.tree.map(lambda x: x[best], first.pose)
+            fine = jax.vmap(lambda p: one(p.rotation, p.translation, gates[n_coarse:]))
+            return _best_start(fine(kept))
 
         return jax.jit(local)
 
-    return make(turns[:1]), (make(turns[1:]) if n else None)
+    return make(turns[:1], 0), (make(turns[1:], cfg.local_keep) if n else None)
 
 
 def _search_gates(cfg: TrackConfig, edge_px, dtype):

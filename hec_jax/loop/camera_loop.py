@@ -45,6 +45,7 @@ import numpy as np
 from hec_jax.geometry import BoxTracker, PaperEye
 from hec_jax.geometry.box_model import project_corners_np
 from hec_jax.geometry.paper_eye import STATUSES
+from hec_jax.geometry.track import FIT_SOURCES
 from hec_jax.loop.config import CameraConfig, CameraDefects
 from hec_jax.loop.episodes import _float_dtype, run_conditions
 from hec_jax.loop.object_state import EyeInput
@@ -418,7 +419,8 @@ def run_camera(
         steps, ...)); ``eye``: per-frame arrays (n_seeds, swings, frames): ``t_stamp`` [s],
         ``valid``, ``initialised``, ``x_est``/``x_true`` [m] (..., 2) task-plane centre at the
         frame's time, ``xd_est`` [m/s], ``status`` (the paper's eye: index into
-        :data:`~hec_jax.geometry.paper_eye.STATUSES`, else -1), and per-frame ``eye_ms``,
+        :data:`~hec_jax.geometry.paper_eye.STATUSES`, else -1), ``fit_source`` (the box
+        tracker: index into :data:`~hec_jax.geometry.track.FIT_SOURCES`, else -1), and per-frame ``eye_ms``,
         ``render_ms`` (defects included), ``stamp_error_s`` (the time stamp's jitter) plus
         ``sim_ms`` per segment and the wall time; ``video``: BGR frames with overlays.
     """
@@ -487,6 +489,9 @@ def run_camera(
             # the paper's eye: why a frame is (in)valid, index into geometry.paper_eye.STATUSES
             # (-1: the box tracker, which gives none)
             "status": np.full((n_seeds, n_f), -1, np.int8),
+            # the box tracker: which hypothesis gave the frame's fit, index into
+            # geometry.track.FIT_SOURCES (0: not valid; -1: the paper's eye)
+            "fit_source": np.full((n_seeds, n_f), -1, np.int8),
         }
         frames_out = []
         d, cs, touch = start(ls, sw0, conditions)
@@ -542,6 +547,8 @@ def run_camera(
                 rec["initialised"][i, j] = bool(st.initialised)
                 if eye_source == "paper":
                     rec["status"][i, j] = STATUSES.index(st.status)
+                else:
+                    rec["fit_source"][i, j] = FIT_SOURCES.index(st.fit_source)
                 rec["x_true"][i, j] = x_true[_AX]
                 misses[i] = 0 if st.valid else misses[i] + 1
                 if st.initialised:

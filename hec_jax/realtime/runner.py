@@ -687,8 +687,9 @@ class RealtimeResult:
 
 def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> ExperimentConfig:
     """``exp`` as the real-time loop runs it: one seed; swings from ``rt.duration_s``; the
-    camera's tracker with ``rt.eye_local_starts`` and without its manoeuvre restart unless
-    ``rt.eye_maneuver_restart``; the camera's multisampling ``rt.camera_msaa`` where given.
+    camera's tracker with ``rt.eye_local_starts`` and ``rt.eye_local_keep``, without its
+    manoeuvre restart unless ``rt.eye_maneuver_restart``; the camera's multisampling
+    ``rt.camera_msaa`` where given.
     The simulated twin runs the same, so that its camera loop sees frames rendered as the
     real-time camera renders them.
     """
@@ -696,7 +697,9 @@ def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> Experiment
     if rt.duration_s is not None:
         swings = max(int(math.ceil(rt.duration_s / task.swing_s - 1e-9)), 1)
         task = dataclasses.replace(task, swings=swings)
-    track = dataclasses.replace(exp.camera.tracker, local_starts=rt.eye_local_starts)
+    track = dataclasses.replace(
+        exp.camera.tracker, local_starts=rt.eye_local_starts, local_keep=rt.eye_local_keep
+    )
     if not rt.eye_maneuver_restart:
         track = dataclasses.replace(track, maneuver_nis=None)
     cam = dataclasses.replace(exp.camera, track=track)
