@@ -248,20 +248,20 @@ def test_realtime_camera_run_reports_itself():
 
 
 def test_realtime_experiment_sets_the_eyes_tracker():
-    """The real-time tracker: the scene's, with the local starts (4 of their turns kept to the
-    fine gates) and without the manoeuvre restart unless asked (the run and its twin run this
-    one)."""
+    """The real-time tracker: the scene's, with the local starts (every turn through every
+    gate unless asked) and without the manoeuvre restart unless asked (the run and its twin run
+    this one)."""
     exp = L.catching(eye="camera", camera=L.CameraConfig.void_perfect())
     scene = exp.camera.tracker
     assert scene.maneuver_nis == 16.3 and scene.stop_hypothesis
     track = RT.runner.realtime_experiment(exp, RT.RealtimeConfig()).camera.tracker
-    assert track.maneuver_nis is None and track.local_starts == 12 and track.local_keep == 4
-    assert track == L.replace(scene, maneuver_nis=None, local_starts=12, local_keep=4)
+    assert track.maneuver_nis is None and track.local_starts == 12 and track.local_keep == 0
+    assert track == L.replace(scene, maneuver_nis=None, local_starts=12)
     rt = RT.RealtimeConfig(
-        eye_maneuver_restart=True, eye_local_starts=0, eye_local_keep=0, duration_s=7.0
+        eye_maneuver_restart=True, eye_local_starts=0, eye_local_keep=4, duration_s=7.0
     )
     kept = RT.runner.realtime_experiment(exp, rt)
-    assert kept.camera.tracker == L.replace(scene, local_starts=0)
+    assert kept.camera.tracker == L.replace(scene, local_starts=0, local_keep=4)
     assert kept.task.swings == 3 and kept.seeds == 1
     # the camera's multisampling: the scene's unless given, then the twin renders alike
     assert kept.camera.msaa is exp.camera.msaa is None

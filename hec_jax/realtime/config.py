@@ -56,10 +56,12 @@ class RealtimeConfig:
     # 0: the search from scratch only, as the simulated task runs
     eye_local_starts: int = 12
     # of the local search's 2 x (eye_local_starts - 1) turned starts, how many go on from the
-    # coarse gates to the fine ones (``TrackConfig.local_keep``; 0: all). 4: the turned stage
-    # in 10.3 ms instead of 18.4 on 9 rendered frames with the cube turned 25 deg, every one
-    # recovered either way (docs/realtime.md, "Coverage of what the mask leaves visible")
-    eye_local_keep: int = 4
+    # coarse gates to the fine ones (``TrackConfig.local_keep``; 0: all). 4 made the turned
+    # stage 10.3 ms instead of 18.4 on 9 rendered frames, each recovered either way, but in
+    # six 60 s runs it did not bring a turned recovery within the age bound, and one fit in
+    # contact went unrecovered (cause unknown): 0, as before (docs/realtime.md, "Coverage of
+    # what the mask leaves visible")
+    eye_local_keep: int = 0
     # the eye's manoeuvre restart (``TrackConfig.maneuver_nis`` of the scene's tracker: a fit far
     # outside the filter's prediction restarts its velocity from that one fit), for the run and
     # its twin alike. Off by default: on frames without anti-aliasing the held cube's fit at
