@@ -16,7 +16,7 @@ Deterministic: same seed, same frames, same numbers (CPU).
 
     python benchmarks/eye_loop_ablation.py --task catching --out runs/eye_loop_ablation_catching
     python benchmarks/eye_loop_ablation.py --task catching --no-maneuver-restart --seed 1 \
-        --variants "loop tracker (manoeuvre restart at NIS 16.3)" "coverage blind to the mask" \
+        --variants "tracker as configured" "coverage blind to the mask" \
         --out runs/eye_loop_ablation_coverage_seed1
 """
 
@@ -45,6 +45,8 @@ from hec_jax.runs import run_folder, write_json, write_text
 # camera) replaced
 VARIANTS = {
     "loop tracker (manoeuvre restart at NIS 16.3)": ({}, {}),
+    # the same, named for --no-maneuver-restart (then the real-time eye's tracker)
+    "tracker as configured": ({}, {}),
     "no manoeuvre restart": ({"maneuver_nis": None}, {}),
     "inner-edge check 0.05": ({"min_inner_support": 0.05}, {}),
     # the eye not told which pixels the robot's mask replaced (as before 2026-11-26)
@@ -69,7 +71,8 @@ class LoopAblation:
     msaa: int = 0  # multisample anti-aliasing of the frames (0: as the real-time camera)
     width: int = 640  # [px]
     height: int = 480  # [px]
-    variants: tuple[str, ...] = tuple(VARIANTS)  # names of VARIANTS to run
+    # names of VARIANTS to run (by default all but the alias "tracker as configured")
+    variants: tuple[str, ...] = tuple(v for v in VARIANTS if v != "tracker as configured")
     seed: int = 0  # the networks' initialisation (the preset's, 0, is the real-time runs')
     # every variant from the loop's tracker (True) or the real-time eye's, without the
     # manoeuvre restart (False)
