@@ -8,7 +8,6 @@ from hec_jax.geometry.box_model import project_corners_np
 from hec_jax.geometry.track import BoxPrediction
 from hec_jax.loop.camera_loop import (
     front_object_mask,
-    mask_robot,
     mask_robot_and_replaced,
     robot_mask,
 )
@@ -65,17 +64,17 @@ def test_front_object_mask_is_the_box_silhouette_only_when_the_box_is_in_front()
 def test_mask_robot_leaves_kept_pixels_as_rendered():
     frame = np.full(SHAPE, 200, np.uint8)
     camera = _camera((0.0, 0.0, 1.0))  # the hand sphere in the image centre
-    masked = mask_robot(frame, camera, [0], 0.005)
+    masked, _ = mask_robot_and_replaced(frame, camera, [0], 0.005)
     assert masked[60, 80].max() == 0  # painted black (no inpainting asked)
     keep = np.zeros(SHAPE[:2], bool)
     keep[55:65, 75:85] = True
-    kept = mask_robot(frame, camera, [0], 0.005, keep=keep)
+    kept, _ = mask_robot_and_replaced(frame, camera, [0], 0.005, keep=keep)
     np.testing.assert_array_equal(kept[keep], frame[keep])
     assert kept[60, 72].max() == 0  # the rest of the hand's disc (radius 10 px) is still masked
 
 
 def _mask_robot_numpy(frame, camera, geoms, margin, inpaint_geoms=(), keep=None):
-    """The mask written with NumPy's boolean indexing (``mask_robot`` before its OpenCV
+    """The mask written with NumPy's boolean indexing (``mask_robot_and_replaced``'s frame before its OpenCV
     rewrite): the reference its output must match to the bit.
     """
     import cv2
@@ -120,7 +119,7 @@ def test_mask_robot_matches_the_numpy_reference_bit_for_bit():
         keep[50:70, 70:90] = True
         for kw in ({}, {"inpaint_geoms": [1]}, {"inpaint_geoms": [1], "keep": keep}):
             np.testing.assert_array_equal(
-                mask_robot(frame, camera, [0, 1], 0.005, **kw),
+                mask_robot_and_replaced(frame, camera, [0, 1], 0.005, **kw)[0],
                 _mask_robot_numpy(frame, camera, [0, 1], 0.005, **kw),
             )
             # the pixels replaced (painted or inpainted): both spheres' discs, less the kept ones

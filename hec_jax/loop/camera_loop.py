@@ -262,21 +262,6 @@ def robot_mask(shape, camera: SceneCamera, geoms, margin: float, intrinsics=None
     return mask
 
 
-def mask_robot(
-    frame: np.ndarray,
-    camera: SceneCamera,
-    geoms,
-    margin: float,
-    inpaint_geoms=(),
-    intrinsics=None,
-    keep=None,
-) -> np.ndarray:
-    """``frame`` with the robot's own image masked out: :func:`mask_robot_and_replaced`'s
-    frame.
-    """
-    return mask_robot_and_replaced(frame, camera, geoms, margin, inpaint_geoms, intrinsics, keep)[0]
-
-
 def mask_robot_and_replaced(
     frame: np.ndarray,
     camera: SceneCamera,
@@ -537,7 +522,10 @@ def run_camera(
                 if corrupt is not None:
                     frame = corrupt(i, index, j, frame)
                 t1 = time.perf_counter()
-                st = trackers[i].update(*((frame,) if occluded is None else (frame, occluded)))
+                if occluded is None:
+                    st = trackers[i].update(frame)
+                else:  # the box tracker, told the pixels the mask replaced
+                    st = trackers[i].update(frame, occluded)
                 rec["render_ms"][i, j] = 1e3 * (t1 - t0)
                 rec["eye_ms"][i, j] = 1e3 * (time.perf_counter() - t1)
                 rec["t_stamp"][i, j] = s_img * dt

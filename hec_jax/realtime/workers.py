@@ -168,7 +168,7 @@ def camera_main(
 
 
 class _MaskCamera:
-    """What :func:`hec_jax.loop.camera_loop.mask_robot` reads of a camera: the calibrated pose
+    """What :func:`hec_jax.loop.camera_loop.mask_robot_and_replaced` reads of a camera: the calibrated pose
     and intrinsics and a model/data pair with the robot's kinematics (no renderer).
     """
 
