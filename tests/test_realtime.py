@@ -155,6 +155,73 @@ def test_plant_holds_the_torque_on_late_and_skipped_steps():
     np.testing.assert_array_equal(applied, [1.0, 1.0, 3.0, 3.0, 3.0, 3.0, 4.0])
 
 
+def test_the_board_shows_the_plants_clock_and_the_camera_wakes_on_it():
+    """The plant's board carries its clock time at each write (NaN before the episode's clock
+    runs). The camera's sleep ends two steps before the frame is due, counted from the step
+    shown, or on the plant's clock when the step shown is behind it (a catch-up burst)."""
+    from hec_jax.realtime.workers import _POLL_S, camera_sleep_s
+
+    exp = _task()
+    loop = L.build_loop(exp.task)
+    plant = RT.MujocoPlant(exp.task, loop.q_home)
+    plant._camera_proc = object()  # publishes as with a camera process (none is started)
+    clock = _ScriptedClock()
+    plant.begin_episode(50)
+    _, rec = plant.board.read()
+    assert rec["step"] == 0 and np.isnan(rec["t_clock"])
+    plant.start(clock)
+    clock.t = 0.3e-3
+    plant.read()
+    plant.write(np.zeros(3))  # step 0 on time: the board shows step 1 at clock 0.3 ms
+    _, rec = plant.board.read()
+    assert rec["step"] == 1 and rec["t_clock"] == pytest.approx(0.3e-3)
+    clock.t = 34.2e-3  # a stall: the read integrates steps 1-33 with the held torque
+    assert plant.read().index == 34
+    _, rec = plant.board.read()
+    assert rec["step"] == 34 and rec["t_clock"] == pytest.approx(34.2e-3)
+    plant._camera_proc = None
+
+    dt, due = 1e-3, 33
+    # on time (step s written at about (s - 1) dt + 0.3 ms, read 0.1 ms later): the count from
+    # the step shown, as before the clock was on the board
+    for s in (1, 10, 30):
+        on_time = {"step": s, "t_clock": (s - 1) * dt + 3e-4, "t_wall": 100.0}
+        assert camera_sleep_s(on_time, due, dt, 100.0 + 1e-4) == pytest.approx(
+            max(_POLL_S, (due - s - 2) * dt)
+        )
+    # a burst: step 5 written at clock 34.2 ms; the frame's time has passed, so no sleep
+    burst = {"step": 5, "t_clock": 34.2e-3, "t_wall": 100.0}
+    assert camera_sleep_s(burst, due, dt, 100.0) == _POLL_S
+    # behind by 10 steps at clock 20 ms: until clock 31 ms, not 26 steps on
+    behind = {"step": 10, "t_clock": 20e-3, "t_wall": 100.0}
+    assert camera_sleep_s(behind, due, dt, 100.002) == pytest.approx(9e-3)
+    # the clock not running (NaN): the count alone; never under the poll interval
+    held = {"step": 0, "t_clock": np.nan, "t_wall": 100.0}
+    assert camera_sleep_s(held, due, dt, 100.0) == pytest.approx(31e-3)
+    assert camera_sleep_s({**held, "step": 32}, due, dt, 100.0) == _POLL_S
+
+
+def test_rt_budget_rest_covers_the_part_the_kernel_keeps():
+    """The rest before an episode's lead: the part of each real-time period that real-time
+    threads may not use plus the margin, only under a real-time policy with a limit."""
+    import os
+
+    from hec_jax.realtime import clock
+
+    fifo, rr, other = os.SCHED_FIFO, os.SCHED_RR, os.SCHED_OTHER
+    assert clock.rt_budget_rest_s(fifo, 1_000_000, 950_000) == pytest.approx(0.06)
+    assert clock.rt_budget_rest_s(rr, 1_000_000, 800_000, margin_s=0.0) == pytest.approx(0.2)
+    assert clock.rt_budget_rest_s(other, 1_000_000, 950_000) == 0.0
+    assert clock.rt_budget_rest_s(fifo, 1_000_000, -1) == 0.0  # no limit
+    assert clock.rt_budget_rest_s(fifo, 1_000_000, 1_000_000) == 0.0
+    # read from this thread and this kernel: normal scheduling here, so none
+    assert os.sched_getscheduler(0) == other and clock.rt_budget_rest_s() == 0.0
+    with open(clock.RT_PERIOD_FILE) as f, open(clock.RT_RUNTIME_FILE) as g:
+        period, runtime = int(f.read()), int(g.read())
+    expect = 0.0 if runtime < 0 or runtime >= period else (period - runtime) * 1e-6 + 0.01
+    assert clock.rt_budget_rest_s(fifo) == pytest.approx(expect)
+
+
 def test_shared_board_and_frame_ring_round_trip():
     board = Board({"t": (), "x": (2,)})
     assert board.seq == 0
@@ -209,6 +276,8 @@ def test_realtime_run_reports_itself(tmp_path):
     exp = L.replace(L.catching(eye="truth"), swings=1, swing_s=1.0, settle_s=0.3)
     result = RT.run_realtime(exp, RT.RealtimeConfig(twin="none"), progress=False)
     _check_report(result)
+    # normal scheduling: no rest before the lead, recorded as such
+    assert result.loop_run.rest_s == [0.0] and result.report["placement"]["rt_budget_rest_s"] == 0
     assert result.logs["x_e"].shape == (1, 1, 1000, 2)
     assert result.metrics["peak_force"]["mean"] > 0
     RT.write_report(tmp_path, result)

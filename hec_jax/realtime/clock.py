@@ -129,6 +129,56 @@ class realtime_priority:
             set_scheduling(os.SCHED_OTHER, 0)
 
 
+# the kernel's real-time bandwidth (Linux): real-time threads of a CPU run at most
+# ``sched_rt_runtime_us`` of every ``sched_rt_period_us`` (-1: no limit)
+RT_RUNTIME_FILE = "/proc/sys/kernel/sched_rt_runtime_us"
+RT_PERIOD_FILE = "/proc/sys/kernel/sched_rt_period_us"
+
+
+def _read_int(path: str) -> int | None:
+    try:
+        with open(path) as f:
+            return int(f.read().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def rt_budget_rest_s(
+    policy: int | None = None,
+    period_us: int | None = None,
+    runtime_us: int | None = None,
+    margin_s: float = 0.01,
+) -> float:
+    """[s] to sleep before real-time work so that the kernel's real-time throttling cannot
+    stop it: the part of each period real-time threads may not use, plus ``margin_s``; 0 under
+    normal scheduling or without a limit.
+
+    Past ``runtime_us`` of real-time work on a CPU within one ``period_us`` (95% of each
+    second by default), the kernel stops that CPU's real-time threads until the period ends:
+    a stall of up to ``period_us - runtime_us`` (50 ms). Work that keeps a CPU busy for over a
+    second at real-time priority (compiling the step before the first episode) hits it every
+    second, and when the last hit falls on the first ticks, the loop skips them
+    (docs/realtime.md, "The start-up stall"). A sleep of at least the unusable part, ending
+    where the real-time work begins, leaves every period that overlaps that work under the
+    limit as long as the work itself stays under it (a tick's duty is well under 95%).
+
+    Args:
+        policy: the calling thread's scheduling policy (None: read it).
+        period_us: [us] the kernel's real-time period (None: read it; unreadable: no rest).
+        runtime_us: [us] the real-time threads' share of it (None: read it; unreadable or -1:
+            no rest).
+        margin_s: [s] added to the rest.
+    """
+    policy = os.sched_getscheduler(0) if policy is None else policy
+    if policy not in (os.SCHED_FIFO, os.SCHED_RR):
+        return 0.0
+    period_us = _read_int(RT_PERIOD_FILE) if period_us is None else period_us
+    runtime_us = _read_int(RT_RUNTIME_FILE) if runtime_us is None else runtime_us
+    if period_us is None or runtime_us is None or runtime_us < 0 or runtime_us >= period_us:
+        return 0.0
+    return (period_us - runtime_us) * 1e-6 + margin_s
+
+
 def realtime_refused(priority: int) -> str | None:
     """Why ``SCHED_FIFO`` at ``priority`` is refused to this process, as one line (None: it is
     allowed, or ``priority`` is 0). Tried on the calling thread and undone at once, so a run

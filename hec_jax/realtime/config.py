@@ -23,6 +23,12 @@ class RealtimeConfig:
     spin_us: float = 200.0  # [us] busy-wait before each tick (sleep before that)
     lead_ms: float = 20.0  # [ms] from the start of an episode's clock to its first tick
     gc_off: bool = True  # no Python garbage collection during an episode (collected between)
+    # before each episode's lead, the control thread (at real-time priority) sleeps the part of a
+    # second the kernel keeps from real-time threads, plus 10 ms (``clock.rt_budget_rest_s``), so
+    # its throttling cannot stop the first ticks after a busy set-up (the step's compilation
+    # before episode 0 stalled them 34-45 ms: docs/realtime.md, "The start-up stall"). False:
+    # no rest (the ablation); without real-time priority there is none either way
+    rt_budget_rest: bool = True
     # the control process (its loop and XLA's pool threads) on the first CPU, the camera and eye
     # processes on the others (False: wherever the kernel puts them; docs/realtime.md)
     pin_cpus: bool = True

@@ -241,7 +241,10 @@ class ArmModel:
         return out
 
 
-STATE_FIELDS = {"t": (), "step": (), "episode": (), "t_wall": ()}
+# the board's fields besides qpos: simulated time [s], the step, the episode, the monotonic wall
+# time of the write [s] and the plant's clock time then [s] (NaN before the episode's clock
+# runs): a reader tells steps on time from a burst of catch-up steps by them
+STATE_FIELDS = {"t": (), "step": (), "episode": (), "t_wall": (), "t_clock": ()}
 
 
 class PlantCounts(NamedTuple):
@@ -296,6 +299,7 @@ class MujocoPlant:
         self.q_release = make_data_c(self.m, self.ids, self.conditions, self.q_home).qpos.copy()
         self.episode = -1
         self.d: mujoco.MjData | None = None
+        self.clock: Clock | None = None
         self.board = Board({**STATE_FIELDS, "qpos": (self.m.nq,)})
         self.camera_config = camera
         self._camera_proc = None
@@ -407,6 +411,7 @@ class MujocoPlant:
             "t_wall_done": np.zeros(steps),
         }
         self.episode += 1
+        self.clock = None  # until :meth:`start`: the board's t_clock is NaN
         self.j = 0  # the step to integrate next (= the sample the controller may read)
         self._staged = False
         self._f_contact = np.zeros(3)
@@ -466,8 +471,14 @@ class MujocoPlant:
     def _publish(self) -> None:
         if self._camera_proc is not None:
             d = self.d
+            t_clock = self.clock.now() if self.clock is not None else np.nan
             self.board.write(
-                t=d.time, step=self.j, episode=self.episode, t_wall=monotonic_s(), qpos=d.qpos
+                t=d.time,
+                step=self.j,
+                episode=self.episode,
+                t_wall=monotonic_s(),
+                t_clock=t_clock,
+                qpos=d.qpos,
             )
 
     def _catch_up(self) -> None:

@@ -69,6 +69,7 @@ from hec_jax.realtime.clock import (
     pin_process,
     pinned,
     realtime_priority,
+    rt_budget_rest_s,
 )
 from hec_jax.realtime.config import RealtimeConfig
 from hec_jax.realtime.plant import (
@@ -359,6 +360,7 @@ class LoopRun:
         counts: per episode, the plant's :class:`~hec_jax.realtime.plant.PlantCounts`.
         learner: the learner state after the last episode.
         wall_s: per episode, the clock time of its ticks [s].
+        rest_s: per episode, the rest before its lead [s] (``rt_budget_rest``; 0: none).
     """
 
     logs: list = field(default_factory=list)
@@ -367,6 +369,7 @@ class LoopRun:
     counts: list = field(default_factory=list)
     learner: Any = None
     wall_s: list = field(default_factory=list)
+    rest_s: list = field(default_factory=list)
 
 
 def run_loop(
@@ -384,6 +387,7 @@ def run_loop(
     fns: StepFns | None = None,
     progress: bool = False,
     acquire_timeout_s: float = 10.0,
+    rt_budget_rest: bool = True,
 ) -> LoopRun:
     """Episodes of the closed loop on ``plant`` at ``clock``'s ticks.
 
@@ -405,6 +409,9 @@ def run_loop(
         progress: print one line per episode.
         acquire_timeout_s: [s] with the eye: before each release, how long to wait for its
             answer on the release frame (the cube held in view until the eye has it).
+        rt_budget_rest: at real-time priority, sleep :func:`~.clock.rt_budget_rest_s` before
+            each episode's lead (the kernel's real-time throttling then cannot stop its first
+            ticks); recorded in :attr:`LoopRun.rest_s`.
 
     Raises:
         TimeoutError: the eye did not answer on a release frame in time.
@@ -460,6 +467,13 @@ def run_loop(
         if gc_off:
             gc.collect()
             gc.disable()
+        # the set-up above (episode 0: the step's compilation, seconds at real-time priority) may
+        # have used the kernel's real-time budget of the current second; resting the rest of it
+        # here keeps the throttling's stop (up to 50 ms) off the lead and the first ticks
+        rest = rt_budget_rest_s() if rt_budget_rest else 0.0
+        if rest > 0:
+            time.sleep(rest)
+        out.rest_s.append(rest)
         clock.start(lead_s)
         # until shortly before tick 0, dry ticks (the arm model and the jitted step on copies of
         # the release sample) keep the tick's code and data in the caches: after the episode's
@@ -819,6 +833,7 @@ def run_realtime(
                     rt.gc_off,
                     progress=progress,
                     acquire_timeout_s=rt.acquire_timeout_s,
+                    rt_budget_rest=rt.rt_budget_rest,
                 )
             load["end"] = os.getloadavg()
         finally:
@@ -839,6 +854,8 @@ def run_realtime(
         "rt_priority": rt.rt_priority if rt.timed else 0,
         # the CPUs' wake-up latency asked of the kernel while the loop ran (None: nothing)
         "cpu_latency_us": rt.cpu_latency_us if rt.timed else None,
+        # [s] the control thread's rest before each episode's lead (the real-time budget's)
+        "rt_budget_rest_s": max(run.rest_s, default=0.0),
         # JAX's CPU dispatch as configured (it takes effect when JAX creates its CPU client)
         "jax_cpu_async_dispatch": bool(jax.config.values["jax_cpu_enable_async_dispatch"]),
     }

@@ -49,6 +49,27 @@ def _stack(rows: list[dict]) -> dict[str, np.ndarray]:
     return {k: np.asarray([r[k] for r in rows]) for k in rows[0]}
 
 
+def camera_sleep_s(rec: dict, step_due: int, dt: float, now: float) -> float:
+    """[s] the camera sleeps before it looks at the plant's board again, a frame being due at
+    ``step_due`` and the board showing ``rec`` (``STATE_FIELDS``) at monotonic time ``now``.
+
+    Until two steps before the frame is due, counted from the step shown: polling every
+    ``_POLL_S`` woke this real-time process about once a step, each time preempting the eye on
+    its CPU (docs/realtime.md, "The eye's CPU and the held cube"). But when the plant catches up
+    after a stall (a burst of steps in microseconds), the step shown is behind the clock, and
+    the count from it overslept the frame by up to a frame period; so the sleep also ends two
+    steps before the frame's time on the plant's clock (``t_clock`` at the write ``t_wall``;
+    NaN: the clock is not running, the count alone). On time the count ends first (the same
+    sleep as before). At least ``_POLL_S``.
+    """
+    by_step = (step_due - int(rec["step"]) - 2) * dt
+    t_clock = float(rec["t_clock"])
+    if np.isfinite(t_clock):
+        by_clock = (step_due - 2) * dt - t_clock - (now - float(rec["t_wall"]))
+        by_step = min(by_step, by_clock)
+    return max(_POLL_S, by_step)
+
+
 def camera_main(
     task,
     cam,
@@ -73,7 +94,7 @@ def camera_main(
         cam: the :class:`~hec_jax.loop.config.CameraConfig` (resolution, fast rendering).
         period: control steps between frames.
         q0: (nq,) qpos at the release (for the calibration shots).
-        board: the plant's state board (t, step, episode, t_wall, qpos).
+        board: the plant's state board (t, step, episode, t_wall, t_clock, qpos).
         frames: the :class:`~hec_jax.realtime.shared.FrameRing` to fill.
         calibration: :class:`~hec_jax.realtime.shared.Images`: 0 background (pendulum hidden),
             1 the release frame.
@@ -118,10 +139,7 @@ def camera_main(
                 episode, number = int(rec["episode"]), 0
             step = int(rec["step"])
             if step < number * period:
-                # asleep until two steps before the frame is due: polling every _POLL_S here woke
-                # this real-time process about once a step, each time preempting the eye on its
-                # CPU (docs/realtime.md, "The eye's CPU and the held cube")
-                time.sleep(max(_POLL_S, (number * period - step - 2) * dt))
+                time.sleep(camera_sleep_s(rec, number * period, dt, monotonic_s()))
                 continue
             t0 = monotonic_s()
             image = camera.render(rec["qpos"])
