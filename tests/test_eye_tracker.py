@@ -252,3 +252,61 @@ def test_colour_difference_is_the_numpy_one_bit_for_bit(seed):
     got = difference(image, background)
     assert np.all(got[30:60, 20:70] == 0)  # the shadow patch
     assert (got[70:100, 90:140] > 0).mean() > 0.9  # the box
+
+
+def test_snapshot_and_restore_replay_the_track_frame_for_frame(seq):
+    # a snapshot taken mid-swing, restored into a new tracker, gives the same fits on the next
+    # frames as the tracker it came from (how a failed frame of a real-time run is replayed)
+    bg = background_model(seq.frames)
+    cfg = TrackConfig(local_starts=12)
+    tracker = BoxTracker(seq.intrinsics, EDGE, FPS, cfg, background=bg)
+    for f in seq.frames[:10]:
+        tracker.update(f)
+    snap = tracker.snapshot()
+    import pickle
+
+    snap = pickle.loads(pickle.dumps(snap))  # crosses a process boundary
+    ahead = [tracker.update(f) for f in seq.frames[10:14]]
+    replay = BoxTracker(seq.intrinsics, EDGE, FPS, cfg, background=bg)
+    replay.restore(snap)
+    again = [replay.update(f) for f in seq.frames[10:14]]
+    for a, b in zip(ahead, again, strict=True):
+        assert a.frame == b.frame and a.valid == b.valid and a.fit_source == b.fit_source
+        np.testing.assert_array_equal(a.position, b.position)
+        np.testing.assert_array_equal(a.pose_rotation, b.pose_rotation)
+    # the snapshot is a copy: the replay did not change it, and restoring it again works
+    replay.restore(snap)
+    np.testing.assert_array_equal(replay.update(seq.frames[10]).position, ahead[0].position)
+    with pytest.raises(ValueError, match="not a BoxTracker snapshot"):
+        replay.restore({"_state": snap["_state"]})
+
+
+def test_a_failed_frame_saved_by_the_real_time_eye_replays_to_the_same_fit(seq):
+    # the real-time eye's diagnostic (``RealtimeConfig.eye_save_failed``): a frame whose
+    # tracked fit failed (forced: the prediction 6 cm off) is saved with the tracker's snapshot
+    # before it; the file, through pickle, replays to the same step on a new tracker
+    import pickle
+
+    from hec_jax.realtime.workers import (
+        failed_frame_record,
+        failed_frames_file,
+        replay_failed_frames,
+    )
+
+    bg = np.stack([background_model(seq.frames)] * 3, axis=-1)  # given in colour, as the eye's
+    tracker = BoxTracker(seq.intrinsics, EDGE, FPS, TrackConfig(local_starts=12), background=bg)
+    for f in seq.frames[:10]:
+        tracker.update(f)
+    _offset_prediction(tracker, 0.06)
+    occluded = np.zeros(seq.frames[10].shape[:2], bool)
+    occluded[:40] = True  # pixels away from the cube (as the arm's mask)
+    before = tracker.snapshot()
+    st = tracker.update(seq.frames[10], occluded)
+    assert st.valid and st.fit_source == "local"
+    record = failed_frame_record({"number": 10}, seq.frames[10], occluded, before, st)
+    saved = pickle.loads(pickle.dumps(failed_frames_file(tracker, [record])))
+    assert saved["tracker"]["background"].shape == bg.shape
+    (again,) = replay_failed_frames(saved)
+    assert again.fit_source == record["fit_source"] == "local" and again.valid
+    np.testing.assert_array_equal(again.measured_position, record["measured_position"])
+    np.testing.assert_array_equal(again.position, st.position)

@@ -291,7 +291,9 @@ def test_realtime_camera_run_reports_itself():
     """The camera and the eye in their processes: frames and estimates add up."""
     cam = L.CameraConfig.void_perfect(width=320, height=240)
     exp = L.replace(L.catching(eye="camera", camera=cam), swings=1, swing_s=1.5, settle_s=0.3)
-    result = RT.run_realtime(exp, RT.RealtimeConfig(twin="none"), progress=False)
+    result = RT.run_realtime(
+        exp, RT.RealtimeConfig(twin="none", eye_save_failed=50), progress=False
+    )
     _check_report(result)
     eye = result.report["eye"]
     cam_log, eye_log = result.camera_log, result.eye_log
@@ -314,6 +316,17 @@ def test_realtime_camera_run_reports_itself():
     later = eye_log["number"] > 0
     assert sum(by_source.values()) == int(later.sum())
     assert by_source["invalid"] == int(np.sum(~eye_log["valid"][later]))
+    # the saved failed frames: every frame after the release whose tracked fit failed (up to
+    # 50), each replaying to the fit the run logged
+    from hec_jax.geometry.track import FIT_SOURCES
+    from hec_jax.realtime.workers import replay_failed_frames
+
+    saved = result.eye_failed_frames
+    failed = later & (eye_log["fit_source"] != FIT_SOURCES.index("tracked"))
+    assert [r["row"]["index"] for r in saved["frames"]] == eye_log["index"][failed][:50].tolist()
+    for record, step in zip(saved["frames"], replay_failed_frames(saved), strict=True):
+        assert step.fit_source == record["fit_source"] and step.valid == record["valid"]
+        np.testing.assert_array_equal(step.measured_position, record["measured_position"])
 
 
 def test_realtime_experiment_sets_the_eyes_tracker():

@@ -25,6 +25,7 @@ and inner edges.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import time
 from dataclasses import dataclass, field
@@ -939,6 +940,53 @@ class BoxTracker:
         self._bg_dirty = False
         if not self._given_background:
             self.background = None
+
+    @property
+    def given_background(self) -> np.ndarray | None:
+        """The background given at construction (in colour if given so); None if none was."""
+        if not self._given_background:
+            return None
+        return self._background_rgb if self._background_rgb is not None else self.background
+
+    # what :meth:`update`, :meth:`skip` and :meth:`reset` change: the track between frames
+    _TRACK_STATE = (
+        "_state",
+        "_predicted",
+        "_started",
+        "_misses",
+        "_rot_prev",
+        "_rot_prev2",
+        "_last_good",
+        "_rot_anchor",
+        "_frame",
+        "_bg_frames",
+        "_bg_dirty",
+        "background",
+    )
+
+    def snapshot(self) -> dict:
+        """The track between frames (filter, rotations, misses, frame count; the background
+        when the tracker builds its own), a deep copy: :meth:`restore` on a tracker of the same
+        intrinsics, size, fps, config and given background then gives the same :meth:`update`
+        results, frame for frame (a failed frame of a real-time run replayed offline).
+        NumPy and Python values (picklable).
+        """
+        names = [k for k in self._TRACK_STATE if k != "background" or not self._given_background]
+        return copy.deepcopy({k: getattr(self, k) for k in names})
+
+    def restore(self, snapshot: dict) -> None:
+        """Sets the track to ``snapshot`` (:meth:`snapshot`; copied, so it can be reused).
+
+        Raises:
+            ValueError: ``snapshot`` lacks or adds fields.
+        """
+        if set(snapshot) | {"background"} != set(self._TRACK_STATE):
+            raise ValueError(
+                f"not a BoxTracker snapshot: fields {sorted(snapshot)}, "
+                f"expected {sorted(self._TRACK_STATE)}"
+            )
+        for k, v in copy.deepcopy(snapshot).items():
+            setattr(self, k, v)
 
     @property
     def frame(self) -> int:

@@ -68,6 +68,11 @@ class RealtimeConfig:
     # contact went unrecovered (cause unknown): 0, as before (docs/realtime.md, "Coverage of
     # what the mask leaves visible")
     eye_local_keep: int = 0
+    # the eye keeps up to this many frames whose tracked fit failed (the image and occluded
+    # pixels it was given, the tracker's snapshot before the frame), written to the run folder
+    # as eye_failed_frames.pkl for an offline replay (``workers.replay_failed_frames``); 0: none.
+    # A diagnostic: each frame then costs a copy of the track (tens of us)
+    eye_save_failed: int = 0
     # the eye's manoeuvre restart (``TrackConfig.maneuver_nis`` of the scene's tracker: a fit far
     # outside the filter's prediction restarts its velocity from that one fit), for the run and
     # its twin alike. Off by default: on frames without anti-aliasing the held cube's fit at
@@ -134,6 +139,10 @@ class RealtimeConfig:
         if not (isinstance(self.eye_local_starts, int) and 0 <= self.eye_local_starts <= 256):
             raise ValueError(
                 f"eye_local_starts must be an integer in 0..256, got {self.eye_local_starts!r}"
+            )
+        if not (isinstance(self.eye_save_failed, int) and 0 <= self.eye_save_failed <= 1000):
+            raise ValueError(
+                f"eye_save_failed must be an integer in 0..1000, got {self.eye_save_failed!r}"
             )
         if not (isinstance(self.eye_local_keep, int) and 0 <= self.eye_local_keep <= 256):
             raise ValueError(

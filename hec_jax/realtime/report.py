@@ -15,13 +15,14 @@
 
 from __future__ import annotations
 
+import pickle
 from pathlib import Path
 
 import numpy as np
 
 from hec_jax.geometry.track import FIT_SOURCES
 from hec_jax.report import markdown_table
-from hec_jax.runs import save_figure, write_json, write_npz
+from hec_jax.runs import atomic_write_bytes, save_figure, write_json, write_npz
 
 # latency histogram bins [us]: log-spaced from 10 us to 1 s
 HIST_EDGES_US = np.concatenate([[0.0], np.logspace(1, 6, 101)])
@@ -383,7 +384,8 @@ def comparison_table(comparison: dict) -> list[str]:
 def write_report(folder: Path, result) -> None:
     """``deadline.json``, ``metrics.json`` (the run's task metrics, the twins', the ratios),
     ``deadline_histogram.png``, ``ticks.npz`` (every tick's recorded times, to recompute the
-    report), with the camera ``eye_frames.npz`` (per frame: camera, eye, estimates taken), and
+    report), with the camera ``eye_frames.npz`` (per frame: camera, eye, estimates taken) and,
+    when the eye saved them, ``eye_failed_frames.pkl`` (``RealtimeConfig.eye_save_failed``), and
     ``trajectory_realtime.npz``/``trajectory_simulated_<twin>.npz``, into ``folder``.
     """
     from hec_jax.loop.report import save_trajectories
@@ -419,6 +421,8 @@ def write_report(folder: Path, result) -> None:
             **{f"eye_{k}": np.asarray(v) for k, v in result.eye_log.items()},
             **{f"taken_{k}": np.concatenate([a[k] for a in arrivals]) for k in arrivals[0]},
         )
+    if result.eye_failed_frames is not None:  # the eye's failed frames, for a replay
+        atomic_write_bytes(folder / "eye_failed_frames.pkl", pickle.dumps(result.eye_failed_frames))
     final = result.config.task.final_s > 0
     logs = {
         "realtime": result.logs,

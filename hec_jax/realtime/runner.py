@@ -594,6 +594,9 @@ class EyeProcess:
         skip_unseen: the tracker predicts over frame times it never saw (``BoxTracker.skip``).
         gc_off: no Python garbage collection while an episode runs (collected at each release
             frame, which the loop waits for anyway).
+        save_failed: keep up to this many frames whose tracked fit failed, for an offline
+            replay (:func:`~hec_jax.realtime.workers.failed_frame_record`; the log's
+            ``failed_frames``).
     """
 
     def __init__(
@@ -607,6 +610,7 @@ class EyeProcess:
         nice: int = 0,
         skip_unseen: bool = True,
         gc_off: bool = False,
+        save_failed: int = 0,
     ):
         from hec_jax.realtime.plant import _child_env
 
@@ -626,6 +630,7 @@ class EyeProcess:
                     nice=nice,
                     skip_unseen=skip_unseen,
                     gc_off=gc_off,
+                    save_failed=save_failed,
                 ),
                 daemon=True,
                 name="hec-eye",
@@ -683,6 +688,8 @@ class RealtimeResult:
         camera_log, eye_log: the camera's and the eye's per-frame logs (None without camera).
         load: ``os.getloadavg()`` before and after the real-time part.
         dt: [s] control period.
+        eye_failed_frames: the eye's saved failed frames (``RealtimeConfig.eye_save_failed``;
+            :func:`~hec_jax.realtime.workers.failed_frames_file`); None: not saved.
     """
 
     config: ExperimentConfig
@@ -697,6 +704,7 @@ class RealtimeResult:
     eye_log: dict | None
     load: dict
     dt: float
+    eye_failed_frames: dict | None = None
 
 
 def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> ExperimentConfig:
@@ -810,6 +818,7 @@ def run_realtime(
                     nice,
                     rt.eye_skips_unseen,
                     rt.gc_off and rt.timed,
+                    rt.eye_save_failed,
                 )
                 eye.wait_ready(rt.startup_timeout_s)
             children: dict = {}
@@ -842,6 +851,7 @@ def run_realtime(
     for name, log in (("eye", eye_log), ("camera", camera_log)):
         if isinstance(log, dict) and "error" in log:
             raise RuntimeError(f"the {name} process failed:\n{log['error']}")
+    failed_frames = eye_log.pop("failed_frames", None) if eye_log else None
     logs = stack_episodes(loop, run)
     metrics = condition_metrics(loop, logs, rt.condition)
     fps = None if cam is None else 1.0 / (steps_per_frame(cam, plant.dt) * plant.dt)
@@ -865,7 +875,19 @@ def run_realtime(
     scales = {"settle_force": task.learner.f_desired}  # [N] F_cd: the settle force's scale
     comparison = {k: compare_metrics(metrics, v["metrics"], 0.2, scales) for k, v in twins.items()}
     return RealtimeResult(
-        exp, rt, logs, metrics, report, twins, comparison, run, camera_log, eye_log, load, plant.dt
+        exp,
+        rt,
+        logs,
+        metrics,
+        report,
+        twins,
+        comparison,
+        run,
+        camera_log,
+        eye_log,
+        load,
+        plant.dt,
+        failed_frames,
     )
 
 

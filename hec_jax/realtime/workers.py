@@ -185,6 +185,59 @@ def camera_main(
         log_queue.put({"error": traceback.format_exc()})
 
 
+def failed_frame_record(row: dict, image, occluded, snapshot: dict, step) -> dict:
+    """A frame the real-time eye failed to track, as saved for an offline replay: the eye's
+    log ``row`` of it (index, episode, number, times), the ``image`` and ``occluded`` pixels the
+    tracker was given, its ``snapshot`` before the frame (``BoxTracker.snapshot``, after the
+    frames it never saw were skipped) and what ``step`` (the ``TrackStep``) gave: its
+    ``fit_source`` ("" when invalid), validity and estimated centre [m] (camera frame).
+
+    Replayed (:func:`replay_failed_frames`) on a tracker of the run's settings, the update
+    gives the same step: the frame's failure can be studied without the real-time run.
+    """
+    return {
+        "row": dict(row),
+        "image": np.asarray(image, np.uint8).copy(),
+        "occluded": None if occluded is None else np.asarray(occluded, bool).copy(),
+        "snapshot": snapshot,
+        "fit_source": str(step.fit_source),
+        "valid": bool(step.valid),
+        "measured_position": np.asarray(step.measured_position, np.float64).copy(),
+    }
+
+
+def failed_frames_file(tracker, frames: list[dict]) -> dict:
+    """What ``eye_failed_frames.pkl`` holds: how to build the eye's ``tracker`` again
+    (intrinsics, cube edge [m], fps, config, background) and its saved ``frames``
+    (:func:`failed_frame_record`).
+    """
+    return {
+        "tracker": {
+            "intrinsics": np.asarray(tracker.intrinsics).copy(),
+            "size": float(tracker.size),
+            "fps": float(tracker.fps),
+            "config": tracker.config,
+            "background": tracker.given_background,
+        },
+        "frames": frames,
+    }
+
+
+def replay_failed_frames(saved: dict) -> list:
+    """The ``TrackStep`` of each saved frame (:func:`failed_frames_file`) replayed on a tracker
+    built as the run's eye, each from its snapshot: the same fits as in the run.
+    """
+    from hec_jax.geometry import BoxTracker
+
+    t = saved["tracker"]
+    tracker = BoxTracker(t["intrinsics"], t["size"], t["fps"], t["config"], t["background"])
+    out = []
+    for record in saved["frames"]:
+        tracker.restore(record["snapshot"])
+        out.append(tracker.update(record["image"], record["occluded"]))
+    return out
+
+
 class _MaskCamera:
     """What :func:`hec_jax.loop.camera_loop.mask_robot_and_replaced` reads of a camera: the calibrated pose
     and intrinsics and a model/data pair with the robot's kinematics (no renderer).
@@ -225,6 +278,7 @@ def eye_main(
     nice=0,
     skip_unseen=True,
     gc_off=False,
+    save_failed=0,
 ):
     """The eye process: the tracker compiled on the release frame, then the newest frames.
 
@@ -246,6 +300,11 @@ def eye_main(
             (``BoxTracker.skip``); False: each frame is taken as 1 / fps after the last seen.
         gc_off: Python's garbage collector off while an episode runs, run at each release
             frame instead (a collection in mid-swing delays that frame's estimate).
+        save_failed: keep up to this many frames after a release whose tracked fit failed
+            (:func:`failed_frame_record`: the image as the tracker saw it, its occluded pixels,
+            the tracker's snapshot before it), in the log's ``failed_frames``
+            (:func:`failed_frames_file`); 0: none (a snapshot costs a copy of the track per
+            frame).
     """
     rows: list[dict] = []
     try:
@@ -294,6 +353,7 @@ def eye_main(
             set_scheduling(os.SCHED_FIFO, priority)
         ready.set()
         last, episode, misses, published, dropped, number = -1, -1, 0, False, 0, -1
+        failed: list[dict] = []
         while not stop.is_set():
             frame = camera.latest(last)
             if frame is None:
@@ -321,6 +381,8 @@ def eye_main(
                 tracker.skip(max(gap, 0))
             image, occluded = masked(frame.image, frame.q_arm, tracker)
             t_masked = monotonic_s()
+            keep = len(failed) < save_failed and number > 0
+            before = tracker.snapshot() if keep else None
             st = tracker.update(image, occluded)
             misses = 0 if st.valid else misses + 1
             x = xd = xdd = np.full(2, np.nan)
@@ -372,9 +434,13 @@ def eye_main(
                     xd_est=xd,
                 )
             )
+            if keep and st.fit_source != "tracked":
+                failed.append(failed_frame_record(rows[-1], image, occluded, before, st))
         gc.enable()
         out = _stack(rows)
         out["dropped"] = dropped
+        if save_failed:
+            out["failed_frames"] = failed_frames_file(tracker, failed)
         log_queue.put(out)
     except Exception:  # noqa: BLE001 - reported to the parent, which raises
         log_queue.put({"error": traceback.format_exc()})
