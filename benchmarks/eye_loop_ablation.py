@@ -51,6 +51,8 @@ VARIANTS = {
     "inner-edge check 0.05": ({"min_inner_support": 0.05}, {}),
     # the eye not told which pixels the robot's mask replaced (as before 2026-11-26)
     "coverage blind to the mask": ({}, {"mask_aware_coverage": False}),
+    # no fit with fewer than 4 segments where the mask hides edges (as before 2026-11-27)
+    "4 segments always": ({"min_segments_hidden": 4}, {}),
 }
 
 # the task metrics tabulated (catching: last swing; hitting: the continuous run)
@@ -170,7 +172,7 @@ def table(results: dict, task: str) -> list[str]:
     keys = METRICS[task]
     head = ["variant", "frames valid", "swings fully valid", "swings with a loss"]
     head += ["longest invalid run [frames]", "error p50 / max [mm]"]
-    head += ["fits: tracked / stopped / local / local_turned / search", *keys]
+    head += ["fits: tracked / stopped / three_segments / local / local_turned / search", *keys]
     rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, r in results.items():
         e = r.get("eye")
@@ -189,8 +191,8 @@ def table(results: dict, task: str) -> list[str]:
             else ["-"] * 5
         )
         fits = (e or {}).get("fits_by_source")
-        names = ("tracked", "stopped", "local", "local_turned", "search")
-        cells.append(" / ".join(str(fits[n]) for n in names) if fits else "-")
+        names = ("tracked", "stopped", "three_segments", "local", "local_turned", "search")
+        cells.append(" / ".join(str(fits.get(n, 0)) for n in names) if fits else "-")
         for k in keys:
             v = _scalar(r["metrics"], k)
             cells.append("-" if v is None else f"{v:.4g}")

@@ -175,6 +175,16 @@ class TrackConfig:
             taking its window and size: the part that survives an opening by a disk of
             ``blob_core`` x the blob's largest inscribed radius (a rod near the camera, too thick
             for the fixed 5 px opening, made the blob's window the rod's). 0: off (as before).
+        min_segments_hidden: a fit needs at least 4 associated segments. When the tracked fit
+            and the stop hypothesis fail only that count, and visible model edges are hidden for
+            at least half their length by the frame's occluded pixels (the robot's own mask:
+            :meth:`BoxTracker.update`'s ``occluded``), their fit is taken with one segment fewer
+            per hidden edge, but no fewer than this (3 lines are the fewest that determine a
+            pose; such a fit has no redundancy, so it comes after the 4-segment hypotheses and
+            before the local search and the search from scratch; ``fit_source``
+            ``"three_segments"``). The held cube seen face-on with the hand's masked disc over
+            one edge shows 3 (docs/realtime.md, "Failed frames replayed"). 4: off (as before).
+            Without occluded pixels it changes nothing.
     """
 
     max_segments: int = 48
@@ -221,6 +231,7 @@ class TrackConfig:
     blob_required: bool = False
     low_contrast: bool = False
     blob_core: float = 0.0
+    min_segments_hidden: int = 3
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -252,7 +263,8 @@ class Association(NamedTuple):
     """Segments clipped to their model edges. Attributes: endpoints (M, 2, 2) [px], edge_ids (M,),
     weights (M,) [px] (overlap length, 0 = unassigned), coverage (fraction of the visible edge
     length outside the occluded pixels, at most 1), families (number of edge families with an
-    assigned segment).
+    assigned segment), hidden (number of visible model edges the occluded pixels hide for at
+    least half their length; 0 without them).
     """
 
     endpoints: Array
@@ -260,6 +272,7 @@ class Association(NamedTuple):
     weights: Array
     coverage: Array
     families: Array
+    hidden: Array
 
 
 # samples along a projected model edge for its occluded fraction
@@ -340,21 +353,26 @@ def associate(
     weight = jnp.where(assigned, ov * length[best], 0.0)
     per_edge = jnp.zeros(12, weight.dtype).at[best].add(jnp.where(assigned, ov, 0.0))
     vis_len = jnp.where(vis, length, 0.0)
-    observable = vis_len * (1.0 - occluded_fraction(edges, occluded))
+    hidden_fraction = occluded_fraction(edges, occluded)
+    observable = vis_len * (1.0 - hidden_fraction)
     explained = jnp.sum(vis_len * jnp.minimum(per_edge, 1.0))
     coverage = jnp.minimum(explained / jnp.maximum(jnp.sum(observable), 1e-9), 1.0)
     fam_w = jnp.zeros(3, weight.dtype).at[jnp.asarray(EDGE_FAMILY)[best]].add(weight)
-    return Association(clipped, best, weight, coverage, jnp.sum(fam_w > 0))
+    hidden = jnp.sum(vis & (hidden_fraction >= 0.5))
+    return Association(clipped, best, weight, coverage, jnp.sum(fam_w > 0), hidden)
 
 
 class Located(NamedTuple):
-    """One frame's pose fit. Attributes: pose, association, rms [px], valid, position_cov (3, 3)."""
+    """One frame's pose fit. Attributes: pose, association, rms [px], valid, position_cov (3, 3),
+    checks (valid but for the count of associated segments, at least 4).
+    """
 
     pose: Pose
     association: Association
     rms: Array
     valid: Array
     position_cov: Array
+    checks: Array
 
 
 def locate(
@@ -391,21 +409,21 @@ def locate(
     )
     used = jnp.sum(asc.weights > 0)
     finite = jnp.all(jnp.isfinite(pose.rotation)) & jnp.all(jnp.isfinite(pose.translation))
-    valid = (
+    checks = (
         finite
         & (asc.coverage >= cfg.min_coverage)
         & (fit.rms <= cfg.max_rms_px)
         & (asc.families >= 2)
-        & (used >= 4)
         & (pose.translation[2] > 0)
     )
+    valid = checks & (used >= 4)
     # Covariance of the centre: s^2 (J^T W J)^-1, s^2 the weighted residual variance (floored).
     w_mean = jnp.sum(asc.weights) / jnp.maximum(used, 1)
     s2 = jnp.maximum(fit.cost / jnp.maximum(2 * used - 6, 1), cfg.sigma_floor_px**2 * w_mean)
     info = fit.information + 1e-9 * jnp.eye(6)
     cov = s2 * jnp.linalg.inv(info)[3:, 3:]
     cov = 0.5 * (cov + cov.T)
-    return Located(pose, asc, fit.rms, valid, cov)
+    return Located(pose, asc, fit.rms, valid, cov, checks)
 
 
 def refine_points(
@@ -826,7 +844,9 @@ class TrackStep(NamedTuple):
             tracked fit from the prediction ``"tracked"``, the box stopped at its last fit
             ``"stopped"`` (``stop_hypothesis``), the local search's predicted rotation
             ``"local"`` or its turns ``"local_turned"`` (``local_starts``), the search from
-            scratch ``"search"``; ``""`` where the frame is not valid.
+            scratch ``"search"``, the tracked or stopped fit with fewer segments where the
+            occluded pixels hide edges ``"three_segments"`` (``min_segments_hidden``); ``""``
+            where the frame is not valid.
     """
 
     frame: int
@@ -849,7 +869,7 @@ class TrackStep(NamedTuple):
 
 
 # the values of TrackStep.fit_source, in the order the hypotheses are tried ("" : not valid)
-FIT_SOURCES = ("", "tracked", "stopped", "local", "local_turned", "search")
+FIT_SOURCES = ("", "tracked", "stopped", "local", "local_turned", "search", "three_segments")
 
 
 class BoxPrediction(NamedTuple):
@@ -922,6 +942,8 @@ class BoxTracker:
         self._locate, self._finish, self._search, self._fcfg, self._local = _compiled(config, fps)
         self._no_occlusion = None  # all-False occluded pixels of the last frame size
         self._occluded = None  # the frame's occluded pixels (update)
+        self._occlusion_given = False  # update's occluded was given (not None)
+        self._three_segment_fits: list = []  # this frame's (_fit, config.min_segments_hidden)
         self._f, self._q = (np.asarray(x) for x in kf.transition(self._fcfg))
         self.reset()
 
@@ -1134,7 +1156,7 @@ class BoxTracker:
         return (rot, np.asarray(cand.pose.translation)), segp_c, mask_c
 
     def _reacquire_locally(
-        self, gray, rotation, gated, stages: tuple[int, ...] = (0, 1)
+        self, gray, rotation, gated, stages: tuple[int, ...] = (0, 1), between=None
     ) -> tuple[Finished | None, int]:
         """The local search (``config.local_starts``) around ``rotation`` [R_cam_box] at the
         filter's predicted centre and the last fitted one: its refined fit if it passes
@@ -1145,8 +1167,15 @@ class BoxTracker:
         tracked fit's own prior: on the real-time camera's frames this alone recovered every
         failed tracked fit of the held cube, in about a fifth of the 2 x 12 starts' time,
         docs/realtime.md), then its ``local_starts - 1`` random turns. ``stages``: which of the
-        two to run (:meth:`warm_up` compiles each).
+        two to run (:meth:`warm_up` compiles each). ``between``: called after the first stage
+        fails (or finds no segments), before the turns; a fit it returns ends the search as
+        stage 2 (the fits with fewer segments, ``config.min_segments_hidden``).
         """
+
+        def fallback():
+            got = between() if between is not None else None
+            return (got, 2) if got is not None else (None, -1)
+
         cfg, k = self.config, self.intrinsics
         centres = [np.asarray(self._predicted.mean[:3], np.float64)]
         centres.append(centres[0] if self._last_good is None else np.asarray(self._last_good[1]))
@@ -1155,8 +1184,13 @@ class BoxTracker:
         seg = self._moving_segments(gray, _window(corners, cfg.roi_margin))
         segp, mask = detect.pad_segments(seg, cfg.max_segments)
         if not mask.any():
-            return None, -1
+            return fallback()
         for stage in stages:
+            if stage == 1 and between is not None:
+                got, was = fallback()
+                if got is not None:
+                    return got, was
+                between = None  # tried
             search = self._local[stage]
             if search is None:
                 continue
@@ -1179,7 +1213,7 @@ class BoxTracker:
             fin = self._fit((rot, np.asarray(loc.pose.translation)), segp, mask, gray, False)
             if gated(fin):
                 return fin, stage
-        return None, -1
+        return fallback()
 
     def _occluded_pixels(self, occluded, shape) -> Array:
         """``occluded`` as a (H, W) bool device array (all False for None; one per shape, so
@@ -1329,7 +1363,38 @@ class BoxTracker:
         )
         if support < cfg.min_inner_support:  # inner edges not in the image: a Necker-like twin
             fin = fin._replace(valid=np.bool_(False))
+        elif not bool(fin.valid) and self._hidden_allowed(loc):
+            # valid but for the count, which the mask's hidden edges lower: kept for the
+            # hypothesis after the 4-segment ones (config.min_segments_hidden)
+            relaxed = jax.device_get(
+                self._finish(
+                    self._state,
+                    loc._replace(valid=jnp.asarray(True)),
+                    pp,
+                    pi,
+                    pw,
+                    size_a,
+                    k,
+                    np.bool_(first),
+                    np.asarray(prior[0], np.float64),
+                    np.float64(1.0 if use_prior else 0.0),
+                )
+            )
+            self._three_segment_fits.append(relaxed)
         return fin
+
+    def _hidden_allowed(self, loc) -> bool:
+        """``loc`` fails only its segment count, and the occluded pixels' hidden edges lower the
+        count to what it has (``config.min_segments_hidden``).
+        """
+        floor = min(self.config.min_segments_hidden, 4)
+        if floor >= 4 or not self._occlusion_given:
+            return False
+        if bool(loc.valid) or not bool(loc.checks):
+            return False
+        asc = jax.device_get(loc.association)
+        used = int(np.sum(np.asarray(asc.weights) > 0))
+        return used >= max(4 - int(asc.hidden), floor)
 
     def update(self, frame, occluded=None) -> TrackStep:
         """Process the next camera frame ((H, W, 3) uint8 RGB, 1 / fps after the previous one;
@@ -1346,6 +1411,8 @@ class BoxTracker:
         """
         frame = _check_frame(frame)
         self._occluded = self._occluded_pixels(occluded, frame.shape[:2])
+        self._occlusion_given = occluded is not None
+        self._three_segment_fits = []  # fits valid but for the count (_fit, _hidden_allowed)
         shape = self.background.shape if self._given_background else None
         if shape is None and self._bg_frames:
             shape = self._bg_frames[0].shape
@@ -1409,10 +1476,22 @@ class BoxTracker:
                 segp, mask = detect.pad_segments(seg, m)
                 fin = self._fit(prior, segp, mask, gray, False)
                 source = "stopped"
+
+        def three_segments():
+            """The tracked or stopped fit with fewer segments where the mask hides edges."""
+            return next((f for f in self._three_segment_fits if gated(f)), None)
+
         if not gated(fin) and tracking and self._started and cfg.local_starts > 0:
             # the tracked fit failed while the filter runs: search around the prediction first
-            fin, stage = self._reacquire_locally(gray, _rodrigues(omega) @ rot_prev, gated)
-            source = ("local", "local_turned")[stage] if fin is not None else ""
+            # (between its predicted rotation and its turns: the fits with fewer segments)
+            fin, stage = self._reacquire_locally(
+                gray, _rodrigues(omega) @ rot_prev, gated, between=three_segments
+            )
+            source = ("local", "local_turned", "three_segments")[stage] if fin is not None else ""
+        elif not gated(fin) and tracking:
+            got = three_segments()
+            if got is not None:
+                fin, source = got, "three_segments"
         if not gated(fin):
             # lost, or the tracked fit failed: search this frame from scratch (near the
             # prediction while the filter runs; anywhere, with a new filter, once lost)

@@ -1,0 +1,66 @@
+"""Writes ``held_cube_failed_frames.npz``: frames of the real-time eye that no hypothesis of
+the tracker recovered before ``TrackConfig.min_segments_hidden`` (``tests/test_eye_tracker.py``).
+
+From run folders of ``experiments/realtime.py ... --eye-save-failed 64`` (the catching preset,
+the void scene at 640x480 without multisampling, seed 0; session 23's runs ``rt-save-8`` and
+``rt-save-10``), the invalid frames' records (``realtime.workers.failed_frame_record``: the
+masked image and the mask's pixels as the tracker got them, the tracker's snapshot before the
+frame), the tracker's settings and background, and the cube's true centre (world x, z [m]) with
+the camera's pose to compare::
+
+    MUJOCO_GL=egl python tests/data/make_held_cube_frames.py OUT.npz RUN_FOLDER [RUN_FOLDER ...]
+
+The snapshots and the tracker's config are stored pickled (uint8 arrays), the rest as arrays.
+"""
+
+import pickle
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from hec_jax.loop.config import PRESETS, CameraConfig
+from hec_jax.realtime.plant import camera_model
+from hec_jax.realtime.workers import _MaskCamera
+
+
+def main(out: str, *runs: str) -> None:
+    cam = CameraConfig.void_perfect(width=640, height=480)
+    m, _ = camera_model(PRESETS["catching"](camera=cam).task, cam)
+    r_wc, t_wc = _MaskCamera(m, cam.width, cam.height).world_from_camera
+    images, occluded, snaps, truth, names = [], [], [], [], []
+    tracker = None
+    for run in runs:
+        saved = pickle.loads((Path(run) / "eye_failed_frames.pkl").read_bytes())
+        frames = np.load(Path(run) / "eye_frames.npz")
+        tracker = saved["tracker"]
+        for r in saved["frames"]:
+            if r["valid"]:
+                continue
+            row = r["row"]
+            i = int(np.flatnonzero(frames["camera_index"] == row["index"])[0])
+            images.append(r["image"])
+            occluded.append(r["occluded"])
+            snaps.append(np.frombuffer(pickle.dumps(r["snapshot"]), np.uint8))
+            truth.append(frames["camera_x_true"][i])
+            names.append(f"{Path(run).name} episode {row['episode']} frame {row['number']}")
+    np.savez_compressed(
+        out,
+        images=np.stack(images),
+        occluded=np.stack(occluded),
+        truth_world_xz=np.stack(truth),
+        names=np.array(names),
+        snapshot_lengths=np.array([len(s) for s in snaps]),
+        snapshots=np.concatenate(snaps),
+        config=np.frombuffer(pickle.dumps(tracker["config"]), np.uint8),
+        intrinsics=tracker["intrinsics"],
+        size=tracker["size"],
+        fps=tracker["fps"],
+        background=tracker["background"],
+        world_from_camera_r=r_wc,
+        world_from_camera_t=t_wc,
+    )
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])
