@@ -496,7 +496,12 @@ class Finished(NamedTuple):
 
 
 def _make_finish(cfg: TrackConfig, fcfg: kf.FilterConfig):
-    def finish(state, loc, points, ids, weights, size, intrinsics, first, prior_rot, prior_w):
+    def finish(
+        state, loc, points, ids, weights, size, intrinsics, first, prior_rot, prior_w, relax
+    ):
+        # relax: the located fit passes without its segment count (min_segments_hidden; an
+        # argument rather than a replaced loc.valid, so both calls share one compiled function)
+        loc = loc._replace(valid=loc.valid | (relax & loc.checks))
         fit, used, cov, info = refine_points(
             loc.pose, points, ids, weights, size, intrinsics, cfg, prior_rot, prior_w
         )
@@ -1347,29 +1352,12 @@ class BoxTracker:
         )
         pp[:n_pts], pi[:n_pts], pw[:n_pts] = pts[sel], ids[sel], 1.0
         use_prior = (not first) and self._rot_prev2 is not None
-        fin = jax.device_get(
-            self._finish(
-                self._state,
-                loc,
-                pp,
-                pi,
-                pw,
-                size_a,
-                k,
-                np.bool_(first),
-                np.asarray(prior[0], np.float64),
-                np.float64(1.0 if use_prior else 0.0),
-            )
-        )
-        if support < cfg.min_inner_support:  # inner edges not in the image: a Necker-like twin
-            fin = fin._replace(valid=np.bool_(False))
-        elif not bool(fin.valid) and self._hidden_allowed(loc):
-            # valid but for the count, which the mask's hidden edges lower: kept for the
-            # hypothesis after the 4-segment ones (config.min_segments_hidden)
-            relaxed = jax.device_get(
+
+        def finish(relax: bool) -> Finished:
+            return jax.device_get(
                 self._finish(
                     self._state,
-                    loc._replace(valid=jnp.asarray(True)),
+                    loc,
                     pp,
                     pi,
                     pw,
@@ -1378,9 +1366,17 @@ class BoxTracker:
                     np.bool_(first),
                     np.asarray(prior[0], np.float64),
                     np.float64(1.0 if use_prior else 0.0),
+                    np.bool_(relax),
                 )
             )
-            self._three_segment_fits.append(relaxed)
+
+        fin = finish(False)
+        if support < cfg.min_inner_support:  # inner edges not in the image: a Necker-like twin
+            fin = fin._replace(valid=np.bool_(False))
+        elif not bool(fin.valid) and self._hidden_allowed(loc):
+            # valid but for the count, which the mask's hidden edges lower: kept for the
+            # hypothesis after the 4-segment ones (config.min_segments_hidden)
+            self._three_segment_fits.append(finish(True))
         return fin
 
     def _hidden_allowed(self, loc) -> bool:
