@@ -176,12 +176,13 @@ class TrackConfig:
             ``blob_core`` x the blob's largest inscribed radius (a rod near the camera, too thick
             for the fixed 5 px opening, made the blob's window the rod's). 0: off (as before).
         min_segments_hidden: a fit needs at least 4 associated segments. When the tracked fit
-            and the stop hypothesis fail only that count, and visible model edges are hidden for
+            or the stop hypothesis fails only that count, and visible model edges are hidden for
             at least half their length by the frame's occluded pixels (the robot's own mask:
-            :meth:`BoxTracker.update`'s ``occluded``), their fit is taken with one segment fewer
+            :meth:`BoxTracker.update`'s ``occluded``), its fit is taken with one segment fewer
             per hidden edge, but no fewer than this (3 lines are the fewest that determine a
-            pose; such a fit has no redundancy, so it comes after the 4-segment hypotheses and
-            before the local search and the search from scratch; ``fit_source``
+            pose). Such a fit has no redundancy and is less accurate, so it comes after the
+            tracked fit, the stop hypothesis and the local search's predicted rotation, before
+            the local search's turns and the search from scratch (``fit_source``
             ``"three_segments"``). The held cube seen face-on with the hand's masked disc over
             one edge shows 3 (docs/realtime.md, "Failed frames replayed"). 4: off (as before).
             Without occluded pixels it changes nothing.
@@ -948,7 +949,7 @@ class BoxTracker:
         self._no_occlusion = None  # all-False occluded pixels of the last frame size
         self._occluded = None  # the frame's occluded pixels (update)
         self._occlusion_given = False  # update's occluded was given (not None)
-        self._three_segment_fits: list = []  # this frame's (_fit, config.min_segments_hidden)
+        self._three_segment_fits: list = []  # this frame's (_fit's keep_three)
         self._f, self._q = (np.asarray(x) for x in kf.transition(self._fcfg))
         self.reset()
 
@@ -1323,7 +1324,11 @@ class BoxTracker:
             return detect.foreground_iou(image, background, corners, thr) >= cfg.min_iou_acquire
         return True
 
-    def _fit(self, prior, segp, mask, gray, first) -> Finished:
+    def _fit(self, prior, segp, mask, gray, first, keep_three: bool = False) -> Finished:
+        """The refined fit from ``prior`` (R, t) on the padded segments; ``keep_three``: a fit
+        valid but for its segment count, allowed by the hidden edges, goes to this frame's
+        ``_three_segment_fits`` (``config.min_segments_hidden``).
+        """
         cfg, k, size_a = self.config, self.intrinsics, np.float64(self.size)
         loc = self._locate(Pose(*prior), segp, mask, size_a, k, self._occluded)
         pose_np = jax.device_get(loc.pose)
@@ -1373,7 +1378,7 @@ class BoxTracker:
         fin = finish(False)
         if support < cfg.min_inner_support:  # inner edges not in the image: a Necker-like twin
             fin = fin._replace(valid=np.bool_(False))
-        elif not bool(fin.valid) and self._hidden_allowed(loc):
+        elif keep_three and not bool(fin.valid) and self._hidden_allowed(loc):
             # valid but for the count, which the mask's hidden edges lower: kept for the
             # hypothesis after the 4-segment ones (config.min_segments_hidden)
             self._three_segment_fits.append(finish(True))
@@ -1454,7 +1459,7 @@ class BoxTracker:
 
         source = ""  # which hypothesis gave this frame's fit (TrackStep.fit_source)
         if tracking:
-            fin = self._fit(prior, segp, mask, gray, not self._started)
+            fin = self._fit(prior, segp, mask, gray, not self._started, keep_three=True)
             source = "tracked"
             if (
                 cfg.stop_hypothesis
@@ -1470,7 +1475,7 @@ class BoxTracker:
                     gray, _window(corners, cfg.roi_margin), stretch=cfg.low_contrast
                 )
                 segp, mask = detect.pad_segments(seg, m)
-                fin = self._fit(prior, segp, mask, gray, False)
+                fin = self._fit(prior, segp, mask, gray, False, keep_three=True)
                 source = "stopped"
 
         def three_segments():
