@@ -948,8 +948,6 @@ class BoxTracker:
         self._locate, self._finish, self._search, self._fcfg, self._local = _compiled(config, fps)
         self._no_occlusion = None  # all-False occluded pixels of the last frame size
         self._occluded = None  # the frame's occluded pixels (update)
-        self._occlusion_given = False  # update's occluded was given (not None)
-        self._three_segment_fits: list = []  # this frame's (_fit's keep_three)
         self._f, self._q = (np.asarray(x) for x in kf.transition(self._fcfg))
         self.reset()
 
@@ -1324,10 +1322,10 @@ class BoxTracker:
             return detect.foreground_iou(image, background, corners, thr) >= cfg.min_iou_acquire
         return True
 
-    def _fit(self, prior, segp, mask, gray, first, keep_three: bool = False) -> Finished:
-        """The refined fit from ``prior`` (R, t) on the padded segments; ``keep_three``: a fit
-        valid but for its segment count, allowed by the hidden edges, goes to this frame's
-        ``_three_segment_fits`` (``config.min_segments_hidden``).
+    def _fit(self, prior, segp, mask, gray, first, three: list | None = None) -> Finished:
+        """The refined fit from ``prior`` (R, t) on the padded segments; ``three``: where a
+        fit is valid but for its segment count, which the hidden edges lower
+        (``config.min_segments_hidden``), that fit is appended to it.
         """
         cfg, k, size_a = self.config, self.intrinsics, np.float64(self.size)
         loc = self._locate(Pose(*prior), segp, mask, size_a, k, self._occluded)
@@ -1378,10 +1376,10 @@ class BoxTracker:
         fin = finish(False)
         if support < cfg.min_inner_support:  # inner edges not in the image: a Necker-like twin
             fin = fin._replace(valid=np.bool_(False))
-        elif keep_three and not bool(fin.valid) and self._hidden_allowed(loc):
+        elif three is not None and not bool(fin.valid) and self._hidden_allowed(loc):
             # valid but for the count, which the mask's hidden edges lower: kept for the
             # hypothesis after the 4-segment ones (config.min_segments_hidden)
-            self._three_segment_fits.append(finish(True))
+            three.append(finish(True))
         return fin
 
     def _hidden_allowed(self, loc) -> bool:
@@ -1389,9 +1387,7 @@ class BoxTracker:
         count to what it has (``config.min_segments_hidden``).
         """
         floor = min(self.config.min_segments_hidden, 4)
-        if floor >= 4 or not self._occlusion_given:
-            return False
-        if bool(loc.valid) or not bool(loc.checks):
+        if floor >= 4 or bool(loc.valid) or not bool(loc.checks):
             return False
         asc = jax.device_get(loc.association)
         used = int(np.sum(np.asarray(asc.weights) > 0))
@@ -1412,8 +1408,6 @@ class BoxTracker:
         """
         frame = _check_frame(frame)
         self._occluded = self._occluded_pixels(occluded, frame.shape[:2])
-        self._occlusion_given = occluded is not None
-        self._three_segment_fits = []  # fits valid but for the count (_fit, _hidden_allowed)
         shape = self.background.shape if self._given_background else None
         if shape is None and self._bg_frames:
             shape = self._bg_frames[0].shape
@@ -1458,8 +1452,9 @@ class BoxTracker:
             return self._confirmed(gray, f.rotation, t_f)
 
         source = ""  # which hypothesis gave this frame's fit (TrackStep.fit_source)
+        three_fits: list = []  # tracked / stopped fits valid but for the count (_fit's three)
         if tracking:
-            fin = self._fit(prior, segp, mask, gray, not self._started, keep_three=True)
+            fin = self._fit(prior, segp, mask, gray, not self._started, three=three_fits)
             source = "tracked"
             if (
                 cfg.stop_hypothesis
@@ -1475,12 +1470,12 @@ class BoxTracker:
                     gray, _window(corners, cfg.roi_margin), stretch=cfg.low_contrast
                 )
                 segp, mask = detect.pad_segments(seg, m)
-                fin = self._fit(prior, segp, mask, gray, False, keep_three=True)
+                fin = self._fit(prior, segp, mask, gray, False, three=three_fits)
                 source = "stopped"
 
         def three_segments():
             """The tracked or stopped fit with fewer segments where the mask hides edges."""
-            return next((f for f in self._three_segment_fits if gated(f)), None)
+            return next((f for f in three_fits if gated(f)), None)
 
         if not gated(fin) and tracking and self._started and cfg.local_starts > 0:
             # the tracked fit failed while the filter runs: search around the prediction first
