@@ -172,7 +172,10 @@ def table(results: dict, task: str) -> list[str]:
     keys = METRICS[task]
     head = ["variant", "frames valid", "swings fully valid", "swings with a loss"]
     head += ["longest invalid run [frames]", "error p50 / max [mm]"]
-    head += ["fits: tracked / stopped / three_segments / local / local_turned / search", *keys]
+    head += [
+        "fits: tracked / stopped / three_segments / local / local_turned / along_sight / search",
+        *keys,
+    ]
     rows = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for name, r in results.items():
         e = r.get("eye")
@@ -191,7 +194,15 @@ def table(results: dict, task: str) -> list[str]:
             else ["-"] * 5
         )
         fits = (e or {}).get("fits_by_source")
-        names = ("tracked", "stopped", "three_segments", "local", "local_turned", "search")
+        names = (
+            "tracked",
+            "stopped",
+            "three_segments",
+            "local",
+            "local_turned",
+            "along_sight",
+            "search",
+        )
         cells.append(" / ".join(str(fits.get(n, 0)) for n in names) if fits else "-")
         for k in keys:
             v = _scalar(r["metrics"], k)

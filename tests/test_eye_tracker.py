@@ -312,14 +312,14 @@ def test_a_failed_frame_saved_by_the_real_time_eye_replays_to_the_same_fit(seq):
     np.testing.assert_array_equal(again.position, st.position)
 
 
-def _held_cube_frames():
-    """The real-time eye's frames no hypothesis recovered before ``min_segments_hidden``
-    (``tests/data/make_held_cube_frames.py``): the held cube face-on, the hand's masked disc
-    over one of its edges, 3 segments left."""
+def _held_cube_frames(name="held_cube_failed_frames.npz"):
+    """The real-time eye's invalid frames (``tests/data/make_held_cube_frames.py``). The
+    default: those no hypothesis recovered before ``min_segments_hidden`` (the held cube
+    face-on, the hand's masked disc over one of its edges, 3 segments left)."""
     import pickle
     from pathlib import Path
 
-    d = np.load(Path(__file__).parent / "data" / "held_cube_failed_frames.npz")
+    d = np.load(Path(__file__).parent / "data" / name)
     ends = np.cumsum(d["snapshot_lengths"])
     snaps = [
         pickle.loads(d["snapshots"][e - n : e].tobytes())
@@ -356,3 +356,57 @@ def test_a_fit_with_fewer_segments_where_the_mask_hides_an_edge(floor):
             assert np.linalg.norm(world - truth) < 0.01, (world, truth)
         tracker.restore(snap)
         assert tracker.update(image).fit_source != "three_segments"
+
+
+def test_gate_split_along_the_line_of_sight():
+    # analytic cases: a centre 1.6 m deep, radius 7.5 cm, depth allowance 10% (16 cm)
+    from hec_jax.geometry.track import Gate
+
+    centre = np.array([-0.25, -0.03, 1.6])
+    gate = Gate(centre, 0.075, 0.1)
+    deeper = centre * (1.68 / 1.6)  # the same image point 8 cm deeper
+    assert not gate.admits(deeper)  # the sphere rejects it
+    assert gate.admits_along_sight(deeper)
+    assert gate.admits_along_sight(centre * (1.6 + 0.075 + 0.159) / 1.6)
+    assert not gate.admits_along_sight(centre * (1.6 + 0.075 + 0.161) / 1.6)  # too deep
+    sideways = centre + np.array([0.076, 0.0, 0.0])
+    assert not gate.admits(sideways) and not gate.admits_along_sight(sideways)
+    # a lateral offset is measured at the gate's depth: 7 cm at 1.68 m is 6.67 cm at 1.6 m
+    assert gate.admits_along_sight(deeper + np.array([0.07, 0.0, 0.0]))
+    for bad in ([np.nan, 0.0, 1.6], [0.0, 0.0, -1.6], [0.0, 0.0, 0.0]):
+        assert not gate.admits_along_sight(np.array(bad))
+    assert not gate.admits(np.array([np.nan, 0.0, 1.6]))
+    assert not Gate(centre, 0.075).admits_along_sight(deeper)  # no depth_gate: off
+
+
+@pytest.mark.parametrize("depth_gate", [None, 0.1])
+def test_a_filter_run_away_in_depth_gets_the_frame_s_own_fit(depth_gate):
+    # independent truth: the simulator's cube centre at each frame's exposure. In these
+    # real-time frames the filter had run 8 cm deep on the held cube's drifting fits, and its
+    # gate rejected the tracked and stopped fits, which were accurate. Without depth_gate every
+    # hypothesis failed (the logged outcome); with it the frame's own fit is taken along its
+    # line of sight within 2 cm of the truth in the task plane (measured 0.5-13.8 mm; the
+    # depth, which that plane sees at 0.15 of its error, is the weak direction), and the filter
+    # restarts from it
+    import dataclasses
+
+    d, snaps, config = _held_cube_frames("held_cube_runaway_frames.npz")
+    config = dataclasses.replace(config, depth_gate=depth_gate)
+    tracker = BoxTracker(
+        d["intrinsics"], float(d["size"]), float(d["fps"]), config, d["background"]
+    )
+    r_wc, t_wc = d["world_from_camera_r"], d["world_from_camera_t"]
+    for image, occluded, snap, truth in zip(
+        d["images"], d["occluded"], snaps, d["truth_world_xz"], strict=True
+    ):
+        tracker.restore(snap)
+        st = tracker.update(image, occluded)
+        if depth_gate is None:
+            assert not st.valid and st.fit_source == ""
+            continue
+        assert st.valid and st.fit_source == "along_sight"
+        world = (r_wc @ st.measured_position + t_wc)[[0, 2]]
+        assert np.linalg.norm(world - truth) < 0.02, (world, truth)
+        np.testing.assert_allclose(st.position, st.measured_position)  # restarted there
+        np.testing.assert_array_equal(st.velocity, np.zeros(3))
+        np.testing.assert_array_equal(st.acceleration, np.zeros(3))

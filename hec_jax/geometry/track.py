@@ -186,6 +186,21 @@ class TrackConfig:
             ``"three_segments"``). The held cube seen face-on with the hand's masked disc over
             one edge shows 3 (docs/realtime.md, "Failed frames replayed"). 4: off (as before).
             Without occluded pixels it changes nothing.
+        depth_gate: when no hypothesis passes the innovation gate while the filter runs, the
+            frame's own valid fits (tracked, stop hypothesis) are tried once more against that
+            gate split along the line of sight, before the search from scratch. A fit's depth
+            comes from the box's apparent size, and a face-on box's tilt trades against it
+            (about 2 mm of depth per degree at 1.6 m; the held cube's fits drift by several
+            degrees over a few frames), so its depth errors persist from frame to frame and the
+            filter can take them for motion, run away in depth, and then reject accurate fits.
+            The split gate moves the fit along its line of sight to the predicted depth and
+            compares it with the prediction as the gate does (the image position), and allows
+            the depth this fraction of the predicted depth more (a box size error of that
+            fraction in the image). The one nearest the prediction is taken, and the filter
+            restarts from it (as at a first detection: its prediction was wrong). None: off (as
+            before 2026-11-27: the held cube's filter ran 8 cm deep and its gate rejected
+            accurate fits until the search from scratch, docs/realtime.md, "The filter in
+            depth").
     """
 
     max_segments: int = 48
@@ -233,6 +248,7 @@ class TrackConfig:
     low_contrast: bool = False
     blob_core: float = 0.0
     min_segments_hidden: int = 3
+    depth_gate: float | None = 0.1
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -777,6 +793,7 @@ _HOST_ONLY = {
         "blob_required",
         "low_contrast",
         "blob_core",
+        "depth_gate",
     )
 }
 
@@ -851,8 +868,9 @@ class TrackStep(NamedTuple):
             ``"stopped"`` (``stop_hypothesis``), the local search's predicted rotation
             ``"local"`` or its turns ``"local_turned"`` (``local_starts``), the search from
             scratch ``"search"``, the tracked or stopped fit with fewer segments where the
-            occluded pixels hide edges ``"three_segments"`` (``min_segments_hidden``); ``""``
-            where the frame is not valid.
+            occluded pixels hide edges ``"three_segments"`` (``min_segments_hidden``), the
+            tracked or stopped fit taken along its line of sight, with the filter restarted
+            ``"along_sight"`` (``depth_gate``); ``""`` where the frame is not valid.
     """
 
     frame: int
@@ -875,7 +893,17 @@ class TrackStep(NamedTuple):
 
 
 # the values of TrackStep.fit_source, in the order the hypotheses are tried ("" : not valid)
-FIT_SOURCES = ("", "tracked", "stopped", "local", "local_turned", "search", "three_segments")
+# (the order of the tuple is the order they were added: its indices are stored in run logs)
+FIT_SOURCES = (
+    "",
+    "tracked",
+    "stopped",
+    "local",
+    "local_turned",
+    "search",
+    "three_segments",
+    "along_sight",
+)
 
 
 class BoxPrediction(NamedTuple):
@@ -894,6 +922,42 @@ class BoxPrediction(NamedTuple):
     acceleration: np.ndarray
     position_cov: np.ndarray
     pose_rotation: np.ndarray
+
+
+class Gate(NamedTuple):
+    """Where a fit's box centre may lie (camera frame [m]): within ``radius`` [m] of ``centre``
+    (:meth:`admits`); or, split along the line of sight (:meth:`admits_along_sight`, with
+    ``TrackConfig.depth_gate``'s ``depth_ratio``), the fit moved along its line of sight to the
+    centre's depth within ``radius`` of it, and its depth within ``radius`` plus ``depth_ratio``
+    x the centre's depth. Non-finite positions, and non-positive depths in the split gate, are
+    outside.
+    """
+
+    centre: np.ndarray
+    radius: float
+    depth_ratio: float | None = None
+
+    def admits(self, position: np.ndarray) -> bool:
+        """Whether ``position`` (3,) [m] lies within the sphere."""
+        position = np.asarray(position, np.float64)
+        if not np.all(np.isfinite(position)):
+            return False
+        return bool(np.linalg.norm(position - self.centre) <= self.radius)
+
+    def admits_along_sight(self, position: np.ndarray) -> bool:
+        """Whether ``position`` (3,) [m] passes the gate split along its line of sight (False
+        without ``depth_ratio``).
+        """
+        position = np.asarray(position, np.float64)
+        if self.depth_ratio is None or not np.all(np.isfinite(position)):
+            return False
+        z_fit, z_gate = float(position[2]), float(self.centre[2])
+        if z_fit <= 0 or z_gate <= 0:
+            return False
+        on_ray = position * (z_gate / z_fit)  # the same image point at the gate's depth
+        lateral = np.linalg.norm(on_ray - self.centre) <= self.radius
+        depth = abs(z_fit - z_gate) <= self.radius + self.depth_ratio * z_gate
+        return bool(lateral and depth)
 
 
 class BoxTracker:
@@ -1096,7 +1160,7 @@ class BoxTracker:
 
     def _acquire(self, gray, gate):
         """Search from scratch: (prior (R, t), segments, mask) of the best valid candidate, or None.
-        ``gate`` = (predicted centre (3,) [m], radius [m]) rejects far candidates (or None).
+        ``gate`` (a :class:`Gate`, or None) rejects far candidates.
         """
         cfg, k = self.config, self.intrinsics
         m = cfg.max_segments
@@ -1145,7 +1209,7 @@ class BoxTracker:
             )
             score = float(cand.association.coverage) - 0.1 * float(cand.rms)
             t_c = np.asarray(cand.pose.translation)
-            near = gate is None or np.linalg.norm(t_c - gate[0]) <= gate[1]
+            near = gate is None or gate.admits(t_c)
             near = near and self._confirmed(gray, cand.pose.rotation, t_c, acquire=True)
             if bool(cand.valid) and near and score > best:
                 found, best = (cand, segp_c, mask_c), score
@@ -1161,10 +1225,10 @@ class BoxTracker:
 
     def _reacquire_locally(
         self, gray, rotation, gated, stages: tuple[int, ...] = (0, 1), between=None
-    ) -> tuple[Finished | None, int]:
+    ) -> tuple[Finished | None, str]:
         """The local search (``config.local_starts``) around ``rotation`` [R_cam_box] at the
         filter's predicted centre and the last fitted one: its refined fit if it passes
-        ``gated`` and the stage that found it, else (None, -1).
+        ``gated`` and its ``fit_source`` (``"local"`` or ``"local_turned"``), else (None, "").
 
         In two stages, each refined and gated before the next: first the predicted rotation
         itself at both centres (the coarse-to-fine gates of the search from scratch, from the
@@ -1172,13 +1236,14 @@ class BoxTracker:
         failed tracked fit of the held cube, in about a fifth of the 2 x 12 starts' time,
         docs/realtime.md), then its ``local_starts - 1`` random turns. ``stages``: which of the
         two to run (:meth:`warm_up` compiles each). ``between``: called after the first stage
-        fails (or finds no segments), before the turns; a fit it returns ends the search as
-        stage 2 (the fits with fewer segments, ``config.min_segments_hidden``).
+        fails (or finds no segments), before the turns; the (fit, source) it returns ends the
+        search (the fits with fewer segments, ``config.min_segments_hidden``; the fits along
+        the line of sight, ``config.depth_gate``), None goes on.
         """
 
         def fallback():
             got = between() if between is not None else None
-            return (got, 2) if got is not None else (None, -1)
+            return got if got is not None else (None, "")
 
         cfg, k = self.config, self.intrinsics
         centres = [np.asarray(self._predicted.mean[:3], np.float64)]
@@ -1216,7 +1281,7 @@ class BoxTracker:
                 rot = snap_to_symmetry(rot, self._rot_anchor)
             fin = self._fit((rot, np.asarray(loc.pose.translation)), segp, mask, gray, False)
             if gated(fin):
-                return fin, stage
+                return fin, ("local", "local_turned")[stage]
         return fallback()
 
     def _occluded_pixels(self, occluded, shape) -> Array:
@@ -1382,6 +1447,34 @@ class BoxTracker:
             three.append(finish(True))
         return fin
 
+    def _along_sight(self, own_fits, gate: Gate, gray):
+        """(fit, "along_sight") of the valid, confirmed fit among ``own_fits`` that passes
+        ``gate`` split along the line of sight (nearest the gate's centre), with the filter
+        restarted from its position (:func:`filter.init`, then one prediction); else None.
+        """
+        best = None
+        for f, _, _ in own_fits:
+            if f is None or not bool(f.valid):
+                continue
+            t_f = np.asarray(f.translation, np.float64)
+            if not gate.admits_along_sight(t_f) or not self._confirmed(gray, f.rotation, t_f):
+                continue
+            dist = float(np.linalg.norm(t_f - gate.centre))
+            if best is None or dist < best[0]:
+                best = (dist, f)
+        if best is None:
+            return None
+        f = best[1]
+        fcfg = kf.FilterConfig(dt=1.0 / self.fps, jerk_psd=self.config.jerk_psd)
+        t_f = np.asarray(f.translation, np.float64)
+        std = np.repeat(np.asarray(fcfg.init_std, np.float64), 3)
+        fresh = kf.FilterState(np.concatenate([t_f, np.zeros(6)]), np.diag(std * std))
+        f_mat, q_mat = kf.transition_np(fcfg.jerk_psd, fcfg.dt)
+        predicted = kf.FilterState(f_mat @ fresh.mean, f_mat @ fresh.cov @ f_mat.T + q_mat)
+        dtype = np.asarray(f.filter_state.mean).dtype
+        cast = lambda st: kf.FilterState(st.mean.astype(dtype), st.cov.astype(dtype))  # noqa: E731
+        return f._replace(filter_state=cast(fresh), predicted=cast(predicted)), "along_sight"
+
     def _hidden_allowed(self, loc) -> bool:
         """``loc`` fails only its segment count, and the occluded pixels' hidden edges lower the
         count to what it has (``config.min_segments_hidden``).
@@ -1433,29 +1526,32 @@ class BoxTracker:
         t1 = time.perf_counter()
         # innovation gate while the filter runs: a fit must lie within 3 sigma of the predicted
         # centre plus half the box (a partly occluded box can fit an occluder's edges)
+        # (along the line of sight with ``depth_gate``'s allowance)
         gate = None
         if self._started and self._misses < cfg.lost_after:
             p_cov = np.asarray(self._predicted.cov)[:3, :3]
             radius = 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(p_cov))) + 0.5 * self.size
-            gate = (np.asarray(self._predicted.mean[:3]), radius)
+            gate = Gate(np.asarray(self._predicted.mean[:3]), radius, cfg.depth_gate)
         elif self._last_good is not None:
             # after a loss: no faster than ``max_speed`` since the last valid frame
             since = (i - self._last_good[0]) / self.fps
-            gate = (self._last_good[1], cfg.max_speed * since + 0.5 * self.size)
+            gate = Gate(self._last_good[1], cfg.max_speed * since + 0.5 * self.size)
 
         def gated(f, gate=gate):
             if f is None or not bool(f.valid):
                 return False
             t_f = np.asarray(f.translation)
-            if gate is not None and np.linalg.norm(t_f - gate[0]) > gate[1]:
+            if gate is not None and not gate.admits(t_f):
                 return False
             return self._confirmed(gray, f.rotation, t_f)
 
         source = ""  # which hypothesis gave this frame's fit (TrackStep.fit_source)
         three_fits: list = []  # tracked / stopped fits valid but for the count (_fit's three)
+        own_fits: list = []  # (fit, source) of the tracked fit and the stop hypothesis
         if tracking:
             fin = self._fit(prior, segp, mask, gray, not self._started, three=three_fits)
             source = "tracked"
+            own_fits.append((fin, prior, source))
             if (
                 cfg.stop_hypothesis
                 and not gated(fin)
@@ -1472,23 +1568,31 @@ class BoxTracker:
                 segp, mask = detect.pad_segments(seg, m)
                 fin = self._fit(prior, segp, mask, gray, False, three=three_fits)
                 source = "stopped"
+                own_fits.append((fin, prior, source))
 
-        def three_segments():
-            """The tracked or stopped fit with fewer segments where the mask hides edges."""
-            return next((f for f in three_fits if gated(f)), None)
+        def cheaper():
+            """The tracked or stopped fit with fewer segments where the mask hides edges; else
+            the frame's own fits along the line of sight, restarting the filter (the
+            prediction may have run away in depth; ``depth_gate``). (fit, source) or None.
+            """
+            got = next((f for f in three_fits if gated(f)), None)
+            if got is not None:
+                return got, "three_segments"
+            if gate is not None and gate.depth_ratio is not None:
+                return self._along_sight(own_fits, gate, gray)
+            return None
 
         if not gated(fin) and tracking and self._started and cfg.local_starts > 0:
             # the tracked fit failed while the filter runs: search around the prediction first
-            # (between its predicted rotation and its turns: the fits with fewer segments)
-            fin, stage = self._reacquire_locally(
-                gray, _rodrigues(omega) @ rot_prev, gated, between=three_segments
+            # (between its predicted rotation and its turns: the cheaper fits above)
+            fin, source = self._reacquire_locally(
+                gray, _rodrigues(omega) @ rot_prev, gated, between=cheaper
             )
-            source = ("local", "local_turned", "three_segments")[stage] if fin is not None else ""
         elif not gated(fin) and tracking:
-            got = three_segments()
+            got = cheaper()
             if got is not None:
-                fin, source = got, "three_segments"
-        if not gated(fin):
+                fin, source = got
+        if not gated(fin) and source != "along_sight":
             # lost, or the tracked fit failed: search this frame from scratch (near the
             # prediction while the filter runs; anywhere, with a new filter, once lost)
             fin = None

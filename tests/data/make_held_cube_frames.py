@@ -1,9 +1,12 @@
-"""Writes ``held_cube_failed_frames.npz``: frames of the real-time eye that no hypothesis of
-the tracker recovered before ``TrackConfig.min_segments_hidden`` (``tests/test_eye_tracker.py``).
+"""Writes the real-time eye's invalid frames for ``tests/test_eye_tracker.py``:
+``held_cube_failed_frames.npz``, frames that no hypothesis of the tracker recovered before
+``TrackConfig.min_segments_hidden`` (session 23's runs ``rt-save-8`` and ``rt-save-10``), and
+``held_cube_runaway_frames.npz``, frames whose accurate fits the innovation gate rejected after
+the filter ran away in depth, before ``TrackConfig.depth_gate`` (session 23's ``rt-fix-6`` and
+``rt-three-5``).
 
 From run folders of ``experiments/realtime.py ... --eye-save-failed 64`` (the catching preset,
-the void scene at 640x480 without multisampling, seed 0; session 23's runs ``rt-save-8`` and
-``rt-save-10``), the invalid frames' records (``realtime.workers.failed_frame_record``: the
+the void scene at 640x480 without multisampling, seed 0), the invalid frames' records (``realtime.workers.failed_frame_record``: the
 masked image and the mask's pixels as the tracker got them, the tracker's snapshot before the
 frame), the tracker's settings and background, and the cube's true centre (world x, z [m]) with
 the camera's pose to compare::
