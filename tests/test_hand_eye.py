@@ -260,11 +260,24 @@ def test_camera_loop_survives_blind_frames():
     def blind(seed, swing, frame, image):
         return np.zeros_like(image) if 8 <= frame < 14 else image
 
+    seen = []  # run_camera's observe: what the eye got, with the camera at mid-exposure
+
+    def observe(seed, swing, frame, image, occluded, camera, eye):
+        cube = camera.data.xpos[loop.ids.cube_body][[0, 2]]
+        seen.append((swing, frame, image.max(), occluded.shape, occluded.dtype, cube))
+
     # the loop's logic, not the camera's: the void scene's perfect camera renders 6x faster
     cam = tl.CameraConfig.void_perfect()
     logs, eye, _ = he.run_camera(
-        loop, PENDULUM, keys, "learned", cam, progress=False, corrupt=blind
+        loop, PENDULUM, keys, "learned", cam, progress=False, corrupt=blind, observe=observe
     )
+    n = eye["valid"].shape[-1]
+    assert [(sw, j) for sw, j, *_ in seen] == [(0, j) for j in range(n)] + [
+        ("final", j) for j in range(len(seen) - n)
+    ]
+    assert all((mx == 0) == (8 <= j < 14) for _, j, mx, *_ in seen[:n])  # after corrupt
+    assert all(shape == (cam.height, cam.width) and dt == bool for *_, shape, dt, _ in seen)
+    np.testing.assert_array_equal(np.stack([c for *_, c in seen[:n]]), eye["x_true"][0, 0])
     m = mt.eye_metrics(eye, logs, 1e-3)
     assert m["frames_failed"] >= 6
     assert not np.any(eye["valid"][0, 0, 8:14])

@@ -379,6 +379,7 @@ def run_camera(
     corrupt=None,
     compiled: tuple | None = None,
     eye_source: str = "camera",
+    observe=None,
 ):
     """One condition with the object's state from the camera, for a batch of seeds.
 
@@ -398,6 +399,11 @@ def run_camera(
         compiled: ``(make_start(loop), make_segment(loop))`` to reuse across calls (one compile).
         eye_source: ``"camera"`` (the box tracker) or ``"paper"`` (the paper's two-frame
             method), :func:`make_eye`.
+        observe: optional ``(seed, swing, frame, image, occluded, camera, eye) -> None``, called
+            with each frame as the eye gets it (after the robot's mask and ``corrupt``), the
+            occluded pixels it is told (None where it is told none), the camera posed at mid-exposure
+            (its ``data`` holds the simulator's poses then) and the eye, before the eye sees
+            the frame: recording frames with their truth (``benchmarks/eye_depth.py``).
 
     Returns:
         (logs, eye, video): ``logs`` as :func:`~hec_jax.loop.episodes.make_episodes` (arrays (n_seeds, swings,
@@ -521,6 +527,8 @@ def run_camera(
                         occluded = replaced
                 if corrupt is not None:
                     frame = corrupt(i, index, j, frame)
+                if observe is not None:
+                    observe(i, index, j, frame, occluded, camera, trackers[i])
                 t1 = time.perf_counter()
                 if occluded is None:
                     st = trackers[i].update(frame)
