@@ -1450,10 +1450,10 @@ class BoxTracker:
     def _along_sight(self, own_fits, gate: Gate, gray):
         """(fit, "along_sight") of the valid, confirmed fit among ``own_fits`` that passes
         ``gate`` split along the line of sight (nearest the gate's centre), with the filter
-        restarted from its position (:func:`filter.init`, then one prediction); else None.
+        restarted at its position (:func:`filter.init`, then one prediction); else None.
         """
         best = None
-        for f, _, _ in own_fits:
+        for f in own_fits:
             if f is None or not bool(f.valid):
                 continue
             t_f = np.asarray(f.translation, np.float64)
@@ -1465,15 +1465,10 @@ class BoxTracker:
         if best is None:
             return None
         f = best[1]
-        fcfg = kf.FilterConfig(dt=1.0 / self.fps, jerk_psd=self.config.jerk_psd)
-        t_f = np.asarray(f.translation, np.float64)
-        std = np.repeat(np.asarray(fcfg.init_std, np.float64), 3)
-        fresh = kf.FilterState(np.concatenate([t_f, np.zeros(6)]), np.diag(std * std))
-        f_mat, q_mat = kf.transition_np(fcfg.jerk_psd, fcfg.dt)
-        predicted = kf.FilterState(f_mat @ fresh.mean, f_mat @ fresh.cov @ f_mat.T + q_mat)
-        dtype = np.asarray(f.filter_state.mean).dtype
-        cast = lambda st: kf.FilterState(st.mean.astype(dtype), st.cov.astype(dtype))  # noqa: E731
-        return f._replace(filter_state=cast(fresh), predicted=cast(predicted)), "along_sight"
+        fresh = kf.init(self._fcfg, jnp.asarray(f.translation))
+        return f._replace(
+            filter_state=fresh, predicted=kf.predict(self._fcfg, fresh)
+        ), "along_sight"
 
     def _hidden_allowed(self, loc) -> bool:
         """``loc`` fails only its segment count, and the occluded pixels' hidden edges lower the
@@ -1525,8 +1520,8 @@ class BoxTracker:
             segp, mask = detect.pad_segments(seg, m)
         t1 = time.perf_counter()
         # innovation gate while the filter runs: a fit must lie within 3 sigma of the predicted
-        # centre plus half the box (a partly occluded box can fit an occluder's edges)
-        # (along the line of sight with ``depth_gate``'s allowance)
+        # centre plus half the box (a partly occluded box can fit an occluder's edges); split
+        # along the line of sight for the frame's own fits once all else failed (depth_gate)
         gate = None
         if self._started and self._misses < cfg.lost_after:
             p_cov = np.asarray(self._predicted.cov)[:3, :3]
@@ -1547,11 +1542,11 @@ class BoxTracker:
 
         source = ""  # which hypothesis gave this frame's fit (TrackStep.fit_source)
         three_fits: list = []  # tracked / stopped fits valid but for the count (_fit's three)
-        own_fits: list = []  # (fit, source) of the tracked fit and the stop hypothesis
+        own_fits: list = []  # the tracked fit and the stop hypothesis (for depth_gate)
         if tracking:
             fin = self._fit(prior, segp, mask, gray, not self._started, three=three_fits)
             source = "tracked"
-            own_fits.append((fin, prior, source))
+            own_fits.append(fin)
             if (
                 cfg.stop_hypothesis
                 and not gated(fin)
@@ -1568,7 +1563,7 @@ class BoxTracker:
                 segp, mask = detect.pad_segments(seg, m)
                 fin = self._fit(prior, segp, mask, gray, False, three=three_fits)
                 source = "stopped"
-                own_fits.append((fin, prior, source))
+                own_fits.append(fin)
 
         def cheaper():
             """The tracked or stopped fit with fewer segments where the mask hides edges; else
