@@ -410,3 +410,16 @@ def test_a_filter_run_away_in_depth_gets_the_frame_s_own_fit(depth_gate):
         np.testing.assert_allclose(st.position, st.measured_position)  # restarted there
         np.testing.assert_array_equal(st.velocity, np.zeros(3))
         np.testing.assert_array_equal(st.acceleration, np.zeros(3))
+
+
+def test_filter_init_on_the_host_equals_init():
+    # the along-sight restart's NumPy init (no compilation on first use) against the JAX one
+    import jax.numpy as jnp
+
+    cfg = kf.FilterConfig(dt=1.0 / 30.0)
+    p = np.array([-0.25, -0.03, 1.6])
+    want = kf.init(cfg, jnp.asarray(p))  # float64 (conftest)
+    got = kf.init_np(cfg, p)
+    assert isinstance(got.mean, np.ndarray) and isinstance(got.cov, np.ndarray)
+    np.testing.assert_array_equal(got.mean, np.asarray(want.mean))
+    np.testing.assert_array_equal(got.cov, np.asarray(want.cov))

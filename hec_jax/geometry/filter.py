@@ -66,6 +66,15 @@ def init(config: FilterConfig, position: Array) -> FilterState:
     return FilterState(mean, jnp.diag(std * std))
 
 
+def init_np(config: FilterConfig, position: np.ndarray) -> FilterState:
+    """:func:`init` in NumPy (on the host between frames: eager JAX operations compile on their
+    first use, which cost the real-time eye 0.2 s on the frame that first needed them).
+    """
+    position = np.asarray(position)
+    std = np.repeat(np.asarray(config.init_std, position.dtype), 3)
+    return FilterState(np.concatenate([position, np.zeros(6, position.dtype)]), np.diag(std * std))
+
+
 def predict(config: FilterConfig, state: FilterState) -> FilterState:
     """The state one frame interval ``config.dt`` later (constant-acceleration model)."""
     f, q = transition(config)

@@ -1450,7 +1450,7 @@ class BoxTracker:
     def _along_sight(self, own_fits, gate: Gate, gray):
         """(fit, "along_sight") of the valid, confirmed fit among ``own_fits`` that passes
         ``gate`` split along the line of sight (nearest the gate's centre), with the filter
-        restarted at its position (:func:`filter.init`, then one prediction); else None.
+        restarted at its position (:func:`filter.init_np`, then one prediction); else None.
         """
         best = None
         for f in own_fits:
@@ -1464,11 +1464,10 @@ class BoxTracker:
                 best = (dist, f)
         if best is None:
             return None
-        f = best[1]
-        fresh = kf.init(self._fcfg, jnp.asarray(f.translation))
-        return f._replace(
-            filter_state=fresh, predicted=kf.predict(self._fcfg, fresh)
-        ), "along_sight"
+        f, tf, q = best[1], self._f, self._q
+        fresh = kf.init_np(self._fcfg, f.translation)  # on the host: nothing to compile
+        predicted = kf.FilterState(tf @ fresh.mean, tf @ fresh.cov @ tf.T + q)
+        return f._replace(filter_state=fresh, predicted=predicted), "along_sight"
 
     def _hidden_allowed(self, loc) -> bool:
         """``loc`` fails only its segment count, and the occluded pixels' hidden edges lower the
