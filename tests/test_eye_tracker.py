@@ -312,10 +312,14 @@ def test_a_failed_frame_saved_by_the_real_time_eye_replays_to_the_same_fit(seq):
     np.testing.assert_array_equal(again.position, st.position)
 
 
-def _held_cube_frames(name="held_cube_failed_frames.npz"):
-    """The real-time eye's invalid frames (``tests/data/make_held_cube_frames.py``). The
-    default: those no hypothesis recovered before ``min_segments_hidden`` (the held cube
-    face-on, the hand's masked disc over one of its edges, 3 segments left)."""
+def _held_cube_frames(name="held_cube_failed_frames.npz", **changes):
+    """The real-time eye's invalid frames (``tests/data/make_held_cube_frames.py``) replayed:
+    per frame (tracker restored to its snapshot before the frame, image, occluded pixels, the
+    simulator's cube centre (world x, z) [m], a function from the camera frame to world x, z),
+    the tracker's recorded config with ``changes``. The default: those no hypothesis recovered
+    before ``min_segments_hidden`` (the held cube face-on, the hand's masked disc over one of
+    its edges, 3 segments left)."""
+    import dataclasses
     import pickle
     from pathlib import Path
 
@@ -325,8 +329,20 @@ def _held_cube_frames(name="held_cube_failed_frames.npz"):
         pickle.loads(d["snapshots"][e - n : e].tobytes())
         for e, n in zip(ends, d["snapshot_lengths"], strict=True)
     ]
-    config = pickle.loads(d["config"].tobytes())
-    return d, snaps, config
+    config = dataclasses.replace(pickle.loads(d["config"].tobytes()), **changes)
+    tracker = BoxTracker(
+        d["intrinsics"], float(d["size"]), float(d["fps"]), config, d["background"]
+    )
+    r_wc, t_wc = d["world_from_camera_r"], d["world_from_camera_t"]
+
+    def world(p):
+        return (r_wc @ p + t_wc)[[0, 2]]
+
+    for image, occluded, snap, truth in zip(
+        d["images"], d["occluded"], snaps, d["truth_world_xz"], strict=True
+    ):
+        tracker.restore(snap)
+        yield tracker, image, occluded, truth, world
 
 
 @pytest.mark.parametrize("floor", [4, 3])
@@ -335,26 +351,16 @@ def test_a_fit_with_fewer_segments_where_the_mask_hides_an_edge(floor):
     # required (as before) every hypothesis fails these frames; with an edge hidden by the mask,
     # 3 segments suffice and the fit lands within 1 cm of the truth (measured 6.4 and 8.9 mm).
     # Not told the mask, nothing changes (the count stays 4)
-    import dataclasses
-
-    d, snaps, config = _held_cube_frames()
-    config = dataclasses.replace(config, min_segments_hidden=floor)
-    tracker = BoxTracker(
-        d["intrinsics"], float(d["size"]), float(d["fps"]), config, d["background"]
-    )
-    r_wc, t_wc = d["world_from_camera_r"], d["world_from_camera_t"]
-    for image, occluded, snap, truth in zip(
-        d["images"], d["occluded"], snaps, d["truth_world_xz"], strict=True
-    ):
-        tracker.restore(snap)
+    for tracker, image, occluded, truth, world in _held_cube_frames(min_segments_hidden=floor):
+        before = tracker.snapshot()
         st = tracker.update(image, occluded)
         if floor == 4:
             assert not st.valid and st.fit_source == ""
         else:
             assert st.valid and st.fit_source == "three_segments"
-            world = (r_wc @ st.measured_position + t_wc)[[0, 2]]
-            assert np.linalg.norm(world - truth) < 0.01, (world, truth)
-        tracker.restore(snap)
+            got = world(st.measured_position)
+            assert np.linalg.norm(got - truth) < 0.01, (got, truth)
+        tracker.restore(before)
         assert tracker.update(image).fit_source != "three_segments"
 
 
@@ -388,25 +394,15 @@ def test_a_filter_run_away_in_depth_gets_the_frame_s_own_fit(depth_gate):
     # line of sight within 2 cm of the truth in the task plane (measured 0.5-13.8 mm; the
     # depth, which that plane sees at 0.15 of its error, is the weak direction), and the filter
     # restarts from it
-    import dataclasses
-
-    d, snaps, config = _held_cube_frames("held_cube_runaway_frames.npz")
-    config = dataclasses.replace(config, depth_gate=depth_gate)
-    tracker = BoxTracker(
-        d["intrinsics"], float(d["size"]), float(d["fps"]), config, d["background"]
-    )
-    r_wc, t_wc = d["world_from_camera_r"], d["world_from_camera_t"]
-    for image, occluded, snap, truth in zip(
-        d["images"], d["occluded"], snaps, d["truth_world_xz"], strict=True
-    ):
-        tracker.restore(snap)
+    frames = _held_cube_frames("held_cube_runaway_frames.npz", depth_gate=depth_gate)
+    for tracker, image, occluded, truth, world in frames:
         st = tracker.update(image, occluded)
         if depth_gate is None:
             assert not st.valid and st.fit_source == ""
             continue
         assert st.valid and st.fit_source == "along_sight"
-        world = (r_wc @ st.measured_position + t_wc)[[0, 2]]
-        assert np.linalg.norm(world - truth) < 0.02, (world, truth)
+        got = world(st.measured_position)
+        assert np.linalg.norm(got - truth) < 0.02, (got, truth)
         np.testing.assert_allclose(st.position, st.measured_position)  # restarted there
         np.testing.assert_array_equal(st.velocity, np.zeros(3))
         np.testing.assert_array_equal(st.acceleration, np.zeros(3))
