@@ -206,6 +206,41 @@ def test_local_search_recovers_a_sudden_turn_from_its_turned_starts(seq, keep):
     assert np.linalg.norm(st.measured_position - seq.position[14]) < 0.002
 
 
+@pytest.mark.parametrize("defer", [0, 1, 2])
+def test_the_search_from_scratch_waits_for_defer_search_failed_frames(seq, defer):
+    # black frames while the filter runs (the cube hidden): with ``defer_search`` n the first n
+    # failed frames in a row are left to the prediction (invalid, no search from scratch), the
+    # next ones searched near it; once lost (``lost_after`` 3) every frame is searched. A frame
+    # left to the prediction does not disturb the next one: the cube is tracked again there
+    bg = background_model(seq.frames)
+    cfg = TrackConfig(stop_hypothesis=True, local_starts=6, defer_search=defer)
+    tracker = BoxTracker(seq.intrinsics, EDGE, FPS, cfg, background=bg)
+    for f in seq.frames[:10]:
+        assert tracker.update(f).valid
+    searched = []
+    acquire = tracker._acquire
+    tracker._acquire = lambda *a, _f=acquire, _s=searched: _s.append(tracker.frame) or _f(*a)
+    black = np.zeros_like(seq.frames[0])
+    st = tracker.update(black)
+    assert not st.valid and st.initialised and st.fit_source == ""
+    assert st.search_deferred == (defer > 0)
+    assert searched == ([] if defer else [10])
+    st = tracker.update(seq.frames[11])  # the cube again, one frame after the last fit
+    assert st.valid and st.fit_source == "tracked"
+    assert np.linalg.norm(st.measured_position - seq.position[11]) < 0.005
+    searched.clear()
+    steps = [tracker.update(black) for _ in range(5)]  # frames 12-16: lost after 3
+    assert [s.search_deferred for s in steps] == [i < defer for i in range(5)]
+    assert searched == [12 + i for i in range(5) if i >= defer]
+    assert not any(s.valid for s in steps)
+
+
+def test_defer_search_must_be_a_count(seq):
+    for bad in (-1, 1.5, None):
+        with pytest.raises(ValueError, match="defer_search must be an integer >= 0"):
+            BoxTracker(seq.intrinsics, EDGE, FPS, TrackConfig(defer_search=bad))
+
+
 def _difference_numpy(image, background, shadow_ratio=(0.25, 0.92), shadow_tol=0.08):
     """``detect.difference`` as first written, in NumPy (the reference for the OpenCV one)."""
     diff = np.abs(image.astype(np.int16) - background.astype(np.int16)).astype(np.uint8)

@@ -201,6 +201,15 @@ class TrackConfig:
             before 2026-11-27: the held cube's filter ran 8 cm deep and its gate rejected
             accurate fits until the search from scratch, docs/realtime.md, "The filter in
             depth").
+        defer_search: while the filter runs, the search from scratch (near the prediction) is
+            tried only once this many frames in a row have failed before it; the failed frames
+            before are invalid and the filter predicts over them (``TrackStep.search_deferred``).
+            For an eye on the clock: the search costs 15-30 frame periods on the 2-core CPU
+            (every frame in between dropped), and in 84 real-time runs of 60 s (about 150 000
+            tracked frames) it never found the box while the filter ran, where the next frame's
+            tracked fit did (docs/realtime.md, "Deferring the search"). Once the track is lost
+            (``lost_after``) the search runs on every frame as before. 0: off (every failed
+            frame searched, as before).
     """
 
     max_segments: int = 48
@@ -249,6 +258,7 @@ class TrackConfig:
     blob_core: float = 0.0
     min_segments_hidden: int = 3
     depth_gate: float | None = 0.1
+    defer_search: int = 0
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -863,6 +873,8 @@ class TrackStep(NamedTuple):
         segments: (M, 2, 2) the associated segments (clipped) [px], NaN where unassigned.
         edge_ids: (M,) their model edge ids (-1 where unassigned).
         timing_ms: {"detection_ms", "estimation_ms", "total_ms"} of this frame [ms].
+        search_deferred: the frame failed while the filter ran, and its search from scratch
+            was not tried (``TrackConfig.defer_search``).
         fit_source: which hypothesis gave a valid frame's fit (:data:`FIT_SOURCES`): the
             tracked fit from the prediction ``"tracked"``, the box stopped at its last fit
             ``"stopped"`` (``stop_hypothesis``), the local search's predicted rotation
@@ -890,6 +902,7 @@ class TrackStep(NamedTuple):
     edge_ids: np.ndarray
     timing_ms: dict
     fit_source: str = ""
+    search_deferred: bool = False
 
 
 # the values of TrackStep.fit_source, in the order the hypotheses are tried ("" : not valid)
@@ -992,6 +1005,10 @@ class BoxTracker:
         background=None,
     ):
         check_camera_args(intrinsics, size, fps)
+        if not (isinstance(config.defer_search, int) and config.defer_search >= 0):
+            raise ValueError(
+                f"TrackConfig.defer_search must be an integer >= 0, got {config.defer_search!r}"
+            )
         self._background_rgb = None  # the given background in colour (colour_background)
         self._frame_rgb = None  # the frame being processed
         if background is not None:
@@ -1586,7 +1603,11 @@ class BoxTracker:
             got = cheaper()
             if got is not None:
                 fin, source = got
-        if not gated(fin) and source != "along_sight":
+        # while the filter runs, the first ``defer_search`` failed frames in a row are left
+        # to the prediction rather than searched from scratch
+        running = self._started and self._misses < cfg.lost_after
+        deferred = not gated(fin) and running and self._misses < cfg.defer_search
+        if not gated(fin) and source != "along_sight" and not deferred:
             # lost, or the tracked fit failed: search this frame from scratch (near the
             # prediction while the filter runs; anywhere, with a new filter, once lost)
             fin = None
@@ -1660,6 +1681,7 @@ class BoxTracker:
             edge_ids=edge_ids,
             timing_ms=timing,
             fit_source=source if ok else "",
+            search_deferred=bool(deferred and not ok),
         )
 
 

@@ -68,6 +68,14 @@ class RealtimeConfig:
     # contact went unrecovered (cause unknown): 0, as before (docs/realtime.md, "Coverage of
     # what the mask leaves visible")
     eye_local_keep: int = 0
+    # while the eye's filter runs, its search from scratch only after this many failed frames
+    # in a row (``TrackConfig.defer_search``), for the run and its twin alike: the first is
+    # left to the prediction. In 84 runs of 60 s before (sessions 22-24) that search never
+    # found the cube while the filter ran, and each try cost 0.1-0.4 s of eye (every frame in
+    # between dropped, the state-age bound missed), where the frames that failed came one at a
+    # time (but for the runaway in depth, since recovered by ``depth_gate``). 0: every failed
+    # frame searched (before 2026-11-27; the ablation). docs/realtime.md, "Deferring the search"
+    eye_defer_search: int = 1
     # the eye keeps up to this many frames whose tracked fit failed (the image and occluded
     # pixels it was given, the tracker's snapshot before the frame), written to the run folder
     # as eye_failed_frames.pkl for an offline replay (``workers.replay_failed_frames``); 0: none.
@@ -147,6 +155,10 @@ class RealtimeConfig:
         if not (isinstance(self.eye_local_keep, int) and 0 <= self.eye_local_keep <= 256):
             raise ValueError(
                 f"eye_local_keep must be an integer in 0..256, got {self.eye_local_keep!r}"
+            )
+        if not (isinstance(self.eye_defer_search, int) and 0 <= self.eye_defer_search <= 100):
+            raise ValueError(
+                f"eye_defer_search must be an integer in 0..100, got {self.eye_defer_search!r}"
             )
         if self.condition not in ("plain", "frozen", "learned"):
             raise ValueError(f"condition must be plain, frozen or learned, got {self.condition!r}")

@@ -154,6 +154,26 @@ def in_contact(run, tt: dict) -> np.ndarray | None:
     return np.concatenate(flags).astype(bool)
 
 
+def measured_age(run, tt: dict, dt: float) -> np.ndarray | None:
+    """Per tick [s]: the tick's time minus the exposure of the last frame whose own fit passed
+    (``valid``) among the estimates the control loop has taken in the episode; NaN before the
+    first. Beside the age of the state in force, which a coasted prediction (a failed frame
+    published on time) renews: this one only a measurement renews, and a lost eye (no estimate
+    in force) does not hide it. None for runs whose arrivals lack ``valid`` (before 2026-11-27).
+    """
+    if not run.arrivals or "valid" not in run.arrivals[0]:
+        return None
+    out = []
+    for e, a in enumerate(run.arrivals):
+        n = int(np.sum(tt["episode"] == e))
+        ok = (a["valid"] > 0) & (a["number"] > 0)  # the release frame: the cube still held
+        ticks, stamps = a["tick"][ok].astype(int), a["t_stamp"][ok]
+        j = np.arange(n)
+        last = np.searchsorted(ticks, j, side="right") - 1
+        out.append(np.where(last >= 0, j * dt - stamps[np.maximum(last, 0)], np.nan))
+    return np.concatenate(out) if out else np.zeros(0)
+
+
 def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dict:
     """The eye's part of :func:`deadline_report`."""
     arr = {k: np.concatenate([a[k] for a in run.arrivals]) for k in run.arrivals[0]}
@@ -176,6 +196,10 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
         "age_ms": percentiles(tt["index"] * dt - tt["t_stamp"], 1e3),
         "ticks_with_estimate": int(np.isfinite(tt["t_stamp"]).sum()),
     }
+    measured = measured_age(run, tt, dt)
+    if measured is not None:
+        # information beside the target: the age of the last measurement behind the state
+        out["age_measured_ms"] = percentiles(measured, 1e3)
     # the same over the ticks whose physics step had no hand-object contact: in contact the
     # controller takes the object's state from touch (object_state.touch_object_state), not
     # the eye. Information beside the target, which counts every tick.
@@ -198,6 +222,8 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
             "frames_processed": int(len(eye_log["index"])),
             "frames_dropped": int(eye_log["dropped"]),
             "frames_valid": int(np.sum(eye_log["valid"])),
+            # failed while the filter ran and left to the prediction (TrackConfig.defer_search)
+            "frames_search_deferred": int(np.sum(eye_log.get("search_deferred", 0))),
             # frames after the release; the release frames' search from scratch apart
             "eye_ms": percentiles(eye_log["eye_ms"][eye_log["number"] > 0]),
             "acquisition_ms": percentiles(eye_log["eye_ms"][eye_log["number"] == 0]),
@@ -318,6 +344,13 @@ def deadline_table(report: dict) -> list[str]:
                     ms(eye["age_out_of_contact_ms"]),
                 )
             )
+        if "age_measured_ms" in eye:
+            rows.append(
+                (
+                    "... of the last valid fit behind it p50 / p99 / max [ms]",
+                    ms(eye["age_measured_ms"]),
+                )
+            )
         if "camera" in eye:
             cam = eye["camera"]
             rows += [
@@ -332,8 +365,9 @@ def deadline_table(report: dict) -> list[str]:
             e = eye["eye"]
             rows += [
                 (
-                    "frames processed by the eye / dropped / valid",
-                    f"{e['frames_processed']} / {e['frames_dropped']} / {e['frames_valid']}",
+                    "frames processed by the eye / dropped / valid / search deferred",
+                    f"{e['frames_processed']} / {e['frames_dropped']} / {e['frames_valid']}"
+                    f" / {e.get('frames_search_deferred', '-')}",
                 ),
                 ("eye p50 / p99 / max [ms]", ms(e["eye_ms"])),
             ]

@@ -356,7 +356,8 @@ class LoopRun:
         arrivals: per episode, one row per eye estimate taken: ``tick``, ``t_tick`` [s],
             ``t_stamp`` [s], ``frame``, ``number`` (in the episode; 0: the release frame,
             answered before the release), ``seen``, ``t_wall_exposure``, ``t_wall_done``,
-            ``t_wall_taken`` [s] (monotonic).
+            ``t_wall_taken`` [s] (monotonic), ``valid`` (the frame's own fit passed; else the
+            filter's prediction).
         counts: per episode, the plant's :class:`~hec_jax.realtime.plant.PlantCounts`.
         learner: the learner state after the last episode.
         wall_s: per episode, the clock time of its ticks [s].
@@ -510,6 +511,7 @@ def run_loop(
                                 float(est["t_wall_exposure"]),
                                 float(est["t_wall_done"]),
                                 monotonic_s(),
+                                float(est["valid"]),
                             )
                         )
                 arm.observe(s.q, s.qd, arm_out)  # in place: the arm's part of obs_np
@@ -547,7 +549,7 @@ def run_loop(
         out.logs.append(logs)
         out.ticks.append(rec)
         names = ("tick", "t_tick", "t_stamp", "frame", "number", "seen", "t_wall_exposure")
-        names += ("t_wall_done", "t_wall_taken")
+        names += ("t_wall_done", "t_wall_taken", "valid")
         arr = np.asarray(arrivals, float).reshape(-1, len(names))
         out.arrivals.append({k: arr[:, i] for i, k in enumerate(names)})
         out.counts.append(counts)
@@ -709,7 +711,8 @@ class RealtimeResult:
 
 def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> ExperimentConfig:
     """``exp`` as the real-time loop runs it: one seed; swings from ``rt.duration_s``; the
-    camera's tracker with ``rt.eye_local_starts`` and ``rt.eye_local_keep``, without its
+    camera's tracker with ``rt.eye_local_starts``, ``rt.eye_local_keep`` and
+    ``rt.eye_defer_search``, without its
     manoeuvre restart unless ``rt.eye_maneuver_restart``; the camera's multisampling
     ``rt.camera_msaa`` where given.
     The simulated twin runs the same, so that its camera loop sees frames rendered as the
@@ -720,7 +723,10 @@ def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> Experiment
         swings = max(int(math.ceil(rt.duration_s / task.swing_s - 1e-9)), 1)
         task = dataclasses.replace(task, swings=swings)
     track = dataclasses.replace(
-        exp.camera.tracker, local_starts=rt.eye_local_starts, local_keep=rt.eye_local_keep
+        exp.camera.tracker,
+        local_starts=rt.eye_local_starts,
+        local_keep=rt.eye_local_keep,
+        defer_search=rt.eye_defer_search,
     )
     if not rt.eye_maneuver_restart:
         track = dataclasses.replace(track, maneuver_nis=None)

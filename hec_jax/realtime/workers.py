@@ -430,6 +430,8 @@ def eye_main(
                     initialised=bool(st.initialised),
                     # which of the tracker's hypotheses gave the fit (index into FIT_SOURCES)
                     fit_source=FIT_SOURCES.index(getattr(st, "fit_source", "")),
+                    # failed while the filter ran, left to the prediction (defer_search)
+                    search_deferred=bool(getattr(st, "search_deferred", False)),
                     x_est=x,
                     xd_est=xd,
                 )
