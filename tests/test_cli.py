@@ -64,6 +64,7 @@ BAD = {
         (["--eye-local-starts", "-1"], "eye_local_starts must be an integer in 0..256"),
         (["--eye-local-keep", "-1"], "eye_local_keep must be an integer in 0..256"),
         (["--eye-defer-search", "-1"], "eye_defer_search must be an integer in 0..100"),
+        (["--eye-local-merge", "-1"], "eye_local_merge must be a number in 0..10"),
         (["--eye-save-failed", "-1"], "eye_save_failed must be an integer in 0..1000"),
         (["--camera-model", "industrial"], "camera defects (--noise-grey, --blur-ren"),
     ],

@@ -188,22 +188,32 @@ def test_local_search_runs_its_turned_starts_only_when_the_predicted_rotation_fa
     assert one._local[1] is None  # no turns: the first stage only
 
 
-@pytest.mark.parametrize("keep", [0, 4])
-def test_local_search_recovers_a_sudden_turn_from_its_turned_starts(seq, keep):
+@pytest.mark.parametrize("keep, merge", [(0, 0.0), (4, 0.0), (4, 0.1), (0, 10.0)])
+def test_local_search_recovers_a_sudden_turn_from_its_turned_starts(seq, keep, merge):
     # the last rotations turned by 25 deg (as by an impact): the tracked fit and the predicted
     # rotation fail, a turned start finds the cube; with ``local_keep`` 4 only the 4 best
-    # turned starts after the coarse gates go through the fine ones (a fraction of the time)
+    # turned starts after the coarse gates go through the fine ones (a fraction of the time);
+    # with ``local_merge`` the turns start at the predicted centre alone where the last fitted
+    # one is that close (mid-swing the two are ~4 cm apart: 0.1 box sizes keeps both, 10
+    # merges them). warm_up compiles every form: nothing compiles in update
     bg = background_model(seq.frames)
-    cfg = TrackConfig(local_starts=12, local_keep=keep)
+    cfg = TrackConfig(local_starts=12, local_keep=keep, local_merge=merge)
     tracker = BoxTracker(seq.intrinsics, EDGE, FPS, cfg, background=bg)
+    tracker.warm_up(seq.frames[0])
+    compiled = [f._cache_size() for f in tracker._local]
     for f in seq.frames[:14]:
         tracker.update(f)
     axis = np.random.default_rng(5).normal(size=(8, 3))[6]
     turn = rotation_from_axis_angle(axis / np.linalg.norm(axis), np.deg2rad(25.0))
     tracker._rot_prev, tracker._rot_prev2 = turn @ tracker._rot_prev, turn @ tracker._rot_prev2
+    first, rest = tracker._local
+    centres = []
+    tracker._local = (first, lambda *a, _f=rest: centres.append(a[1].shape[0]) or _f(*a))
     st = tracker.update(seq.frames[14])
     assert st.valid and st.fit_source == "local_turned"
     assert np.linalg.norm(st.measured_position - seq.position[14]) < 0.002
+    assert centres == [1 if merge > 1 else 2]
+    assert [f._cache_size() for f in (first, rest)] == compiled
 
 
 @pytest.mark.parametrize("defer", [0, 1, 2])

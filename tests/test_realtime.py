@@ -330,20 +330,24 @@ def test_realtime_camera_run_reports_itself():
 
 
 def test_realtime_experiment_sets_the_eyes_tracker():
-    """The real-time tracker: the scene's, with the local starts (every turn through every
-    gate unless asked), the search from scratch deferred by one failed frame, and without the
+    """The real-time tracker: the scene's, with the local starts (unless asked, 4 of the
+    turned starts through the fine gates, the turned starts at one centre where the
+    two are close, the search from scratch deferred by one failed frame, and without the
     manoeuvre restart unless asked (the run and its twin run this one)."""
     exp = L.catching(eye="camera", camera=L.CameraConfig.void_perfect())
     scene = exp.camera.tracker
     assert scene.maneuver_nis == 16.3 and scene.stop_hypothesis
     track = RT.runner.realtime_experiment(exp, RT.RealtimeConfig()).camera.tracker
-    assert track.maneuver_nis is None and track.local_starts == 12 and track.local_keep == 0
-    assert track == L.replace(scene, maneuver_nis=None, local_starts=12, defer_search=1)
+    assert track.maneuver_nis is None and track.local_starts == 12 and track.local_keep == 4
+    assert track == L.replace(
+        scene, maneuver_nis=None, local_starts=12, local_keep=4, local_merge=0.1, defer_search=1
+    )
     assert scene.defer_search == 0  # the simulated task's tracker searches every failed frame
     rt = RT.RealtimeConfig(
         eye_maneuver_restart=True,
         eye_local_starts=0,
         eye_local_keep=4,
+        eye_local_merge=0.0,
         eye_defer_search=0,
         duration_s=7.0,
     )

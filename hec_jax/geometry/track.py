@@ -201,6 +201,12 @@ class TrackConfig:
             before 2026-11-27: the held cube's filter ran 8 cm deep and its gate rejected
             accurate fits until the search from scratch, docs/realtime.md, "The filter in
             depth").
+        local_merge: the local search starts at the predicted centre and at the last fitted
+            one; where the two lie within this fraction of the box size of each other (a box
+            held or at rest: 0-8 mm apart), its turned starts start at the predicted one only,
+            which halves their cost. The predicted rotation's starts keep both centres (cheap;
+            on saved real-time frames their second centre recovered fits that the first alone
+            did not, docs/realtime.md). 0: both centres always (as before).
         defer_search: while the filter runs, the search from scratch (near the prediction) is
             tried only once this many frames in a row have failed before it; the failed frames
             before are invalid and the filter predicts over them (``TrackStep.search_deferred``).
@@ -259,6 +265,7 @@ class TrackConfig:
     min_segments_hidden: int = 3
     depth_gate: float | None = 0.1
     defer_search: int = 0
+    local_merge: float = 0.0
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -1140,8 +1147,10 @@ class BoxTracker:
             self.update(frame, occluded)
         if self.config.local_starts > 0 and self._started and self._rot_prev is not None:
             gray = detect.to_gray(_check_frame(frame))
+            merges = (False, True) if self.config.local_merge > 0 else (False,)
             for stage in (0, 1):  # each stage on its own: the first may pass
-                self._reacquire_locally(gray, self._rot_prev, bool, (stage,))
+                for merge in merges:  # with local_merge, one centre or two (two shapes)
+                    self._reacquire_locally(gray, self._rot_prev, bool, (stage,), merge=merge)
         self.reset()
 
     def skip(self, frames: int) -> None:
@@ -1241,7 +1250,7 @@ class BoxTracker:
         return (rot, np.asarray(cand.pose.translation)), segp_c, mask_c
 
     def _reacquire_locally(
-        self, gray, rotation, gated, stages: tuple[int, ...] = (0, 1), between=None
+        self, gray, rotation, gated, stages: tuple[int, ...] = (0, 1), between=None, merge=None
     ) -> tuple[Finished | None, str]:
         """The local search (``config.local_starts``) around ``rotation`` [R_cam_box] at the
         filter's predicted centre and the last fitted one: its refined fit if it passes
@@ -1255,7 +1264,9 @@ class BoxTracker:
         two to run (:meth:`warm_up` compiles each). ``between``: called after the first stage
         fails (or finds no segments), before the turns; the (fit, source) it returns ends the
         search (the fits with fewer segments, ``config.min_segments_hidden``; the fits along
-        the line of sight, ``config.depth_gate``), None goes on.
+        the line of sight, ``config.depth_gate``), None goes on. ``merge``: the one-centre
+        form (``config.local_merge``) forced on or off (:meth:`warm_up` compiles both); None:
+        as the centres' distance decides.
         """
 
         def fallback():
@@ -1266,6 +1277,9 @@ class BoxTracker:
         centres = [np.asarray(self._predicted.mean[:3], np.float64)]
         centres.append(centres[0] if self._last_good is None else np.asarray(self._last_good[1]))
         centres = np.stack(centres)
+        if merge is None:  # the turns at one centre where the two are close (local_merge)
+            merge = np.linalg.norm(centres[0] - centres[1]) <= cfg.local_merge * self.size
+        merge = bool(merge) and cfg.local_merge > 0
         corners = np.concatenate([project_corners_np(rotation, c, self.size, k) for c in centres])
         seg = self._moving_segments(gray, _window(corners, cfg.roi_margin))
         segp, mask = detect.pad_segments(seg, cfg.max_segments)
@@ -1283,7 +1297,7 @@ class BoxTracker:
             loc = jax.device_get(
                 search(
                     np.asarray(rotation),
-                    centres,
+                    centres[:1] if stage == 1 and merge else centres,
                     segp,
                     mask,
                     np.float64(self.size),

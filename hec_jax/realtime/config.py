@@ -61,13 +61,20 @@ class RealtimeConfig:
     # when it passes, the held cube's failed fits cost about 7 ms more instead of about 36.
     # 0: the search from scratch only, as the simulated task runs
     eye_local_starts: int = 12
-    # of the local search's 2 x (eye_local_starts - 1) turned starts, how many go on from the
-    # coarse gates to the fine ones (``TrackConfig.local_keep``; 0: all). 4 made the turned
-    # stage 10.3 ms instead of 18.4 on 9 rendered frames, each recovered either way, but in
-    # six 60 s runs it did not bring a turned recovery within the age bound, and one fit in
-    # contact went unrecovered (cause unknown): 0, as before (docs/realtime.md, "Coverage of
-    # what the mask leaves visible")
-    eye_local_keep: int = 0
+    # of the local search's turned starts, how many go on from the coarse gates to the fine
+    # ones (``TrackConfig.local_keep``; 0: all). Session 22: 4 made the turned stage 10.3 ms
+    # instead of 18.4 on 9 rendered frames, each recovered either way, but alone it did not
+    # bring a turned recovery within the age bound in six 60 s runs, and one fit in contact
+    # went unrecovered (cause unknown), so it stayed 0. Since 2026-11-27 (session 25) 4, with
+    # ``eye_local_merge``: on the 5 turned recoveries saved in real-time runs both together
+    # give the same fits (within 0.2 mm) in 17-23 ms of eye instead of 29-34 on the quiet
+    # CPU, and a frame nothing recovers is left to the prediction (``eye_defer_search``)
+    # rather than searched (docs/realtime.md, "Deferring the search")
+    eye_local_keep: int = 4
+    # the local search's turned starts at the predicted centre only where it lies within this
+    # fraction of the box size of the last fitted one (``TrackConfig.local_merge``; 0: both
+    # centres). The held cube's centres were 0-8 mm apart on those frames
+    eye_local_merge: float = 0.1
     # while the eye's filter runs, its search from scratch only after this many failed frames
     # in a row (``TrackConfig.defer_search``), for the run and its twin alike: the first is
     # left to the prediction. In 84 runs of 60 s before (sessions 22-24) that search never
@@ -155,6 +162,10 @@ class RealtimeConfig:
         if not (isinstance(self.eye_local_keep, int) and 0 <= self.eye_local_keep <= 256):
             raise ValueError(
                 f"eye_local_keep must be an integer in 0..256, got {self.eye_local_keep!r}"
+            )
+        if not (isinstance(self.eye_local_merge, (int, float)) and 0 <= self.eye_local_merge <= 10):
+            raise ValueError(
+                f"eye_local_merge must be a number in 0..10, got {self.eye_local_merge!r}"
             )
         if not (isinstance(self.eye_defer_search, int) and 0 <= self.eye_defer_search <= 100):
             raise ValueError(

@@ -711,8 +711,8 @@ class RealtimeResult:
 
 def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> ExperimentConfig:
     """``exp`` as the real-time loop runs it: one seed; swings from ``rt.duration_s``; the
-    camera's tracker with ``rt.eye_local_starts``, ``rt.eye_local_keep`` and
-    ``rt.eye_defer_search``, without its
+    camera's tracker with ``rt.eye_local_starts``, ``rt.eye_local_keep``,
+    ``rt.eye_local_merge`` and ``rt.eye_defer_search``, without its
     manoeuvre restart unless ``rt.eye_maneuver_restart``; the camera's multisampling
     ``rt.camera_msaa`` where given.
     The simulated twin runs the same, so that its camera loop sees frames rendered as the
@@ -726,6 +726,7 @@ def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> Experiment
         exp.camera.tracker,
         local_starts=rt.eye_local_starts,
         local_keep=rt.eye_local_keep,
+        local_merge=float(rt.eye_local_merge),
         defer_search=rt.eye_defer_search,
     )
     if not rt.eye_maneuver_restart:
