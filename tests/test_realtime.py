@@ -438,6 +438,39 @@ def test_in_contact_follows_the_episode_logs():
     assert in_contact(SimpleNamespace(logs=[{"t": np.zeros(3)}]), tt) is None
 
 
+def test_measured_age_counts_from_the_last_valid_fit_taken():
+    # independent arithmetic: dt 10 ms, episode 0 takes estimates at ticks 2 (the release
+    # frame, number 0: not a measurement of the swing), 4 (valid, exposed at 0.03 s) and 7
+    # (a failed frame's prediction, exposed at 0.06 s); episode 1 one valid estimate at tick 1.
+    # The age of the state in force would restart at tick 7; the measured age does not
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from hec_jax.realtime.report import measured_age
+
+    def arrivals(tick, stamp, number, valid):
+        return {
+            "tick": np.array(tick, float),
+            "t_stamp": np.array(stamp),
+            "number": np.array(number, float),
+            "valid": np.array(valid, float),
+        }
+
+    run = SimpleNamespace(
+        arrivals=[
+            arrivals([2, 4, 7], [0.0, 0.03, 0.06], [0, 1, 2], [1, 1, 0]),
+            arrivals([1], [0.005], [1], [1]),
+        ]
+    )
+    tt = {"episode": np.array([0] * 9 + [1] * 3)}
+    age = measured_age(run, tt, 0.01)
+    want = [np.nan] * 4 + [0.01, 0.02, 0.03, 0.04, 0.05] + [np.nan, 0.005, 0.015]
+    np.testing.assert_allclose(age, want, atol=1e-12)
+    old = SimpleNamespace(arrivals=[{k: v for k, v in run.arrivals[0].items() if k != "valid"}])
+    assert measured_age(old, tt, 0.01) is None  # runs from before the field
+
+
 def test_the_real_time_camera_renders_the_simulated_loops_scene():
     """``plant.camera_model``: the void is the plant's own model (no shadows); the lab is the
     room around the plant's world with the lab camera's pose, as the simulated camera loop
