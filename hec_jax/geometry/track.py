@@ -203,19 +203,17 @@ class TrackConfig:
             depth").
         local_merge: the local search starts at the predicted centre and at the last fitted
             one; where the two lie within this fraction of the box size of each other (a box
-            held or at rest: 0-8 mm apart), its turned starts start at the predicted one only,
-            which halves their cost. The predicted rotation's starts keep both centres (cheap;
-            on saved real-time frames their second centre recovered fits that the first alone
-            did not, docs/realtime.md). 0: both centres always (as before).
+            held or at rest), its turned starts start at the predicted one only, which halves
+            their cost. The predicted rotation's starts keep both centres (cheap, and the
+            second centre can differ in depth where the two are close in the image). 0: both
+            centres always (as before). docs/realtime.md, "Deferring the search".
         defer_search: while the filter runs, the search from scratch (near the prediction) is
             tried only once this many frames in a row have failed before it; the failed frames
             before are invalid and the filter predicts over them (``TrackStep.search_deferred``).
-            For an eye on the clock: the search costs 15-30 frame periods on the 2-core CPU
-            (every frame in between dropped), and in 84 real-time runs of 60 s (about 150 000
-            tracked frames) it never found the box while the filter ran, where the next frame's
-            tracked fit did (docs/realtime.md, "Deferring the search"). Once the track is lost
-            (``lost_after``) the search runs on every frame as before. 0: off (every failed
-            frame searched, as before).
+            For an eye on the clock, where that search costs many frame periods and a single
+            failed frame is mostly followed by a tracked one (docs/realtime.md, "Deferring the
+            search"). Once the track is lost (``lost_after``) every frame is searched as
+            before. 0: off (every failed frame searched, as before).
     """
 
     max_segments: int = 48
