@@ -40,10 +40,9 @@ import numpy as np
 from hec_jax.cli import command, parse, require
 from hec_jax.geometry.track import BoxTracker, _log, snap_to_symmetry
 from hec_jax.loop.camera_loop import frame_steps, run_camera
-from hec_jax.loop.config import PRESETS, CameraConfig
 from hec_jax.loop.policy import build_loop
 from hec_jax.realtime.config import RealtimeConfig
-from hec_jax.realtime.runner import realtime_experiment
+from hec_jax.realtime.runner import void_camera_experiment
 from hec_jax.runs import run_folder, write_json, write_text
 
 # name: fields of the real-time eye's tracker replaced
@@ -231,10 +230,8 @@ def main(argv=None) -> dict:
     """Records the frames, replays the variants (flags: ``--help``); returns the results."""
     a = parse(EyeDepth(), argv, __doc__)
     jax.config.update("jax_enable_x64", True)
-    cam = CameraConfig.void_perfect(width=a.width, height=a.height, msaa=a.msaa)
-    exp = realtime_experiment(
-        PRESETS["catching"](camera=cam, eye="camera", seed=a.seed),
-        RealtimeConfig(duration_s=a.duration_s),
+    exp = void_camera_experiment(
+        "catching", a.seed, a.width, a.height, a.msaa, RealtimeConfig(duration_s=a.duration_s)
     )
     loop = build_loop(exp.task)
     settings = {k: v for k, v in dataclasses.asdict(a).items() if k != "seed"}
@@ -243,7 +240,7 @@ def main(argv=None) -> dict:
         t0 = time.perf_counter()
         rec, in_contact, track = record(a, exp, loop)
         print(f"recorded {len(rec.images)} frames in {time.perf_counter() - t0:.0f} s")
-        steps = frame_steps(cam, loop.ids.timestep, in_contact.shape[1])
+        steps = frame_steps(exp.camera, loop.ids.timestep, in_contact.shape[1])
         results = {}
         for name in a.variants:
             t0 = time.perf_counter()

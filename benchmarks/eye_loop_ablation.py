@@ -34,11 +34,10 @@ import numpy as np
 from hec_jax.cli import command, parse, require
 from hec_jax.geometry.track import FIT_SOURCES
 from hec_jax.loop.camera_loop import run_camera
-from hec_jax.loop.config import PRESETS, CameraConfig
 from hec_jax.loop.experiment import condition_metrics
 from hec_jax.loop.policy import build_loop
 from hec_jax.realtime.config import RealtimeConfig
-from hec_jax.realtime.runner import realtime_experiment, simulated_twins
+from hec_jax.realtime.runner import simulated_twins, void_camera_experiment
 from hec_jax.runs import run_folder, write_json, write_text
 
 # name: (fields of the tracker (the loop's, with the real-time local starts), fields of the
@@ -135,11 +134,8 @@ def main(argv=None) -> dict:
     """Runs the ablation (flags: ``--help``); returns its results."""
     a = parse(LoopAblation(), argv, __doc__)
     jax.config.update("jax_enable_x64", True)
-    cam = CameraConfig.void_perfect(width=a.width, height=a.height, msaa=a.msaa)
-    exp = realtime_experiment(
-        PRESETS[a.task](camera=cam, eye="camera", seed=a.seed),
-        RealtimeConfig(duration_s=a.duration_s, eye_maneuver_restart=a.maneuver_restart),
-    )
+    rt = RealtimeConfig(duration_s=a.duration_s, eye_maneuver_restart=a.maneuver_restart)
+    exp = void_camera_experiment(a.task, a.seed, a.width, a.height, a.msaa, rt)
     loop = build_loop(exp.task)
     conditions = exp.task.pendulum.conditions()
     keys = jax.random.split(jax.random.PRNGKey(exp.seed), 1)

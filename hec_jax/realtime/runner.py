@@ -50,6 +50,7 @@ import numpy as np
 from hec_jax.control import TaskObs
 from hec_jax.loop.camera_loop import run_camera, steps_per_frame
 from hec_jax.loop.config import (
+    PRESETS,
     REALTIME_DEFECTS,
     CameraConfig,
     CameraDefects,
@@ -735,6 +736,18 @@ def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> Experiment
     if rt.camera_msaa is not None:
         cam = dataclasses.replace(cam, msaa=rt.camera_msaa)
     return dataclasses.replace(exp, task=task, seeds=1, camera=cam)
+
+
+def void_camera_experiment(
+    preset: str, seed: int, width: int, height: int, msaa: int | None, rt: RealtimeConfig
+) -> ExperimentConfig:
+    """``preset`` (a :data:`~hec_jax.loop.config.PRESETS` name) driven by the camera in the void
+    scene without defects (``CameraConfig.void_perfect`` at ``width`` x ``height`` [px],
+    ``msaa``), as the real-time loop runs it with ``rt`` (:func:`realtime_experiment`): the
+    set-up the benchmarks replay the real-time eye on.
+    """
+    cam = CameraConfig.void_perfect(width=width, height=height, msaa=msaa)
+    return realtime_experiment(PRESETS[preset](camera=cam, eye="camera", seed=seed), rt)
 
 
 def simulated_twins(exp: ExperimentConfig, loop: Loop, condition: str, which: str, progress=True):
