@@ -21,6 +21,7 @@ Oracles:
 """
 
 import json
+import os
 
 import jax
 import jax.numpy as jnp
@@ -280,6 +281,9 @@ def test_realtime_run_reports_itself(tmp_path):
     assert result.loop_run.rest_s == [0.0] and result.report["placement"]["rt_budget_rest_s"] == 0
     assert result.logs["x_e"].shape == (1, 1, 1000, 2)
     assert result.metrics["peak_force"]["mean"] > 0
+    # the host's steal over the run: per CPU where the kernel accounts it, never negative
+    steal = result.report["host"]["steal_ms_per_cpu"]
+    assert steal is None or (len(steal) == os.cpu_count() and min(steal) >= 0)
     RT.write_report(tmp_path, result)
     saved = json.loads((tmp_path / "deadline.json").read_text())
     assert saved["control"]["counts"] == result.report["control"]["counts"]
@@ -316,6 +320,14 @@ def test_realtime_camera_run_reports_itself():
     later = eye_log["number"] > 0
     assert sum(by_source.values()) == int(later.sum())
     assert by_source["invalid"] == int(np.sum(~eye_log["valid"][later]))
+    # the processes' CPU time and the host's steal, per frame; the slow frames are the ones
+    # published more than a frame period after their exposure
+    assert np.all(eye_log["eye_cpu_ms"] >= 0) and np.all(cam_log["render_cpu_ms"] > 0)
+    assert eye_log["eye_steal_ms"].shape[0] == len(eye_log["index"])
+    assert cam_log["render_steal_ms"].shape[0] == len(cam_log["index"])
+    pipeline = 1e3 * (eye_log["t_wall_done"] - eye_log["t_wall_exposure"])
+    period_ms = eye["frame_period_ms"]
+    assert eye["slow_frames"]["over_one_period"] == int(np.sum(later & (pipeline > period_ms)))
     # the saved failed frames: every frame after the release whose tracked fit failed (up to
     # 50), each replaying to the fit the run logged
     from hec_jax.geometry.track import FIT_SOURCES
@@ -504,3 +516,61 @@ def test_the_real_time_camera_renders_the_simulated_loops_scene():
         poses.append(np.concatenate([data.cam_xpos[cid], data.cam_xmat[cid]]))
     np.testing.assert_array_equal(poses[0], poses[1])
     assert np.linalg.norm(poses[0][:3] - poses[2][:3]) > 0.1  # the lab's camera is elsewhere
+
+
+def test_host_steal_is_read_per_cpu_from_proc_stat(tmp_path):
+    # a /proc/stat as Linux writes it: the steal is the 8th number of each cpuN line, in clock
+    # ticks (SC_CLK_TCK per second)
+    from hec_jax.realtime.clock import _CLOCK_TICKS, host_steal_ms
+
+    stat = tmp_path / "stat"
+    stat.write_text(
+        "cpu  10 0 5 100 0 0 0 7 0 0\n"
+        "cpu0 5 0 2 50 0 0 0 3 0 0\n"
+        "cpu1 5 0 3 50 0 0 0 4 0 0\n"
+        "intr 12 0\nctxt 99\n"
+    )
+    assert host_steal_ms(str(stat)) == [3e3 / _CLOCK_TICKS, 4e3 / _CLOCK_TICKS]
+    stat.write_text("cpu0 5 0 2 50\n")  # no steal column (old kernels)
+    assert host_steal_ms(str(stat)) == []
+    assert host_steal_ms(str(tmp_path / "missing")) == []
+    if os.path.exists("/proc/stat"):
+        assert len(host_steal_ms()) in (0, os.cpu_count())
+
+
+def test_slow_frames_are_the_ones_published_after_a_frame_period():
+    # four frames of a 30 fps eye, exposed at wall times 0, 1/30, 2/30, 3/30 s; frame 0 is the
+    # release frame (not counted); frames 1 and 3 take 40 and 35 ms from exposure to estimate
+    from hec_jax.geometry.track import FIT_SOURCES
+    from hec_jax.realtime.report import slow_frames
+    from hec_jax.realtime.workers import _steal_delta
+
+    exposure = np.arange(4) / 30
+    eye_log = {
+        "index": np.arange(4),
+        "episode": np.zeros(4, int),
+        "number": np.arange(4),
+        "t_wall_exposure": exposure,
+        "t_wall_done": exposure + np.array([0.2, 0.040, 0.010, 0.035]),
+        "eye_ms": np.array([150.0, 30, 4, 5]),
+        "eye_cpu_ms": np.array([140.0, 5, 4, 5]),
+        "eye_steal_ms": np.array([[0, 0], [0, 20], [0, 0], [0, 0]], float),
+        "fit_source": np.array([FIT_SOURCES.index("tracked")] * 3 + [FIT_SOURCES.index("")]),
+    }
+    camera_log = {
+        "index": np.arange(4),
+        "render_ms": np.array([6.0, 7, 6, 25]),
+        "render_cpu_ms": np.array([6.0, 7, 6, 6]),
+        "render_steal_ms": np.array([[0, 0], [0, 0], [0, 0], [0, 10]], float),
+    }
+    out = slow_frames(camera_log, eye_log, 1e3 / 30)
+    assert out["over_one_period"] == 2
+    first, second = out["frames"]
+    assert (first["index"], second["index"]) == (1, 3)
+    assert first["pipeline_ms"] == pytest.approx(40) and second["pipeline_ms"] == pytest.approx(35)
+    assert first["eye_steal_ms"] == [0, 20] and second["render_steal_ms"] == [0, 10]
+    assert (first["render_ms"], second["render_cpu_ms"]) == (7, 6)
+    assert (first["fit_source"], second["fit_source"]) == ("tracked", "invalid")
+    assert slow_frames(camera_log, eye_log, 1e3 / 30, limit=1)["frames"] == [first]
+    np.testing.assert_array_equal(_steal_delta([1.0, 2.0], [1.0, 12.0]), [0, 10])
+    assert _steal_delta([1.0, 2.0], []).size == 0  # a reading failed: no delta

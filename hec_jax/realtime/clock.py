@@ -24,6 +24,31 @@ def monotonic_s() -> float:
     return time.clock_gettime(time.CLOCK_MONOTONIC)
 
 
+_CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def host_steal_ms(path: str = "/proc/stat") -> list[float]:
+    """[ms] per CPU (cpu0, cpu1, ...): the time the hypervisor ran something else while this
+    virtual CPU wanted to run (``steal`` of ``/proc/stat``, in clock ticks of 1 / SC_CLK_TCK s,
+    usually 10 ms), cumulative since boot. Empty where the file or the column is missing (not
+    Linux, or no steal accounting). Differences over an interval say how much of it each CPU
+    was taken away: a slow frame with steal is the host's, not the program's.
+    """
+    try:
+        with open(path) as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return []
+    out = []
+    for line in lines:
+        name, *fields = line.split()
+        if name.startswith("cpu") and name != "cpu":
+            if len(fields) < 8:
+                return []
+            out.append(1e3 * int(fields[7]) / _CLOCK_TICKS)
+    return out
+
+
 class Clock(Protocol):
     """A control loop's clock (times [s] since :meth:`start`)."""
 

@@ -217,6 +217,9 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
             "frame_times_skipped": int(camera_log["skipped"]),
             "render_ms": percentiles(camera_log["render_ms"]),
         }
+        if "render_cpu_ms" in camera_log:  # logs since session 26
+            out["camera"]["render_cpu_ms"] = percentiles(camera_log["render_cpu_ms"])
+            out["camera"]["render_steal_ms_per_cpu"] = _steal_total(camera_log["render_steal_ms"])
     if eye_log:
         out["eye"] = {
             "frames_processed": int(len(eye_log["index"])),
@@ -238,6 +241,11 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
             out["eye"]["fits_by_source"] = {
                 name or "invalid": int(np.sum(later == i)) for i, name in enumerate(FIT_SOURCES)
             }
+        if "eye_cpu_ms" in eye_log:  # logs since session 26
+            later = eye_log["number"] > 0
+            out["eye"]["eye_cpu_ms"] = percentiles(eye_log["eye_cpu_ms"][later])
+            out["eye"]["eye_steal_ms_per_cpu"] = _steal_total(eye_log["eye_steal_ms"])
+            out["slow_frames"] = slow_frames(camera_log, eye_log, 1e3 / fps)
         if camera_log:
             # accuracy of the eye at its frames against the rendered truth
             truth = dict(zip(camera_log["index"].tolist(), camera_log["x_true"], strict=True))
@@ -249,6 +257,53 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
             if err:
                 out["eye"]["position_rms_m"] = float(np.sqrt(np.mean(np.square(err))))
     return out
+
+
+def _steal_total(per_frame) -> list[float] | None:
+    """[ms] per CPU: the host's steal summed over the frames' rows (None: not recorded)."""
+    a = np.asarray(per_frame, float)
+    return a.sum(axis=0).tolist() if a.ndim == 2 and a.shape[1] else None
+
+
+def slow_frames(camera_log, eye_log, period_ms: float, limit: int = 32) -> dict:
+    """The frames after a release whose estimate was published more than one frame period
+    after their exposure (wall clock): the ones that can age the state past two frame periods.
+    For each (the first ``limit``): where the time went, wall [ms] against the process's CPU
+    time [ms] and the host's steal [ms] per CPU, for the render and for the eye, and the fit's
+    source. A stage whose wall time far exceeds its usual with steal on its CPU was slowed by
+    the machine's host; one whose CPU time grew did more work (or ran on a slower CPU).
+    """
+    later = eye_log["number"] > 0
+    pipeline = 1e3 * (eye_log["t_wall_done"] - eye_log["t_wall_exposure"])
+    slow = np.flatnonzero(later & (pipeline > period_ms))
+    render = {}
+    if camera_log and "render_cpu_ms" in camera_log:
+        for j, i in enumerate(camera_log["index"].tolist()):
+            render[i] = (
+                float(camera_log["render_ms"][j]),
+                float(camera_log["render_cpu_ms"][j]),
+                np.asarray(camera_log["render_steal_ms"][j], float).tolist(),
+            )
+    rows = []
+    for k in slow[:limit]:
+        r = render.get(int(eye_log["index"][k]), (None, None, None))
+        src = int(eye_log["fit_source"][k]) if "fit_source" in eye_log else None
+        rows.append(
+            {
+                "index": int(eye_log["index"][k]),
+                "episode": int(eye_log["episode"][k]),
+                "number": int(eye_log["number"][k]),
+                "pipeline_ms": float(pipeline[k]),
+                "render_ms": r[0],
+                "render_cpu_ms": r[1],
+                "render_steal_ms": r[2],
+                "eye_ms": float(eye_log["eye_ms"][k]),
+                "eye_cpu_ms": float(eye_log["eye_cpu_ms"][k]),
+                "eye_steal_ms": np.asarray(eye_log["eye_steal_ms"][k], float).tolist(),
+                "fit_source": None if src is None else (FIT_SOURCES[src] or "invalid"),
+            }
+        )
+    return {"over_one_period": int(slow.size), "frames": rows}
 
 
 _COMPARED = ("peak_force", "settle_force", "hits", "periodic_hits")
@@ -361,6 +416,8 @@ def deadline_table(report: dict) -> list[str]:
                 ),
                 ("render p50 / p99 / max [ms]", ms(cam["render_ms"])),
             ]
+            if "render_cpu_ms" in cam:
+                rows.append(("render process CPU p50 / p99 / max [ms]", ms(cam["render_cpu_ms"])))
         if "eye" in eye:
             e = eye["eye"]
             rows += [
@@ -371,6 +428,8 @@ def deadline_table(report: dict) -> list[str]:
                 ),
                 ("eye p50 / p99 / max [ms]", ms(e["eye_ms"])),
             ]
+            if "eye_cpu_ms" in e:
+                rows.append(("eye process CPU p50 / p99 / max [ms]", ms(e["eye_cpu_ms"])))
             if "mask_ms" in e:
                 rows.append(
                     (
@@ -381,6 +440,19 @@ def deadline_table(report: dict) -> list[str]:
                         ),
                     )
                 )
+            slow = eye.get("slow_frames")
+            if slow is not None:
+                frames = slow["frames"]
+                steal = sum(
+                    sum(f["render_steal_ms"] or []) + sum(f["eye_steal_ms"]) for f in frames
+                )
+                rows.append(
+                    (
+                        "frames published > 1 frame period after exposure; host steal in their "
+                        "render + eye [ms]",
+                        f"{slow['over_one_period']}; {steal:.0f}",
+                    )
+                )
             if "fits_by_source" in e:
                 by = e["fits_by_source"]
                 rows.append(
@@ -389,6 +461,14 @@ def deadline_table(report: dict) -> list[str]:
                         " / ".join(str(v) for v in by.values()),
                     )
                 )
+    host = report.get("host")
+    if host and host.get("steal_ms_per_cpu") is not None:
+        rows.append(
+            (
+                "host steal over the run, per CPU [ms]",
+                " / ".join(f"{v:.0f}" for v in host["steal_ms_per_cpu"]),
+            )
+        )
     return markdown_table(["quantity", "value"], rows)
 
 

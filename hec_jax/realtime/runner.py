@@ -66,6 +66,7 @@ from hec_jax.realtime.clock import (
     FreeClock,
     WallClock,
     cpu_latency_request,
+    host_steal_ms,
     monotonic_s,
     pin_process,
     pinned,
@@ -845,6 +846,7 @@ def run_realtime(
             control_cpus = _pin_children(plant, eye, children) if rt.pin_cpus and rt.timed else None
             clock = WallClock(rt.spin_us * 1e-6) if rt.timed else FreeClock()
             load["start"] = os.getloadavg()
+            steal_start = host_steal_ms()
             latency = cpu_latency_request(rt.cpu_latency_us if rt.timed else None)
             priority = realtime_priority(rt.rt_priority if rt.timed else 0)
             with pinned(control_cpus), priority, latency:
@@ -865,6 +867,7 @@ def run_realtime(
                     rt_budget_rest=rt.rt_budget_rest,
                 )
             load["end"] = os.getloadavg()
+            steal_end = host_steal_ms()
         finally:
             eye_log = eye.close() if eye is not None else None
             camera_log = plant.close()
@@ -889,6 +892,12 @@ def run_realtime(
         # JAX's CPU dispatch as configured (it takes effect when JAX creates its CPU client)
         "jax_cpu_async_dispatch": bool(jax.config.values["jax_cpu_enable_async_dispatch"]),
     }
+    # [ms] per CPU: the time the machine's host took from each CPU while the loop ran (a VM's
+    # steal; None: not accounted)
+    steal = (
+        np.subtract(steal_end, steal_start).tolist() if len(steal_end) == len(steal_start) else []
+    )
+    report["host"] = {"steal_ms_per_cpu": steal or None}
     if not rt.timed:  # no clock: latencies are not wall times, no timing target applies
         report["targets"] = {}
     twins = simulated_twins(exp, loop, rt.condition, rt.twin, progress)

@@ -49,6 +49,15 @@ def _stack(rows: list[dict]) -> dict[str, np.ndarray]:
     return {k: np.asarray([r[k] for r in rows]) for k in rows[0]}
 
 
+def _steal_delta(before: list[float], after: list[float]) -> np.ndarray:
+    """[ms] per CPU: the host's steal between two :func:`~.clock.host_steal_ms` readings
+    (empty without steal accounting).
+    """
+    if len(before) != len(after):
+        return np.zeros(0)
+    return np.subtract(after, before)
+
+
 def camera_sleep_s(rec: dict, step_due: int, dt: float, now: float) -> float:
     """[s] the camera sleeps before it looks at the plant's board again, a frame being due at
     ``step_due`` and the board showing ``rec`` (``STATE_FIELDS``) at monotonic time ``now``.
@@ -112,7 +121,7 @@ def camera_main(
         os.setpriority(os.PRIO_PROCESS, 0, nice)
         from hec_jax.mjx_scene import scene_ids
         from hec_jax.mjx_scene.render import SceneCamera
-        from hec_jax.realtime.clock import monotonic_s
+        from hec_jax.realtime.clock import host_steal_ms, monotonic_s
         from hec_jax.realtime.plant import camera_model
 
         m, shadows = camera_model(task, cam, shadows)  # void: the plant's model; lab: around it
@@ -141,10 +150,10 @@ def camera_main(
             if step < number * period:
                 time.sleep(camera_sleep_s(rec, number * period, dt, monotonic_s()))
                 continue
-            t0 = monotonic_s()
+            t0, cpu0, steal0 = monotonic_s(), time.process_time(), host_steal_ms()
             image = camera.render(rec["qpos"])
             x_true = camera.data.site_xpos[ids.cube_site].copy()
-            t1 = monotonic_s()
+            t1, cpu1, steal1 = monotonic_s(), time.process_time(), host_steal_ms()
             frames.put(
                 index,
                 image,
@@ -167,6 +176,9 @@ def camera_main(
                     t_wall_start=t0,
                     t_wall_done=t1,
                     render_ms=1e3 * (t1 - t0),
+                    # the process's CPU time (all threads) and the host's steal per CPU meanwhile
+                    render_cpu_ms=1e3 * (cpu1 - cpu0),
+                    render_steal_ms=_steal_delta(steal0, steal1),
                     x_true=x_true[[0, 2]],
                 )
             )
@@ -319,7 +331,7 @@ def eye_main(
         from hec_jax.geometry.track import FIT_SOURCES
         from hec_jax.loop.camera_loop import front_object_mask, mask_robot_and_replaced, robot_geoms
         from hec_jax.mjx_scene import CUBE_EDGE, scene_ids
-        from hec_jax.realtime.clock import monotonic_s
+        from hec_jax.realtime.clock import host_steal_ms, monotonic_s
         from hec_jax.realtime.plant import camera_model
         from hec_jax.realtime.shared import wait_for
 
@@ -359,7 +371,7 @@ def eye_main(
             if frame is None:
                 time.sleep(_POLL_S)
                 continue
-            t0 = monotonic_s()
+            t0, cpu0, steal0 = monotonic_s(), time.process_time(), host_steal_ms()
             lost = frame.index - last - 1  # frames the camera made that the eye never saw
             dropped += lost
             last = frame.index
@@ -390,7 +402,7 @@ def eye_main(
                 x = (r_wc @ np.asarray(st.position) + t_wc)[[0, 2]]
                 xd = (r_wc @ np.asarray(st.velocity))[[0, 2]]
                 xdd = (r_wc @ np.asarray(st.acceleration))[[0, 2]]
-            t1 = monotonic_s()
+            t1, cpu1, steal1 = monotonic_s(), time.process_time(), host_steal_ms()
             # the acquisition frame (0: the release state, the cube still held) is always
             # answered, so the control loop knows the eye is done with it
             if st.initialised or published or number == 0:
@@ -422,6 +434,9 @@ def eye_main(
                     t_wall_start=t0,
                     t_wall_done=t1,
                     eye_ms=1e3 * (t1 - t0),
+                    # the process's CPU time (all threads) and the host's steal per CPU meanwhile
+                    eye_cpu_ms=1e3 * (cpu1 - cpu0),
+                    eye_steal_ms=_steal_delta(steal0, steal1),
                     # the eye's stages: the robot's mask, then the tracker's own split
                     mask_ms=1e3 * (t_masked - t0),
                     detection_ms=st.timing_ms["detection_ms"],
