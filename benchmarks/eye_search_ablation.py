@@ -27,13 +27,21 @@ from hec_jax.geometry.track import RANDOMIZED_BENCHMARK, track_box
 from hec_jax.progress import ProgressBar
 from hec_jax.runs import run_folder, write_json, write_npz, write_text
 
-OFF = {"search_keep": 0, "blob_required": False, "low_contrast": False, "blob_core": 0.0}
+OFF = {
+    "search_keep": 0,
+    "blob_required": False,
+    "low_contrast": False,
+    "blob_core": 0.0,
+    "faint_candidates": False,
+}
+ON = {"blob_required": True, "search_keep": 8}
 VARIANTS = {  # name: fields of RANDOMIZED_BENCHMARK replaced
     "before (held-out table of 2026-11-26)": OFF,
     "+ blob_required": OFF | {"blob_required": True},
-    "+ search_keep 8": OFF | {"blob_required": True, "search_keep": 8},
-    "+ low_contrast": OFF | {"blob_required": True, "search_keep": 8, "low_contrast": True},
-    "+ blob_core 0.4 (the benchmark's)": {},
+    "+ search_keep 8": OFF | ON,
+    "+ low_contrast": OFF | ON | {"low_contrast": True},
+    "+ blob_core 0.4": {"faint_candidates": False},
+    "+ faint_candidates (the benchmark's, 2026-11-27)": {},
 }
 
 

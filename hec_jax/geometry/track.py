@@ -175,6 +175,12 @@ class TrackConfig:
             taking its window and size: the part that survives an opening by a disk of
             ``blob_core`` x the blob's largest inscribed radius (a rod near the camera, too thick
             for the fixed 5 px opening, made the blob's window the rod's). 0: off (as before).
+        faint_candidates: with ``low_contrast``, the search from scratch also tries the faint
+            foreground's blobs when the usual threshold finds some (before: only when it finds
+            none). Where one face of the box is close to the background's colour, the usual
+            blobs are single faces, whose windows and sizes lead the search astray, while the
+            faint blob is the whole box (docs/eye_randomized.md, "Blobs of single faces").
+            Faint blobs overlapping a usual one by IoU >= 0.7 are not tried twice. False: off.
         min_segments_hidden: a fit needs at least 4 associated segments. When the tracked fit
             or the stop hypothesis fails only that count, and visible model edges are hidden for
             at least half their length by the frame's occluded pixels (the robot's own mask:
@@ -264,6 +270,7 @@ class TrackConfig:
     depth_gate: float | None = 0.1
     defer_search: int = 0
     local_merge: float = 0.0
+    faint_candidates: bool = False
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -288,7 +295,17 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
     blob_required=True,
     low_contrast=True,
     blob_core=0.4,
+    faint_candidates=True,
 )
+
+
+def _iou(a: tuple, b: tuple) -> float:
+    """Intersection over union of two boxes (x0, y0, x1, y1) [px]."""
+    w = min(a[2], b[2]) - max(a[0], b[0])
+    h = min(a[3], b[3]) - max(a[1], b[1])
+    inter = max(w, 0) * max(h, 0)
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return inter / union if union > 0 else 0.0
 
 
 class Association(NamedTuple):
@@ -1194,12 +1211,12 @@ class BoxTracker:
         image, background = self._difference_pair(gray)
         regions = []
         if background is not None:
-            regions = detect.foreground_regions(image, background, core=cfg.blob_core)
-            if not regions and cfg.low_contrast:
-                regions = detect.faint_foreground_regions(image, background, core=cfg.blob_core)
-        if cfg.min_region_fraction > 0:
-            # blobs much smaller than the largest (a shadow's edge, pieces of the rod): not tried
-            regions = [r for r in regions if r[1] >= cfg.min_region_fraction * regions[0][1]]
+            regions = self._large(detect.foreground_regions(image, background, core=cfg.blob_core))
+            if cfg.low_contrast and (cfg.faint_candidates or not regions):
+                faint = detect.faint_foreground_regions(image, background, core=cfg.blob_core)
+                regions += [
+                    r for r in self._large(faint) if all(_iou(r[0], q[0]) < 0.7 for q in regions)
+                ]
         candidates = []
         for (x0, y0, x1, y1), area in regions:
             pad = 0.2 * max(x1 - x0, y1 - y0) + 4
@@ -1246,6 +1263,13 @@ class BoxTracker:
         if self._rot_anchor is not None:
             rot = snap_to_symmetry(rot, self._rot_anchor)
         return (rot, np.asarray(cand.pose.translation)), segp_c, mask_c
+
+    def _large(self, regions: list) -> list:
+        """``regions`` (largest first) without the blobs smaller than ``min_region_fraction`` of
+        the largest (a shadow's edge, pieces of the rod: not searched).
+        """
+        f = self.config.min_region_fraction
+        return [r for r in regions if r[1] >= f * regions[0][1]] if f > 0 else list(regions)
 
     def _reacquire_locally(
         self, gray, rotation, gated, stages: tuple[int, ...] = (0, 1), between=None, merge=None

@@ -20,7 +20,11 @@ class RealtimeConfig:
     # of hitting; its continuous run comes on top); None: the preset's swings
     duration_s: float | None = None
     timed: bool = True  # False: no clock, as fast as possible (equivalence tests; eye truth only)
-    spin_us: float = 200.0  # [us] busy-wait before each tick (sleep before that)
+    # [us] busy-wait before each tick (sleep before that). Where SCHED_FIFO is refused and CPUs
+    # are to spare, 1000 (spin through the whole period) met the tick's p99.9 in 6 of 7 runs on
+    # two GPU machines' leases against 1 of 6 at 200 (docs/realtime.md, session 26); not at
+    # SCHED_FIFO, which the kernel throttles past 95% of each second
+    spin_us: float = 200.0
     lead_ms: float = 20.0  # [ms] from the start of an episode's clock to its first tick
     gc_off: bool = True  # no Python garbage collection during an episode (collected between)
     # before each episode's lead, the control thread (at real-time priority) sleeps the part of a
