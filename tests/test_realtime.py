@@ -573,4 +573,10 @@ def test_slow_frames_are_the_ones_published_after_a_frame_period():
     assert (first["fit_source"], second["fit_source"]) == ("tracked", "invalid")
     assert slow_frames(camera_log, eye_log, 1e3 / 30, limit=1)["frames"] == [first]
     np.testing.assert_array_equal(_steal_delta([1.0, 2.0], [1.0, 12.0]), [0, 10])
-    assert _steal_delta([1.0, 2.0], []).size == 0  # a reading failed: no delta
+    # a reading failed: NaN for each CPU (every row as long); none accounted: empty
+    assert np.isnan(_steal_delta([1.0, 2.0], [])).tolist() == [True, True]
+    assert _steal_delta([], []).size == 0
+    from hec_jax.realtime.report import _steal_total
+
+    assert _steal_total([[0.0, 10.0], [np.nan, np.nan], [10.0, 0.0]]) == [10.0, 10.0]
+    assert _steal_total(np.zeros((3, 0))) is None

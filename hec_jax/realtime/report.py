@@ -260,9 +260,11 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
 
 
 def _steal_total(per_frame) -> list[float] | None:
-    """[ms] per CPU: the host's steal summed over the frames' rows (None: not recorded)."""
+    """[ms] per CPU: the host's steal summed over the frames' rows whose readings did not fail
+    (None: not recorded).
+    """
     a = np.asarray(per_frame, float)
-    return a.sum(axis=0).tolist() if a.ndim == 2 and a.shape[1] else None
+    return np.nansum(a, axis=0).tolist() if a.ndim == 2 and a.shape[1] else None
 
 
 def slow_frames(camera_log, eye_log, period_ms: float, limit: int = 32) -> dict:

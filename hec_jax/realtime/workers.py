@@ -51,10 +51,11 @@ def _stack(rows: list[dict]) -> dict[str, np.ndarray]:
 
 def _steal_delta(before: list[float], after: list[float]) -> np.ndarray:
     """[ms] per CPU: the host's steal between two :func:`~.clock.host_steal_ms` readings
-    (empty without steal accounting).
+    (empty without steal accounting; NaN per CPU where one of the two readings failed, so that
+    every frame's row has the same length).
     """
     if len(before) != len(after):
-        return np.zeros(0)
+        return np.full(max(len(before), len(after)), np.nan)
     return np.subtract(after, before)
 
 
