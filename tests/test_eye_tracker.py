@@ -490,3 +490,26 @@ def test_filter_init_on_the_host_equals_init():
     assert isinstance(got.mean, np.ndarray) and isinstance(got.cov, np.ndarray)
     np.testing.assert_array_equal(got.mean, np.asarray(want.mean))
     np.testing.assert_array_equal(got.cov, np.asarray(want.cov))
+
+
+def test_edge_points_sample_only_near_the_image():
+    # a horizontal intensity step (rows < 60: 50, rows >= 60: 200) and model edges along it:
+    # one across the image, one a wrong fit's edge 6e5 px long (it overflowed OpenCV's remap,
+    # sampling 3e5 points). The long edge gives the same points where both
+    # sample, and none farther than the search outside the image
+    from hec_jax.geometry.detect import edge_points
+
+    gray = np.full((120, 160), 50, np.uint8)
+    gray[60:] = 200
+    short = np.array([[[0.0, 60.0], [160.0, 60.0]]])
+    long = np.array([[[-3e5, 60.0], [3e5, 60.0]]])
+    usable = np.array([True])
+    p_short, _ = edge_points(gray, short, usable)
+    p_long, _ = edge_points(gray, long, usable)
+    assert len(p_short) > 50 and 0 < len(p_long) < 200
+    assert np.all(np.abs(p_short[:, 1] - 60.0) < 0.6)  # on the step
+    assert np.all((p_long[:, 0] > -5) & (p_long[:, 0] < 165))
+    common = np.isin(p_long[:, 0], p_short[:, 0])
+    assert common.sum() >= len(p_short) - 1
+    by_x = dict(zip(p_short[:, 0], p_short[:, 1], strict=True))
+    np.testing.assert_allclose(p_long[common, 1], [by_x[x] for x in p_long[common, 0]])

@@ -307,15 +307,23 @@ def edge_points(
     """
     img = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur)
     offs = np.arange(-search, search + 1e-9, step)
+    h, w = gray.shape[:2]
+    pad = search + 2.0  # [px] points farther outside the image sample only its replicated border
     pts, ids, normals = [], [], []
     for e in np.flatnonzero(usable):
         a, b = edges_px[e]
         d = b - a
         length = float(np.hypot(*d))
-        if length < 2 * end_margin + spacing:
+        if not length >= 2 * end_margin + spacing:  # also NaN
             continue
         u = d / length
-        ts = np.arange(end_margin, length - end_margin + 1e-9, spacing)
+        # the points every ``spacing`` from ``end_margin``, those within ``pad`` of the image
+        # only (a wrong fit's edge can project to millions of px)
+        lo, hi = _inside_interval(a, u, length, (-pad, -pad, w + pad, h + pad))
+        first = end_margin + spacing * max(np.ceil((lo - end_margin) / spacing), 0.0)
+        ts = np.arange(first, min(hi, length - end_margin) + 1e-9, spacing)
+        if ts.size == 0:
+            continue
         pts.append(a + ts[:, None] * u)
         ids.append(np.full(len(ts), e))
         normals.append(np.tile([-u[1], u[0]], (len(ts), 1)))
@@ -340,6 +348,21 @@ def edge_points(
     keep = y1 >= min_step
     found = pts + offset[:, None] * normals
     return found[keep], ids[keep]
+
+
+def _inside_interval(a, u, length: float, box) -> tuple[float, float]:
+    """[px] the part (lo, hi) of the segment a + t u, t in [0, length], inside ``box`` =
+    (x0, y0, x1, y1) (lo > hi: none).
+    """
+    lo, hi = 0.0, length
+    for k, (low, high) in enumerate(((box[0], box[2]), (box[1], box[3]))):
+        if abs(u[k]) < 1e-12:
+            if not low <= a[k] <= high:
+                return 1.0, 0.0
+            continue
+        t0, t1 = (low - a[k]) / u[k], (high - a[k]) / u[k]
+        lo, hi = max(lo, min(t0, t1)), min(hi, max(t0, t1))
+    return lo, hi
 
 
 def foreground_mask(
