@@ -303,7 +303,10 @@ def edge_points(
     points every ``spacing`` px (``end_margin`` px from the corners) search along the edge normal
     within +-``search`` px for the strongest intensity step of the smoothed image, located to
     sub-pixel precision by a parabola through the derivative peak. Steps weaker than ``min_step``
-    [grey levels / px] are dropped; ``blur`` is the Gaussian's sigma [px]. Returns (points (N, 2) [px], edge index (N,)).
+    [grey levels / px] are dropped; ``blur`` is the Gaussian's sigma [px]. Only the points
+    within ``search`` + 2 px of the image are sampled (the same grid along each edge; an edge
+    far outside, as a wrong fit can project, costs nothing). Returns (points (N, 2) [px], edge
+    index (N,)).
     """
     img = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur)
     offs = np.arange(-search, search + 1e-9, step)
