@@ -7,10 +7,19 @@ import pytest
 
 from hec_jax.geometry import SceneConfig, make_cube_scenes, rotation_error_deg
 from hec_jax.geometry import filter as kf
-from hec_jax.geometry.box_model import Pose, face_visibility, image_face_visibility, project_corners
+from hec_jax.geometry.box_model import (
+    EDGE_FACES,
+    EDGES,
+    Pose,
+    face_visibility,
+    image_face_visibility,
+    project_corners,
+)
 from hec_jax.geometry.refine import (
     _corner_terms,
     corner_residuals,
+    refine_edges,
+    refine_edges_batched,
     retract,
     so3_exp,
     so3_log,
@@ -55,6 +64,68 @@ def test_corner_jacobian_matches_autodiff():
         jnp.stack([ru, rv], -1).reshape(-1), corner_residuals(pose, pixels, 0.1, k)
     )
     np.testing.assert_allclose(analytic, auto, rtol=1e-9, atol=1e-9)
+
+
+def _edge_problem(seed: int, noise_px: float):
+    """Segments on the visible edges of a cube at an oblique pose (a camera with skew), each
+    end point moved by ``noise_px`` along the normal and 3 of them 6 px off (the Huber loss
+    active), 4 zero-weight padding rows; 8 starts 6 deg and 2 cm off the true pose."""
+    rng = np.random.default_rng(seed)
+    k = jnp.array([[520.0, 2.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    truth = Pose(so3_exp(jnp.asarray(rng.normal(size=3))), jnp.array([0.03, -0.02, 0.8]))
+    corners = np.asarray(project_corners(truth, 0.1, k))
+    vis = np.asarray(face_visibility(truth, 0.1))
+    visible = np.flatnonzero(vis[np.asarray(EDGE_FACES)].any(-1))
+    ids = rng.choice(visible, 20)
+    a, b = corners[EDGES[ids, 0]], corners[EDGES[ids, 1]]
+    s = np.sort(rng.uniform(0.05, 0.95, (20, 2)), axis=1)
+    ends = a[:, None] + s[..., None] * (b - a)[:, None]
+    d = (b - a) / np.linalg.norm(b - a, axis=-1, keepdims=True)
+    normal = np.stack([-d[:, 1], d[:, 0]], -1)
+    off = noise_px * rng.normal(size=(20, 2))
+    off[:3] += 6.0
+    ends = ends + off[..., None] * normal[:, None]
+    ids = np.concatenate([ids, [0, 5, 11, 11]]).astype(np.int32)
+    ends = np.concatenate([ends, np.zeros((4, 2, 2))])
+    weights = np.concatenate([rng.uniform(5, 40, 20), np.zeros(4)])
+    w = rng.normal(size=(8, 3))
+    w *= np.deg2rad(6.0) / np.linalg.norm(w, axis=-1, keepdims=True)
+    starts = Pose(
+        so3_exp(jnp.asarray(w)) @ truth.rotation,
+        truth.translation[None] + 0.02 * jnp.asarray(rng.normal(size=(8, 3))) / np.sqrt(3),
+    )
+    return truth, starts, jnp.asarray(ends), jnp.asarray(ids), jnp.asarray(weights), k
+
+
+@jax.jit
+def _edge_fits(starts, ends, ids, weights, k):
+    """(refine_edges_batched, refine_edges) of each start (vmapped)."""
+
+    def both(p):
+        return (
+            refine_edges_batched(p, ends, ids, weights, 0.1, k, 8, 1.0),
+            refine_edges(p, ends, ids, weights, 0.1, k, 8, 1.0),
+        )
+
+    return jax.vmap(both)(starts)
+
+
+def test_batched_edge_lm_is_the_generic_one():
+    """The edge LM for vmapped batches (lines of the 12 edges, one-hot picks) against
+    :func:`refine_edges` (:func:`levenberg_marquardt` on :func:`edge_residuals`; float64, a
+    vmapped batch of starts, three problems): the same fit to round-off; without noise and
+    outliers it finds the true pose."""
+    for seed in range(3):
+        truth, starts, ends, ids, weights, k = _edge_problem(seed, 0.3)
+        batched, generic = _edge_fits(starts, ends, ids, weights, k)
+        assert generic.rms.max() > 0.1  # the noise and the outliers are seen
+        for got, want in zip(jax.tree.leaves(batched), jax.tree.leaves(generic), strict=True):
+            np.testing.assert_allclose(got, want, rtol=1e-7, atol=1e-9 * np.abs(want).max())
+        truth, starts, ends, ids, weights, k = _edge_problem(seed, 0.0)
+        exact, _ = _edge_fits(starts, ends, ids, weights.at[:3].set(0.0), k)
+        err_m = np.abs(np.asarray(exact.pose.translation - truth.translation[None])).max()
+        assert err_m < 1e-7
+        assert np.max(rotation_error_deg(exact.pose.rotation, truth.rotation)) < 1e-5
 
 
 def test_image_visibility_matches_pose():

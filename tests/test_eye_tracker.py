@@ -276,8 +276,9 @@ def _difference_numpy(image, background, shadow_ratio=(0.25, 0.92), shadow_tol=0
 def test_colour_difference_is_the_numpy_one_bit_for_bit(seed):
     """The OpenCV colour difference with its shadow test equals the NumPy reference on a
     background with a darkened (shadow) patch, a differently coloured box, sensor noise, dark
-    pixels, windows (non-contiguous views) and gray images; shadows and the box are found."""
-    from hec_jax.geometry.detect import difference
+    pixels, windows (non-contiguous views) and gray images, with the background as an array
+    and as a ``detect.Background`` (its terms kept); shadows and the box are found."""
+    from hec_jax.geometry.detect import Background, difference
 
     rng = np.random.default_rng(seed)
     h, w = 120, 160
@@ -288,17 +289,43 @@ def test_colour_difference_is_the_numpy_one_bit_for_bit(seed):
     image[30:60, 20:70] = (background[30:60, 20:70] * rng.uniform(0.3, 0.9)).astype(np.uint8)
     image[70:100, 90:140] = rng.integers(0, 256, 3, dtype=np.uint8)  # the box
     noisy = np.clip(image + rng.normal(0, 2, image.shape), 0, 255).astype(np.uint8)
+    kept = Background(background)  # its terms computed once, windows as views of them
     for img in (image, noisy):
         for window in (np.s_[:, :], np.s_[5:90, 13:151]):
             want = _difference_numpy(img[window], background[window])
             np.testing.assert_array_equal(difference(img[window], background[window]), want)
+            np.testing.assert_array_equal(difference(img[window], kept[window]), want)
         gray_img, gray_bg = img[..., 1], background[..., 1]
         np.testing.assert_array_equal(
             difference(gray_img, gray_bg), _difference_numpy(gray_img, gray_bg)
         )
+        np.testing.assert_array_equal(
+            difference(gray_img, Background(gray_bg)), _difference_numpy(gray_img, gray_bg)
+        )
     got = difference(image, background)
     assert np.all(got[30:60, 20:70] == 0)  # the shadow patch
     assert (got[70:100, 90:140] > 0).mean() > 0.9  # the box
+
+
+def test_faint_regions_and_their_median_as_numpy_computes_them():
+    """The faint foreground's noise level (the median of a uint8 difference, from its histogram)
+    is NumPy's median, odd and even sizes; the faint blobs are the same with the background
+    as an array and as a ``detect.Background`` (its blurred copy kept)."""
+    from hec_jax.geometry.detect import Background, _median_uint8, faint_foreground_regions
+
+    rng = np.random.default_rng(3)
+    for shape in ((7,), (8,), (31, 17), (480, 640)):
+        for high in (2, 9, 256):
+            x = rng.integers(0, high, shape, dtype=np.uint8)
+            assert _median_uint8(x) == float(np.median(x))
+    background = rng.integers(40, 200, (120, 160, 3), dtype=np.uint8)
+    image = np.clip(background + rng.normal(0, 2, background.shape), 0, 255).astype(np.uint8)
+    image[40:80, 50:100] = np.clip(background[40:80, 50:100] + 12, 0, 255)  # a faint box
+    want = faint_foreground_regions(image, background)
+    assert want and want[0][0] == pytest.approx((50, 40, 100, 80), abs=3)
+    kept = Background(background)
+    assert faint_foreground_regions(image, kept) == want
+    assert faint_foreground_regions(image, kept) == want  # the kept blur, second use
 
 
 def test_snapshot_and_restore_replay_the_track_frame_for_frame(seq):

@@ -144,7 +144,12 @@ def _huber_rho(r: Array, delta: float) -> Array:
 
 
 def levenberg_marquardt(
-    residual_fn, pose: Pose, weights: Array, iters: int = 10, huber: float | None = None
+    residual_fn,
+    pose: Pose,
+    weights: Array,
+    iters: int = 10,
+    huber: float | None = None,
+    residual_jacobian_fn=None,
 ) -> Fit:
     """Minimise sum_i w_i rho(r_i(pose)) by Levenberg-Marquardt (Marquardt scaling, IRLS for Huber).
 
@@ -154,6 +159,8 @@ def levenberg_marquardt(
         weights: (m,) non-negative weights (0 removes a residual).
         iters: fixed number of iterations (a rejected step only raises the damping).
         huber: Huber threshold [px], or None for least squares.
+        residual_jacobian_fn: optional pose -> (residuals (m,), their Jacobian (m, 6) over the
+            left perturbation (dw, dt) at 0); None: forward-mode autodiff of ``residual_fn``.
     """
     dtype = pose.translation.dtype
 
@@ -171,9 +178,14 @@ def levenberg_marquardt(
 
     zero = jnp.zeros(6, dtype)
 
+    def residual_jacobian(p):
+        if residual_jacobian_fn is not None:
+            return residual_jacobian_fn(p)
+        return residual_fn(p), jax.jacfwd(lambda d: residual_fn(retract(p, d)))(zero)
+
     def step(carry, _):
         p, lam, c = carry
-        r, jac = residual_fn(p), jax.jacfwd(lambda d: residual_fn(retract(p, d)))(zero)
+        r, jac = residual_jacobian(p)
         w = irls(r)
         a = jac.T @ (w[:, None] * jac)
         g = jac.T @ (w * r)
@@ -187,8 +199,7 @@ def levenberg_marquardt(
         return (p, lam, jnp.where(ok, c_new, c)), None
 
     (p, _, c), _ = jax.lax.scan(step, (pose, jnp.asarray(1e-3, dtype), cost(pose)), None, iters)
-    r = residual_fn(p)
-    jac = jax.jacfwd(lambda d: residual_fn(retract(p, d)))(zero)
+    r, jac = residual_jacobian(p)
     w = irls(r)
     info = jac.T @ (w[:, None] * jac)
     used = jnp.maximum(jnp.sum(weights > 0), 1)
@@ -495,6 +506,22 @@ def _refine_corners_jvp(iters, primals, tangents):
     return fit, Fit(Pose(d_rot, d_t), d_c, d_rms, d_info)
 
 
+def edge_lines(pose: Pose, size, intrinsics: Array) -> tuple[Array, Array]:
+    """Lines of the 12 projected edges: unit normals (12, 2) and offsets (12,) [px], such that
+    ``normal . x - offset`` is the signed distance [px] of :func:`edge_residuals` (the cross
+    product of the edge's direction with ``x - a`` over its length, ``a`` its first corner).
+    """
+    corners = project_corners(pose, size, intrinsics)  # (8, 2)
+    a, b = corners[_EDGE_FIRST], corners[_EDGE_SECOND]
+    d = b - a
+    length = jnp.sqrt(jnp.sum(d * d, axis=-1) + 1e-12)
+    normal = jnp.stack([-d[:, 1], d[:, 0]], -1) / length[:, None]
+    return normal, jnp.sum(normal * a, axis=-1)
+
+
+_EDGE_FIRST, _EDGE_SECOND = EDGES[:, 0], EDGES[:, 1]
+
+
 def refine_edges(
     pose: Pose,
     endpoints: Array,
@@ -513,6 +540,48 @@ def refine_edges(
     return levenberg_marquardt(
         lambda p: edge_residuals(p, endpoints, edge_ids, size, intrinsics), pose, w, iters, huber
     )
+
+
+def refine_edges_batched(
+    pose: Pose,
+    endpoints: Array,
+    edge_ids: Array,
+    weights: Array,
+    size,
+    intrinsics: Array,
+    iters: int = 8,
+    huber: float = 1.0,
+) -> Fit:
+    """:func:`refine_edges` in a form for a vmapped batch of starts (the tracker's multi-start
+    searches, ``TrackConfig.batched_search``): the same steps, damping, acceptance, cost, rms
+    and information, equal to round-off (``tests/test_eye_refine.py``).
+
+    The Jacobian is taken of the 12 edges' lines (:func:`edge_lines`, forward mode over the
+    6-vector (dw, dt)), and each segment picks its line and the line's derivatives by a one-hot
+    product over the 12 edges instead of a gather: under ``vmap`` a gather runs as a loop over
+    the batch on the CPU (timings in ``docs/eye_randomized.md``; a single pose gains nothing).
+    ``edge_ids`` outside 0-11 pick no line (residual 0).
+    """
+    dtype = pose.translation.dtype
+    onehot = (edge_ids[:, None] == jnp.arange(12)[None, :]).astype(dtype)  # (M, 12)
+    zero = jnp.zeros(6, dtype)
+
+    def pick(x):  # per edge (12, ...) -> per segment (M, ...)
+        return jnp.tensordot(onehot, x, axes=1)
+
+    def distances(normal, offset):  # of the end points to their lines, per edge (12, 2, ...)
+        # and (12, ...): (M, 2, ...) [px]
+        return jnp.einsum("mpk,mk...->mp...", endpoints, pick(normal)) - pick(offset)[:, None]
+
+    def residuals(p):  # (2 M,) [px], as edge_residuals
+        return distances(*edge_lines(p, size, intrinsics)).reshape(-1)
+
+    def residuals_jacobian(p):  # (2 M,), (2 M, 6): d r / d (dw, dt) at 0
+        d_lines = jax.jacfwd(lambda d: edge_lines(retract(p, d), size, intrinsics))(zero)
+        return residuals(p), distances(*d_lines).reshape(-1, 6)
+
+    w = jnp.repeat(weights, 2)
+    return levenberg_marquardt(residuals, pose, w, iters, huber, residuals_jacobian)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -816,12 +885,14 @@ __all__ = [
     "Fit",
     "TwoFrameMotion",
     "corner_residuals",
+    "edge_lines",
     "edge_residuals",
     "face_pose_from_homography",
     "levenberg_marquardt",
     "pose_from_corners",
     "refine_corners",
     "refine_edges",
+    "refine_edges_batched",
     "retract",
     "so3_exp",
     "so3_log",
