@@ -69,14 +69,26 @@ def stretch_contrast(patch: np.ndarray) -> np.ndarray:
     edges of a box close to its background's grey pass it only stretched (its noise is stretched
     too; LSD's a-contrario test keeps the segments that noise alone would not give).
     """
-    if patch.size == 0:
+    lo, gain = _stretch(patch)
+    if gain == 1.0:
         return patch
-    lo, hi = np.percentile(patch, (1, 99))
-    if hi - lo >= STRETCH_RANGE:
-        return patch
-    gain = STRETCH_RANGE / max(hi - lo, STRETCH_RANGE / STRETCH_MAX_GAIN)
     out = np.clip((patch.astype(np.float32) - np.float32(lo)) * np.float32(gain), 0, 255)
     return out.astype(np.uint8)
+
+
+def stretch_gain(patch: np.ndarray) -> float:
+    """The gain :func:`stretch_contrast` applies to ``patch`` (1: none)."""
+    return _stretch(patch)[1]
+
+
+def _stretch(patch: np.ndarray) -> tuple[float, float]:
+    """(1st percentile, gain) of :func:`stretch_contrast` (gain 1: unchanged)."""
+    if patch.size == 0:
+        return 0.0, 1.0
+    lo, hi = np.percentile(patch, (1, 99))
+    if hi - lo >= STRETCH_RANGE:
+        return float(lo), 1.0
+    return float(lo), float(STRETCH_RANGE / max(hi - lo, STRETCH_RANGE / STRETCH_MAX_GAIN))
 
 
 def detect_segments(

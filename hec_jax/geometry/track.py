@@ -228,6 +228,11 @@ class TrackConfig:
             generic LM's. False: the generic LM, which keeps the recorded outputs of the
             default tracker and the loop's bit for bit. The tracked fit always uses the
             generic one (a single pose gains nothing).
+        stretch_points: the final refinement's edge points (:func:`detect.edge_points`) keep
+            the steps above its 6 grey levels per px divided by the gain that
+            :func:`detect.stretch_contrast` would give the box's window (``roi_margin``): a
+            box close to its background's grey gives edge points where it gives LSD segments
+            (``low_contrast``). False: 6 grey levels per px everywhere (as before).
     """
 
     max_segments: int = 48
@@ -280,6 +285,7 @@ class TrackConfig:
     local_merge: float = 0.0
     faint_candidates: bool = False
     batched_search: bool = False
+    stretch_points: bool = False
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -307,6 +313,7 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
     blob_core=0.4,
     faint_candidates=True,
     batched_search=True,
+    stretch_points=True,
 )
 
 
@@ -1477,12 +1484,21 @@ class BoxTracker:
         loc = self._locate(Pose(*prior), segp, mask, size_a, k, self._occluded)
         pose_np = jax.device_get(loc.pose)
         edges_px, usable = usable_edges(pose_np.rotation, pose_np.translation, self.size, k, cfg)
+
+        min_step = 6.0  # [grey levels / px] edge_points' default
+        ends = edges_px[usable].reshape(-1, 2)
+        if cfg.stretch_points and len(ends) and np.all(np.isfinite(ends)):
+            # as low_contrast's LSD windows: the threshold over the box window's stretch gain
+            box = detect.clip_roi(_window(ends, cfg.roi_margin), *gray.shape[::-1])
+            if box is not None:
+                min_step /= detect.stretch_gain(gray[box[1] : box[3], box[0] : box[2]])
         pts, ids = detect.edge_points(
             gray,
             edges_px,
             usable,
             spacing=cfg.edge_spacing_px,
             search=cfg.search_px,
+            min_step=min_step,
             blur=cfg.edge_blur_px,
             interpolation=cv2.INTER_CUBIC if cfg.edge_cubic else cv2.INTER_LINEAR,
         )
