@@ -303,7 +303,8 @@ UNSEEN_SCENES = TrackConfig(
 # the hand-eye loop the arm is the largest blob); the two-stage search (the fine rounds for the 8
 # best of 96 starts), no search without a moving blob, the low-contrast detection and blobs cut
 # to their compact core (chosen on the development seeds 0-159, 2026-11-26), faint blobs tried
-# beside the usual ones, the batched form of the searches' LM (2026-11-27)
+# beside the usual ones, the batched form of the searches' LM and the stretched edge-point
+# threshold (2026-11-27)
 RANDOMIZED_BENCHMARK = dataclasses.replace(
     UNSEEN_SCENES,
     min_region_fraction=0.25,
