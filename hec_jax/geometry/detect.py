@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 PIXEL_OFFSET = 0.5  # OpenCV pixel centre (integer) -> intrinsics convention (k + 1/2)
+EDGE_MIN_STEP = 6.0  # [grey levels / px] the weakest step edge_points keeps by default
 _LSD = None
 
 
@@ -365,7 +366,7 @@ def edge_points(
     search: float = 2.5,
     step: float = 0.25,
     end_margin: float = 3.0,
-    min_step: float = 6.0,
+    min_step: float = EDGE_MIN_STEP,
     blur: float = 0.8,
     interpolation: int = cv2.INTER_LINEAR,
 ) -> tuple[np.ndarray, np.ndarray]:

@@ -1065,7 +1065,7 @@ class BoxTracker:
                 f"TrackConfig.defer_search must be an integer >= 0, got {config.defer_search!r}"
             )
         self._background_rgb = None  # the given background in colour (colour_background)
-        self._background_terms = None  # it as a detect.Background (made on first use)
+        self._background_terms = None  # it as a detect.Background (its terms kept)
         self._frame_rgb = None  # the frame being processed
         if background is not None:
             background = np.asarray(background)
@@ -1073,6 +1073,7 @@ class BoxTracker:
                 raise ValueError(f"background must be uint8, got dtype {background.dtype}")
             if background.ndim == 3 and background.shape[-1] == 3:
                 self._background_rgb = background
+                self._background_terms = detect.Background(background)
                 background = detect.to_gray(background)
             if background.ndim != 2:
                 raise ValueError(f"background must be (H, W) or (H, W, 3), got {background.shape}")
@@ -1391,8 +1392,6 @@ class BoxTracker:
         background yet).
         """
         if self.config.colour_background and self._background_rgb is not None:
-            if self._background_terms is None:  # what the differences take from it, kept
-                self._background_terms = detect.Background(self._background_rgb)
             return self._frame_rgb, self._background_terms
         return gray, self.background
 
@@ -1486,7 +1485,7 @@ class BoxTracker:
         pose_np = jax.device_get(loc.pose)
         edges_px, usable = usable_edges(pose_np.rotation, pose_np.translation, self.size, k, cfg)
 
-        min_step = 6.0  # [grey levels / px] edge_points' default
+        min_step = detect.EDGE_MIN_STEP
         ends = edges_px[usable].reshape(-1, 2)
         if cfg.stretch_points and len(ends) and np.all(np.isfinite(ends)):
             # as low_contrast's LSD windows: the threshold over the box window's stretch gain
