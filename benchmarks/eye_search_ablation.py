@@ -27,21 +27,34 @@ from hec_jax.geometry.track import RANDOMIZED_BENCHMARK, track_box
 from hec_jax.progress import ProgressBar
 from hec_jax.runs import run_folder, write_json, write_npz, write_text
 
+# the options added after the search's (each row below turns them off until its own)
+LATER = {
+    "batched_search": False,
+    "stretch_points": False,
+    "max_outside_foreground": None,
+    "depth_gate": 0.1,
+}
 OFF = {
     "search_keep": 0,
     "blob_required": False,
     "low_contrast": False,
     "blob_core": 0.0,
     "faint_candidates": False,
-}
+} | LATER
 ON = {"blob_required": True, "search_keep": 8}
 VARIANTS = {  # name: fields of RANDOMIZED_BENCHMARK replaced
     "before (held-out table of 2026-11-26)": OFF,
     "+ blob_required": OFF | {"blob_required": True},
     "+ search_keep 8": OFF | ON,
     "+ low_contrast": OFF | ON | {"low_contrast": True},
-    "+ blob_core 0.4": {"faint_candidates": False},
-    "+ faint_candidates (the benchmark's, 2026-11-27)": {},
+    "+ blob_core 0.4": LATER | {"faint_candidates": False},
+    "+ faint_candidates (2026-11-27)": LATER,
+    "+ batched_search, stretch_points (2026-11-27)": {
+        "max_outside_foreground": None,
+        "depth_gate": 0.1,
+    },
+    "+ max_outside_foreground 0.2 (session 28)": {"depth_gate": 0.1},
+    "- depth_gate (the benchmark's, session 28)": {},
 }
 
 

@@ -131,3 +131,32 @@ def test_blob_core_cuts_a_thick_rod_off_the_box():
     img2[50:90, 60:100] = 200
     [(box, area)] = detect.foreground_regions(img2, bg, core=0.4)
     assert box == (60, 50, 100, 90) and 0.9 * 1600 <= area <= 1600
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_outside_foreground_tells_a_fit_inside_the_box_from_the_box(seed):
+    """A 60 px square (the box's silhouette) with a 2 px rod on a noisy background: the ring
+    outside the true outline is background (the rod opened away), the ring outside a square
+    shrunk by 30% about the same centre (a box fitted too far away) lies on the box; pixels
+    ignored (a known occluder) or outside the image are not counted."""
+    bg = _flat((240, 320), (90, 100, 110), 3.0, seed)
+    img = _flat((240, 320), (90, 100, 110), 3.0, seed + 10)
+    x0, y0 = 120 + 10 * seed, 90
+    img[y0 : y0 + 60, x0 : x0 + 60] = _flat((60, 60), (170, 60, 40), 3.0, seed + 20)
+    img[:y0, x0 + 29 : x0 + 31] = (200, 200, 200)  # the rod, from the top of the image
+    square = lambda a, b, n: np.array([[a, b], [a + n, b], [a + n, b + n], [a, b + n]], float)  # noqa: E731
+    true = square(x0, y0, 60)
+    inner = square(x0 + 9, y0 + 9, 42)  # its ring (2-8.3 px out) on the box
+    assert detect.outside_foreground_fraction(img, bg, true) < 0.05
+    assert detect.outside_foreground_fraction(img, bg, inner) > 0.9
+    ignore = np.zeros((240, 320), bool)
+    ignore[y0 - 10 : y0 + 70, x0 - 10 : x0 + 70] = True
+    assert np.isnan(detect.outside_foreground_fraction(img, bg, inner, ignore=ignore))
+    partly = ignore.copy()
+    partly[:, x0 + 30 :] = False  # the right half of the ring counted: on the box
+    assert detect.outside_foreground_fraction(img, bg, inner, ignore=partly) > 0.9
+    # a box at the image's left edge: the ring's part outside the image is not counted
+    edge = _flat((240, 320), (90, 100, 110), 3.0, seed + 30)
+    edge[y0 : y0 + 60, 0:40] = (170, 60, 40)
+    assert detect.outside_foreground_fraction(edge, bg, square(-20, y0, 60)) < 0.05
+    assert np.isnan(detect.outside_foreground_fraction(img, bg, true * np.nan))

@@ -462,6 +462,24 @@ def foreground_mask(
     return mask.astype(bool), box
 
 
+def _hull_mask(pts: np.ndarray, origin, shape) -> tuple[np.ndarray, np.ndarray]:
+    """(hull, (h, w) bool mask of it) of the points (N, 2) [px, OpenCV convention] in a window
+    whose top-left pixel is ``origin`` = (x0, y0).
+    """
+    hull = cv2.convexHull(np.round(pts - np.asarray(origin)).astype(np.int32))
+    poly = np.zeros(shape, np.uint8)
+    cv2.fillConvexPoly(poly, hull, 1)
+    return hull, poly.astype(bool)
+
+
+def _opened(mask: np.ndarray, open_px: int) -> np.ndarray:
+    """``mask`` opened by an ``open_px`` square (thin things, such as a rod, dropped)."""
+    if open_px <= 1:
+        return mask
+    kernel = np.ones((open_px, open_px), np.uint8)
+    return cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
+
+
 def foreground_fraction(
     gray: np.ndarray, background: np.ndarray, polygon_px: np.ndarray, threshold: int = 12
 ) -> float:
@@ -479,13 +497,53 @@ def foreground_fraction(
     if got is None:
         return 0.0
     mask, (x0, y0, _, _) = got
-    hull = cv2.convexHull(np.round(pts - [x0, y0]).astype(np.int32))
-    poly = np.zeros(mask.shape, np.uint8)
-    cv2.fillConvexPoly(poly, hull, 1)
-    inside = poly.astype(bool)
+    hull, inside = _hull_mask(pts, (x0, y0), mask.shape)
     # the part of the polygon outside the image counts as not confirmed
     full = max(float(cv2.contourArea(hull.astype(np.float32))), 1.0)
     return float(np.sum(mask & inside)) / max(float(inside.sum()), full)
+
+
+def outside_foreground_fraction(
+    image: np.ndarray,
+    background: np.ndarray,
+    polygon_px: np.ndarray,
+    threshold: int = 12,
+    gap_px: float = 2.0,
+    width: float = 0.15,
+    open_px: int = 3,
+    ignore: np.ndarray | None = None,
+) -> float:
+    """Fraction of a ring just outside the convex hull of ``polygon_px`` (N, 2) [px, intrinsics
+    convention] whose pixels differ from the background (:func:`foreground_mask`, opened by
+    ``open_px`` to drop thin things such as a rod). The ring holds the pixels farther than
+    ``gap_px`` from the hull (blur) and at most ``gap_px`` + ``width`` x the hull's size (the
+    larger side of its bounding box, at least 2 px) from it; pixels outside the image, and
+    where ``ignore`` ((H, W) bool, e.g. a known occluder) is True, are not counted. NaN where
+    the ring has no pixel to count.
+
+    Confirms a model fit: the background shows around a box's true silhouette, while a box
+    fitted inside it (too far away, on the edges of its texture) has the box around it.
+    """
+    pts = np.asarray(polygon_px, np.float64) - PIXEL_OFFSET
+    if not np.all(np.isfinite(pts)):
+        return float("nan")
+    lo, hi = pts.min(0), pts.max(0)
+    ring_px = max(2.0, width * float(np.max(hi - lo)))
+    pad = gap_px + ring_px + 2
+    got = foreground_mask(
+        image, background, (lo[0] - pad, lo[1] - pad, hi[0] + pad + 1, hi[1] + pad + 1), threshold
+    )
+    if got is None:
+        return float("nan")
+    mask, (x0, y0, x1, y1) = got
+    mask = _opened(mask, open_px)
+    _, inside = _hull_mask(pts, (x0, y0), mask.shape)
+    dist = cv2.distanceTransform((~inside).astype(np.uint8), cv2.DIST_L2, 3)
+    ring = (dist > gap_px) & (dist <= gap_px + ring_px)
+    if ignore is not None:
+        ring &= ~np.asarray(ignore, bool)[y0:y1, x0:x1]
+    count = int(ring.sum())
+    return float(np.sum(mask & ring)) / count if count else float("nan")
 
 
 def segments_in_mask(segments: np.ndarray, mask: np.ndarray, origin: tuple[int, int]) -> np.ndarray:
@@ -529,12 +587,7 @@ def foreground_iou(
     if got is None:
         return 0.0
     mask, (x0, y0, _, _) = got
-    if open_px > 1:
-        kernel = np.ones((open_px, open_px), np.uint8)
-        mask = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
-    hull = cv2.convexHull(np.round(pts - [x0, y0]).astype(np.int32))
-    poly = np.zeros(mask.shape, np.uint8)
-    cv2.fillConvexPoly(poly, hull, 1)
-    inside = poly.astype(bool)
+    mask = _opened(mask, open_px)
+    _, inside = _hull_mask(pts, (x0, y0), mask.shape)
     union = float(np.sum(mask | inside))
     return float(np.sum(mask & inside)) / union if union > 0 else 0.0

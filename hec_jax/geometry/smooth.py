@@ -77,6 +77,18 @@ class SmootherConfig:
             smoother had carried the centre 3 m away). None (the default, the smoother as it was
             before issue 24): one segment over all frames, the priors extrapolating to both ends.
             0.2 in ``benchmarks/eye_randomized.py`` (:data:`NO_EXTRAPOLATION`).
+        split_at_restarts: a valid frame where the causal tracker started a new filter (the
+            ``restarts`` of :func:`smooth_track`: a detection after a loss, or a fit taken along
+            its line of sight after the filter ran away) also starts a new segment, however
+            short the gap before it. The tracker restarts because its state before belongs to
+            another track (a wrong lock it lost, a filter run away in depth), and one segment
+            over both would bend the new track toward the old one (development seed 115 of
+            the randomized benchmark: a wrong lock 1 m off, lost after 2 frames, pulled the
+            next 12 smoothed centres up to 0.9 m off although their fits were within 2 cm).
+            False (the default, and :data:`NO_EXTRAPOLATION`'s): gaps alone split. Off in the
+            benchmark because over its development seeds it did more harm than good: a
+            restart on a wrong fit leaves a short segment whose smoothed velocity follows that
+            fit (docs/eye_randomized.md, session 28).
     """
 
     angular_accel_psd: float = 20.0
@@ -87,6 +99,7 @@ class SmootherConfig:
     hinge_iters: int = 10
     hinge_max_cost: float = 0.5
     max_gap_s: float | None = None
+    split_at_restarts: bool = False
 
 
 # The smoother of the randomized benchmark (``benchmarks/eye_randomized.py``): no extrapolation
@@ -294,9 +307,16 @@ PAD = 32  # sequence lengths are padded to a multiple of this (one compilation p
 
 
 def smooth_track(
-    rotations, positions, information, valid, dt: float, cfg: SmootherConfig = SmootherConfig()
+    rotations,
+    positions,
+    information,
+    valid,
+    dt: float,
+    cfg: SmootherConfig = SmootherConfig(),
+    restarts=None,
 ) -> SmoothedTrack:
-    """Smooth a tracked sequence (NumPy in and out), segment by segment (``cfg.max_gap_s``).
+    """Smooth a tracked sequence (NumPy in and out), segment by segment (``cfg.max_gap_s``,
+    ``cfg.split_at_restarts``).
 
     A segment with fewer than 4 valid frames is not smoothed: its valid frames keep their
     measurements (zero velocity and acceleration), the others hold the nearest valid frame's.
@@ -311,9 +331,19 @@ def smooth_track(
         valid: (T,) bool.
         dt: frame interval [s].
         cfg: the smoother's settings.
+        restarts: (T,) bool, the frames where the causal tracker started a new filter
+            (``TrackStep.restarted``); used with ``cfg.split_at_restarts``. None: none.
+
+    Raises:
+        ValueError: ``restarts`` not of ``valid``'s shape.
     """
     valid = np.asarray(valid, bool)
     t_n = len(valid)
+    split = cfg.split_at_restarts and restarts is not None
+    if split:
+        restarts = np.asarray(restarts, bool)
+        if restarts.shape != valid.shape:
+            raise ValueError(f"restarts {restarts.shape} does not match valid {valid.shape}")
     rotations = np.asarray(rotations, np.float64)
     positions = np.where(valid[:, None], np.asarray(positions, np.float64), 0.0)
     information = np.asarray(information, np.float64)
@@ -331,10 +361,13 @@ def smooth_track(
     idx = np.flatnonzero(valid)
     if idx.size < 4:
         return out
-    if cfg.max_gap_s is None:
+    if cfg.max_gap_s is None and not split:
         return _smooth_segment(rotations, positions, information, valid, dt, cfg)
-    gap = max(int(np.floor(cfg.max_gap_s / dt + 1e-9)), 1)
-    breaks = np.flatnonzero(np.diff(idx) > gap + 1)
+    gap = t_n if cfg.max_gap_s is None else max(int(np.floor(cfg.max_gap_s / dt + 1e-9)), 1)
+    new_segment = np.diff(idx) > gap + 1
+    if split:
+        new_segment |= restarts[idx[1:]]
+    breaks = np.flatnonzero(new_segment)
     starts = np.concatenate([[idx[0]], idx[breaks + 1]])
     ends = np.concatenate([idx[breaks], [idx[-1]]]) + 1
     longest = -1
