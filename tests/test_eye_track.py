@@ -151,6 +151,10 @@ OFF = {  # the issue-24 settings and their off values
     "blob_required": False,
     "low_contrast": False,
     "blob_core": 0.0,
+    "faint_candidates": False,
+    "batched_search": False,
+    "stretch_points": False,
+    "max_outside_foreground": None,
 }
 
 
@@ -203,7 +207,7 @@ def test_the_new_checks_are_off_by_default():
     )
     assert lab.min_region_fraction == 0 and lab.maneuver_nis == 16.3 and lab.stop_hypothesis
     assert CameraConfig(track=TrackConfig()).tracker == TrackConfig()  # a given tracker is kept
-    assert SmootherConfig().max_gap_s is None
+    assert SmootherConfig().max_gap_s is None and not SmootherConfig().split_at_restarts
     on = {name: getattr(UNSEEN_SCENES, name) for name in OFF}
     assert on == OFF | {
         "colour_background": True,
