@@ -33,6 +33,7 @@ LATER = {
     "stretch_points": False,
     "max_outside_foreground": None,
     "depth_gate": 0.1,
+    "faint_masks": False,
 }
 OFF = {
     "search_keep": 0,
@@ -52,9 +53,11 @@ VARIANTS = {  # name: fields of RANDOMIZED_BENCHMARK replaced
     "+ batched_search, stretch_points (2026-11-27)": {
         "max_outside_foreground": None,
         "depth_gate": 0.1,
+        "faint_masks": False,
     },
-    "+ max_outside_foreground 0.2 (session 28)": {"depth_gate": 0.1},
-    "- depth_gate (the benchmark's, session 28)": {},
+    "+ max_outside_foreground 0.2 (session 28)": {"depth_gate": 0.1, "faint_masks": False},
+    "- depth_gate (session 28)": {"faint_masks": False},
+    "+ faint_masks (the benchmark's, session 28)": {},
 }
 
 

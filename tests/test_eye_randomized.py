@@ -258,3 +258,26 @@ def test_outside_foreground_rejects_a_box_fitted_inside_the_cube(seed):
         ring_far = detect.outside_foreground_fraction(frame, background, far, thr)
         ring_true = detect.outside_foreground_fraction(frame, background, true, thr)
         assert ring_true < cfg.max_outside_foreground < ring_far, (t, ring_true, ring_far)
+
+
+def test_faint_masks_confirm_a_low_contrast_cube():
+    """Development seed 11 (low contrast, a 28 px cube at 1.6 m), never acquired before the faint
+    masks: the true pose's silhouette differs from the background in under half its pixels at
+    the usual threshold (so even the true pose failed ``min_foreground``), and in over half
+    with the faint foreground added (``faint_masks``, on in ``RANDOMIZED_BENCHMARK``), at
+    frames 5, 20 and 35."""
+    from hec_jax.geometry import detect
+    from hec_jax.geometry.box_model import project_corners_np
+
+    cfg = RANDOMIZED_BENCHMARK
+    assert cfg.faint_masks
+    scene = draw_scene(11)
+    assert scene.look == "low_contrast"
+    seq, background = render_random_sequence(scene, 36, FPS, 640, 480)
+    thr, faint = cfg.foreground_threshold, detect.faint_threshold(seq.frames[0], background)
+    for t in (5, 20, 35):
+        frame = seq.frames[t]
+        true = project_corners_np(seq.rotation[t], seq.position[t], scene.edge_m, seq.intrinsics)
+        usual = detect.foreground_fraction(frame, background, true, thr)
+        with_faint = detect.foreground_fraction(frame, background, true, thr, faint)
+        assert usual < cfg.min_foreground < with_faint, (t, usual, with_faint)

@@ -160,3 +160,31 @@ def test_outside_foreground_tells_a_fit_inside_the_box_from_the_box(seed):
     edge[y0 : y0 + 60, 0:40] = (170, 60, 40)
     assert detect.outside_foreground_fraction(edge, bg, square(-20, y0, 60)) < 0.05
     assert np.isnan(detect.outside_foreground_fraction(img, bg, true * np.nan))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_faint_masks_see_a_box_a_few_grey_levels_off(seed):
+    """A 40 px square 9 grey levels off the wall in one channel, sensor noise sigma 3: the usual
+    mask (3x3 blur over 12 grey levels) covers little of it, the mask with the frame's faint
+    threshold (:func:`detect.faint_threshold`, the faint search's) most of it and almost
+    nothing of the noise around; the silhouette checks follow."""
+    bg = _flat((240, 320), (120, 100, 90), 3.0, seed)
+    img = _flat((240, 320), (120, 100, 90), 3.0, seed + 100)
+    x0, y0 = 110 + 15 * seed, 90
+    img[y0 : y0 + 40, x0 : x0 + 40] = _flat((40, 40), (120, 109, 90), 3.0, seed + 200)
+    thr = detect.faint_threshold(img, bg)
+    assert 6.0 <= thr < 7.0
+    roi = (x0 - 40, y0 - 40, x0 + 80, y0 + 80)
+    usual, (wx, wy, _, _) = detect.foreground_mask(img, bg, roi)
+    faint, _ = detect.foreground_mask(img, bg, roi, faint_threshold=thr)
+    inside = np.zeros(usual.shape, bool)
+    inside[y0 - wy + 3 : y0 - wy + 37, x0 - wx + 3 : x0 - wx + 37] = True  # 3 px in: blur
+    outside = np.ones(usual.shape, bool)
+    outside[y0 - wy - 5 : y0 - wy + 45, x0 - wx - 5 : x0 - wx + 45] = False
+    assert usual[inside].mean() < 0.2 and faint[inside].mean() > 0.9
+    assert faint[outside].mean() < 0.01
+    assert np.all(faint >= usual)  # the faint foreground is added, nothing taken away
+    square = np.array([[x0, y0], [x0 + 40, y0], [x0 + 40, y0 + 40], [x0, y0 + 40]], float)
+    assert detect.foreground_fraction(img, bg, square) < 0.2
+    assert detect.foreground_fraction(img, bg, square, faint_threshold=thr) > 0.8
+    assert detect.foreground_iou(img, bg, square, faint_threshold=thr) > 0.8

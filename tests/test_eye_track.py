@@ -155,6 +155,7 @@ OFF = {  # the issue-24 settings and their off values
     "batched_search": False,
     "stretch_points": False,
     "max_outside_foreground": None,
+    "faint_masks": False,
 }
 
 

@@ -275,12 +275,33 @@ def faint_foreground_regions(
     median over the frame (most pixels are background: the median is the noise's level), at
     least ``min_threshold`` grey levels.
     """
+    diff = _faint_difference(image, background, blur_px)
+    threshold = max(min_threshold, noise_factor * _median_uint8(diff))
+    return _largest_blobs(diff > threshold, open_px, count, core)
+
+
+def _faint_difference(image: np.ndarray, background, blur_px: int) -> np.ndarray:
+    """:func:`difference` of both images blurred by a ``blur_px`` square (whole frames)."""
     k = (blur_px, blur_px)
     if not isinstance(background, Background):
         background = Background(background)
-    diff = difference(cv2.blur(image, k), background.blurred(k))
-    threshold = max(min_threshold, noise_factor * _median_uint8(diff))
-    return _largest_blobs(diff > threshold, open_px, count, core)
+    return difference(cv2.blur(image, k), background.blurred(k))
+
+
+def faint_threshold(
+    image: np.ndarray,
+    background: np.ndarray,
+    blur_px: int = 5,
+    noise_factor: float = 4.0,
+    min_threshold: float = 6.0,
+) -> float:
+    """The threshold [grey levels] :func:`faint_foreground_regions` puts on the blurred
+    difference of this frame: ``noise_factor`` x its median over the frame (the noise's level),
+    at least ``min_threshold``. A property of the camera and the scene's light: a tracker can
+    take it once (:func:`foreground_mask`'s ``faint_threshold``).
+    """
+    diff = _faint_difference(image, background, blur_px)
+    return max(min_threshold, noise_factor * _median_uint8(diff))
 
 
 def _median_uint8(x: np.ndarray) -> float:
@@ -442,13 +463,23 @@ def _inside_interval(a, u, length: float, box) -> tuple[float, float]:
 
 
 def foreground_mask(
-    gray: np.ndarray, background: np.ndarray, roi, threshold: int = 12, dilate_px: int = 0
+    gray: np.ndarray,
+    background: np.ndarray,
+    roi,
+    threshold: int = 12,
+    dilate_px: int = 0,
+    faint_threshold: float | None = None,
+    faint_blur_px: int = 5,
 ) -> tuple[np.ndarray, tuple[int, int, int, int]] | None:
     """Pixels of ``gray`` (or RGB, :func:`difference`) that differ from the background inside ``roi`` = (x0, y0, x1, y1) [px]: ((h, w) bool
     mask of the clipped window, the window), or None if the window is empty.
 
     The absolute difference is smoothed by a 3x3 box filter (sensor noise) before the threshold
-    [grey levels]; the mask is then dilated by ``dilate_px`` (a square of 2 dilate_px + 1).
+    [grey levels]; with ``faint_threshold`` [grey levels], the pixels where the difference of
+    both images blurred by a ``faint_blur_px`` square (the window's, and the whole background's
+    cut to the window) exceeds it are added (the faint foreground of
+    :func:`faint_foreground_regions`: a box close to the background's colour). The mask is then
+    dilated by ``dilate_px`` (a square of 2 dilate_px + 1).
     """
     h, w = gray.shape[:2]
     box = clip_roi(roi, w, h)
@@ -456,7 +487,10 @@ def foreground_mask(
         return None
     x0, y0, x1, y1 = box
     diff = difference(gray[y0:y1, x0:x1], background[y0:y1, x0:x1])
-    mask = (cv2.blur(diff, (3, 3)) > threshold).astype(np.uint8)
+    mask = cv2.blur(diff, (3, 3)) > threshold
+    if faint_threshold is not None:
+        mask |= faint_window(gray, background, box, faint_threshold, faint_blur_px)
+    mask = mask.astype(np.uint8)
     if dilate_px > 0:
         mask = cv2.dilate(mask, np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8))
     return mask.astype(bool), box
@@ -480,11 +514,31 @@ def _opened(mask: np.ndarray, open_px: int) -> np.ndarray:
     return cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
 
 
+def faint_window(
+    image: np.ndarray, background, box, threshold: float, blur_px: int = 5
+) -> np.ndarray:
+    """(h, w) bool: the window ``box`` = (x0, y0, x1, y1) (inside the image) of the faint
+    foreground, the difference of the window blurred by a ``blur_px`` square and the whole
+    background blurred (kept by a :class:`Background`) cut to the window, over ``threshold``.
+    """
+    x0, y0, x1, y1 = box
+    k = (blur_px, blur_px)
+    if not isinstance(background, Background):
+        background = Background(background)
+    window = cv2.blur(np.ascontiguousarray(image[y0:y1, x0:x1]), k)
+    return difference(window, background.blurred(k)[y0:y1, x0:x1]) > threshold
+
+
 def foreground_fraction(
-    gray: np.ndarray, background: np.ndarray, polygon_px: np.ndarray, threshold: int = 12
+    gray: np.ndarray,
+    background: np.ndarray,
+    polygon_px: np.ndarray,
+    threshold: int = 12,
+    faint_threshold: float | None = None,
 ) -> float:
     """Fraction of the convex hull of ``polygon_px`` (N, 2) [px, intrinsics convention] whose
-    pixels differ from the background (:func:`foreground_mask`); 0 if it lies outside the image.
+    pixels differ from the background (:func:`foreground_mask`, with its ``faint_threshold``);
+    0 if it lies outside the image.
 
     Confirms a model fit: a box fitted to the edges of a static object (clutter) lies on pixels
     that match the background.
@@ -493,7 +547,8 @@ def foreground_fraction(
     if not np.all(np.isfinite(pts)):
         return 0.0
     lo, hi = np.floor(pts.min(0)), np.ceil(pts.max(0)) + 1
-    got = foreground_mask(gray, background, (lo[0], lo[1], hi[0], hi[1]), threshold)
+    roi = (lo[0], lo[1], hi[0], hi[1])
+    got = foreground_mask(gray, background, roi, threshold, faint_threshold=faint_threshold)
     if got is None:
         return 0.0
     mask, (x0, y0, _, _) = got
@@ -568,10 +623,12 @@ def foreground_iou(
     threshold: int = 12,
     margin: float = 0.3,
     open_px: int = 3,
+    faint_threshold: float | None = None,
 ) -> float:
     """Intersection over union of the convex hull of ``polygon_px`` (N, 2) [px, intrinsics
-    convention] and the foreground (:func:`foreground_mask`, opened by ``open_px`` to drop thin
-    things such as a rod) in a window of the hull's bounding box grown by ``margin`` of its size.
+    convention] and the foreground (:func:`foreground_mask`, with its ``faint_threshold``,
+    opened by ``open_px`` to drop thin things such as a rod) in a window of the hull's bounding
+    box grown by ``margin`` of its size.
 
     Confirms a model fit found from scratch: a box fitted a few centimetres off, or to a static
     object, covers the moving blob poorly. 0 where the window leaves the image.
@@ -581,9 +638,8 @@ def foreground_iou(
         return 0.0
     lo, hi = pts.min(0), pts.max(0)
     pad = margin * float(np.max(hi - lo)) + 2
-    got = foreground_mask(
-        image, background, (lo[0] - pad, lo[1] - pad, hi[0] + pad, hi[1] + pad), threshold
-    )
+    roi = (lo[0] - pad, lo[1] - pad, hi[0] + pad, hi[1] + pad)
+    got = foreground_mask(image, background, roi, threshold, faint_threshold=faint_threshold)
     if got is None:
         return 0.0
     mask, (x0, y0, _, _) = got
