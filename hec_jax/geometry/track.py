@@ -321,11 +321,11 @@ UNSEEN_SCENES = TrackConfig(
 # best of 96 starts), no search without a moving blob, the low-contrast detection and blobs cut
 # to their compact core (chosen on the development seeds 0-159, 2026-11-26), faint blobs tried
 # beside the usual ones, the batched form of the searches' LM and the stretched edge-point
-# threshold (2026-11-27), the ring outside the silhouette mostly background (session 28: the
-# largest true pose's over 2382 development frames is 0.155), and no fits taken along the line
-# of sight (``depth_gate``, for the hand-eye loop's held cube: here 19 of its 26 fits on the
-# development seeds were more than 5 cm off; docs/eye_randomized.md, session 28), and the faint
-# foreground in the masks and silhouette checks (session 28)
+# threshold (2026-11-27); session 28 (docs/eye_randomized.md): the ring outside the silhouette
+# mostly background (the largest true pose's over 2382 development frames is 0.155), no fits
+# taken along the line of sight (``depth_gate`` is for the hand-eye loop's held cube: here 19 of
+# its 26 fits on the development seeds were more than 5 cm off) and the faint foreground in the
+# masks and silhouette checks
 RANDOMIZED_BENCHMARK = dataclasses.replace(
     UNSEEN_SCENES,
     min_region_fraction=0.25,
