@@ -34,6 +34,7 @@ LATER = {
     "max_outside_foreground": None,
     "depth_gate": 0.1,
     "faint_masks": False,
+    "lost_search_every": 1,
 }
 OFF = {
     "search_keep": 0,
@@ -54,10 +55,16 @@ VARIANTS = {  # name: fields of RANDOMIZED_BENCHMARK replaced
         "max_outside_foreground": None,
         "depth_gate": 0.1,
         "faint_masks": False,
+        "lost_search_every": 1,
     },
-    "+ max_outside_foreground 0.2 (session 28)": {"depth_gate": 0.1, "faint_masks": False},
-    "- depth_gate (session 28)": {"faint_masks": False},
-    "+ faint_masks (the benchmark's, session 28)": {},
+    "+ max_outside_foreground 0.2 (session 28)": {
+        "depth_gate": 0.1,
+        "faint_masks": False,
+        "lost_search_every": 1,
+    },
+    "- depth_gate (session 28)": {"faint_masks": False, "lost_search_every": 1},
+    "+ faint_masks (session 28)": {"lost_search_every": 1},
+    "+ lost_search_every 2 (the benchmark's, session 29)": {},
 }
 
 

@@ -69,6 +69,7 @@ def test_tracker_acquires_and_tracks_a_new_scene(rendered, tracker):
     tr = track_box(seq.frames, seq.intrinsics, scene.edge_m, FPS, cfg, smoother, background)
     assert tr.valid[0] and tr.valid.mean() >= 0.9
     assert tr.restarted[0] and not (tr.restarted & ~tr.valid).any()  # a restart is a valid fit
+    assert not (tr.search_skipped & tr.valid).any()  # a skipped search gives no fit
     err = np.linalg.norm(tr.position - seq.position, axis=-1)[tr.valid]
     assert err.max() < accuracy.GROSS_M
     dist = np.linalg.norm(seq.position, axis=-1)[tr.valid]

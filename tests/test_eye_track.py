@@ -156,6 +156,7 @@ OFF = {  # the issue-24 settings and their off values
     "stretch_points": False,
     "max_outside_foreground": None,
     "faint_masks": False,
+    "lost_search_every": 1,
 }
 
 

@@ -253,6 +253,59 @@ def test_defer_search_must_be_a_count(seq):
             BoxTracker(seq.intrinsics, EDGE, FPS, TrackConfig(defer_search=bad))
 
 
+# frame 9 has no blob to search (it breaks a run of failed searches when it is searched)
+_LOST_SEARCHED = {
+    1: list(range(18)),
+    2: [0, 1, 2, 3, 5, 7, 9, 10, 11, 12, 13, 15, 17],
+    3: [0, 1, 2, 3, 6, 9, 10, 11, 12, 13, 16],
+}
+
+
+@pytest.mark.parametrize("every", [1, 2, 3])
+def test_once_lost_a_failing_search_runs_on_every_lost_search_every_frames(seq, every):
+    # the search from scratch stubbed to fail (a blob it cannot fit): the first
+    # ``lost_search_after`` (4) frames are searched, then one in ``every``; a searched frame
+    # without a blob starts the count again. With the real search back, the cube is found on
+    # the next frame that is searched
+    bg = background_model(seq.frames)
+    cfg = TrackConfig(lost_search_every=every)
+    tracker = BoxTracker(seq.intrinsics, EDGE, FPS, cfg, background=bg)
+    searched = []
+    acquire = tracker._acquire
+
+    def failing(gray, gate):
+        searched.append(tracker.frame)
+        tracker._searched = tracker.frame != 9
+        return None
+
+    tracker._acquire = failing
+    steps = [tracker.update(f) for f in seq.frames[:18]]
+    assert searched == _LOST_SEARCHED[every]
+    assert [s.search_skipped for s in steps] == [i not in searched for i in range(18)]
+    assert not any(s.valid for s in steps)
+    tracker._acquire = acquire
+    later = [tracker.update(f) for f in seq.frames[18 : 18 + every]]
+    first = next(i for i, s in enumerate(later) if not s.search_skipped)
+    assert later[first].valid and later[first].fit_source == "search"
+    assert not any(s.valid for s in later[:first])
+    # the cube found (a first fit from scratch, no filter behind it: within 2 cm at 1.6 m)
+    assert np.linalg.norm(later[first].measured_position - seq.position[18 + first]) < 0.02
+    tracker.reset()  # a new track searches every frame again
+    tracker._acquire = failing
+    searched.clear()
+    assert not any(tracker.update(f).search_skipped for f in seq.frames[:4])
+
+
+def test_lost_search_every_must_be_a_count(seq):
+    for name, bad in (
+        ("lost_search_every", 0),
+        ("lost_search_every", 1.5),
+        ("lost_search_after", -1),
+    ):
+        with pytest.raises(ValueError, match=f"{name} must be an integer"):
+            BoxTracker(seq.intrinsics, EDGE, FPS, TrackConfig(**{name: bad}))
+
+
 def _difference_numpy(image, background, shadow_ratio=(0.25, 0.92), shadow_tol=0.08):
     """``detect.difference`` as first written, in NumPy (the reference for the OpenCV one)."""
     diff = np.abs(image.astype(np.int16) - background.astype(np.int16)).astype(np.uint8)
