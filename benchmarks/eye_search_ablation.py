@@ -35,7 +35,9 @@ LATER = {
     "depth_gate": 0.1,
     "faint_masks": False,
     "lost_search_every": 1,
+    "prior_segments": False,
 }
+LATER_ORDER = tuple(LATER)  # the order they were added in
 OFF = {
     "search_keep": 0,
     "blob_required": False,
@@ -51,20 +53,17 @@ VARIANTS = {  # name: fields of RANDOMIZED_BENCHMARK replaced
     "+ low_contrast": OFF | ON | {"low_contrast": True},
     "+ blob_core 0.4": LATER | {"faint_candidates": False},
     "+ faint_candidates (2026-11-27)": LATER,
-    "+ batched_search, stretch_points (2026-11-27)": {
-        "max_outside_foreground": None,
-        "depth_gate": 0.1,
-        "faint_masks": False,
-        "lost_search_every": 1,
+    **{
+        name: {k: v for k, v in LATER.items() if k not in on}
+        for name, on in (
+            ("+ batched_search, stretch_points (2026-11-27)", LATER_ORDER[:2]),
+            ("+ max_outside_foreground 0.2 (session 28)", LATER_ORDER[:3]),
+            ("- depth_gate (session 28)", LATER_ORDER[:4]),
+            ("+ faint_masks (session 28)", LATER_ORDER[:5]),
+            ("+ lost_search_every 2 (session 29)", LATER_ORDER[:6]),
+            ("+ prior_segments (the benchmark's, session 29)", LATER_ORDER),
+        )
     },
-    "+ max_outside_foreground 0.2 (session 28)": {
-        "depth_gate": 0.1,
-        "faint_masks": False,
-        "lost_search_every": 1,
-    },
-    "- depth_gate (session 28)": {"faint_masks": False, "lost_search_every": 1},
-    "+ faint_masks (session 28)": {"lost_search_every": 1},
-    "+ lost_search_every 2 (the benchmark's, session 29)": {},
 }
 
 

@@ -282,3 +282,69 @@ def test_faint_masks_confirm_a_low_contrast_cube():
         usual = detect.foreground_fraction(frame, background, true, thr)
         with_faint = detect.foreground_fraction(frame, background, true, thr, faint)
         assert usual < cfg.min_foreground < with_faint, (t, usual, with_faint)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_segments_near_edges_are_those_the_first_gate_can_assign(seed):
+    """``segments_near_edges`` (NumPy, host) keeps exactly the segments that
+    :func:`track.associate` (JAX) assigns to an edge at the first gate, for segments scattered
+    around and along a random pose's projected edges."""
+    import jax.numpy as jnp
+
+    from hec_jax.geometry.box_model import EDGES, Pose, project_corners_np
+    from hec_jax.geometry.track import TrackConfig, associate, segments_near_edges
+
+    rng = np.random.default_rng(seed)
+    cfg, size = TrackConfig(), 0.1
+    k = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
+    rot, t = random_rotation(rng), np.array([0.05, -0.03, 0.8])
+    edges = project_corners_np(rot, t, size, k)[EDGES]
+    e = edges[rng.integers(0, 12, 200)]
+    s = rng.uniform(-0.3, 1.3, (200, 2, 1))
+    seg = e[:, :1] + s * (e[:, 1:] - e[:, :1])  # on the edges' lines, partly beyond them
+    seg = seg + rng.normal(0, 1, (200, 1, 2)) * rng.choice([2.0, 12.0, 30.0], (200, 1, 1))
+    seg[:20] = rng.uniform(0, 640, (20, 2, 2))  # anywhere
+    kept = segments_near_edges(seg, rot, t, size, k, cfg)
+    asc = associate(
+        Pose(jnp.asarray(rot), jnp.asarray(t)),
+        jnp.asarray(seg),
+        jnp.ones(len(seg), bool),
+        size,
+        jnp.asarray(k),
+        cfg.gates_px[0],
+        np.cos(np.deg2rad(cfg.gate_deg)),
+        cfg.min_edge_px,
+    )
+    assigned = np.asarray(asc.weights) > 0
+    assert 20 < assigned.sum() < len(seg) - 20  # both kinds present
+    np.testing.assert_array_equal(kept, seg[assigned])
+
+
+def test_prior_segments_keep_a_large_wood_box_s_fit_from_its_true_pose():
+    """Development seed 43 (wood, 0.11 m at 0.7 m, about 150 px): the moving blob's window
+    holds over 100 segments, most on the grain. From the true pose the final fit slides off
+    (invalid, 7-16 cm) where the longest ``max_segments`` are kept, and stays within 2 cm where
+    they are first cut to the prior's first gate (``prior_segments``)."""
+    from hec_jax.geometry import BoxTracker, detect
+    from hec_jax.geometry.box_model import project_corners_np
+    from hec_jax.geometry.track import _window
+
+    scene = draw_scene(43)
+    seq, background = render_random_sequence(scene, 16, FPS, 640, 480)
+    for on in (True, False):
+        cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, prior_segments=on)
+        tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
+        for t in (11, 15):
+            frame, rot, pos = seq.frames[t], seq.rotation[t], seq.position[t]
+            tracker._frame_rgb = frame
+            gray = detect.to_gray(frame)
+            corners = project_corners_np(rot, pos, scene.edge_m, seq.intrinsics)
+            seg = tracker._moving_segments(gray, _window(corners, cfg.roi_margin))
+            assert len(seg) > 2 * cfg.max_segments
+            segp, mask = detect.pad_segments(tracker._near_prior(seg, (rot, pos)), cfg.max_segments)
+            fit = tracker._fit((rot, pos), segp, mask, gray, True)
+            err = np.linalg.norm(np.asarray(fit.translation) - pos)
+            if on:
+                assert fit.valid and err < 0.02
+            else:
+                assert not fit.valid and err > 0.05

@@ -157,6 +157,7 @@ OFF = {  # the issue-24 settings and their off values
     "max_outside_foreground": None,
     "faint_masks": False,
     "lost_search_every": 1,
+    "prior_segments": False,
 }
 
 
