@@ -36,6 +36,7 @@ LATER = {
     "faint_masks": False,
     "lost_search_every": 1,
     "prior_segments": False,
+    "min_foreground_tracked": None,
 }
 LATER_ORDER = tuple(LATER)  # the order they were added in
 OFF = {
@@ -61,7 +62,8 @@ VARIANTS = {  # name: fields of RANDOMIZED_BENCHMARK replaced
             ("- depth_gate (session 28)", LATER_ORDER[:4]),
             ("+ faint_masks (session 28)", LATER_ORDER[:5]),
             ("+ lost_search_every 2 (session 29)", LATER_ORDER[:6]),
-            ("+ prior_segments (the benchmark's, session 29)", LATER_ORDER),
+            ("+ prior_segments (session 29)", LATER_ORDER[:7]),
+            ("+ min_foreground_tracked 0.25 (the benchmark's, session 29)", LATER_ORDER),
         )
     },
 }

@@ -158,6 +158,7 @@ OFF = {  # the issue-24 settings and their off values
     "faint_masks": False,
     "lost_search_every": 1,
     "prior_segments": False,
+    "min_foreground_tracked": None,
 }
 
 

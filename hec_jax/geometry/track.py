@@ -267,6 +267,14 @@ class TrackConfig:
             and the longest ``max_segments`` of them were mostly its texture's, so the fit
             slid off even from the true pose (docs/eye_randomized.md, "Segments near the
             prior"). False: the longest alone (as before).
+        min_foreground_tracked: while the filter runs, the silhouette check of the frame's
+            fits (``min_foreground``) asks only this fraction: there the innovation gate (and
+            ``max_outside_foreground``) already keep a fit off static clutter, and a box close
+            to its background's colour, one face matching the wall, shows 30-45% of its
+            silhouette in the foreground even with ``faint_masks`` at its true pose, whose fit
+            the full check rejected frame after frame (docs/eye_randomized.md, "The
+            silhouette check while tracking"). A search from scratch once lost keeps
+            ``min_foreground``. None: ``min_foreground`` everywhere (as before).
     """
 
     max_segments: int = 48
@@ -325,6 +333,7 @@ class TrackConfig:
     lost_search_every: int = 1
     lost_search_after: int = 4
     prior_segments: bool = False
+    min_foreground_tracked: float | None = None
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -349,7 +358,9 @@ UNSEEN_SCENES = TrackConfig(
 # its 26 fits on the development seeds were more than 5 cm off) and the faint foreground in the
 # masks and silhouette checks; session 29: once lost, a search that keeps failing on every
 # other frame only (the per-frame budget; the first 4 frames always searched), and the tracked
-# fit's segments cut to the prior's first gate where there are too many (a large wood box)
+# fit's segments cut to the prior's first gate where there are too many (a large wood box), and a
+# quarter of the silhouette in the foreground enough while the filter runs (0.1-0.25 alike on the
+# development seeds, 0.35 less)
 RANDOMIZED_BENCHMARK = dataclasses.replace(
     UNSEEN_SCENES,
     min_region_fraction=0.25,
@@ -365,6 +376,7 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
     faint_masks=True,
     lost_search_every=2,
     prior_segments=True,
+    min_foreground_tracked=0.25,
 )
 
 
@@ -1603,7 +1615,9 @@ class BoxTracker:
             self._faint_threshold = detect.faint_threshold(image, background)
         return self._faint_threshold
 
-    def _confirmed(self, gray, rotation, translation, acquire: bool = False) -> bool:
+    def _confirmed(
+        self, gray, rotation, translation, acquire: bool = False, tracked: bool = False
+    ) -> bool:
         """The fit's projected silhouette differs from the background (``min_foreground``), the
         ring outside it does not (``max_outside_foreground``) and, for a box found from scratch
         (``acquire``), it covers the moving blob (``min_iou_acquire``); the foreground with the
@@ -1613,15 +1627,18 @@ class BoxTracker:
         cfg = self.config
         iou = acquire and cfg.min_iou_acquire > 0
         ring = cfg.max_outside_foreground is not None
-        if (cfg.min_foreground <= 0 and not iou and not ring) or self.background is None:
+        least = cfg.min_foreground
+        if tracked and cfg.min_foreground_tracked is not None:
+            least = cfg.min_foreground_tracked
+        if (least <= 0 and not iou and not ring) or self.background is None:
             return True
         corners = project_corners_np(np.asarray(rotation), translation, self.size, self.intrinsics)
         image, background = self._difference_pair(gray)
         thr = cfg.foreground_threshold
         faint = self._faint_level(image, background)
-        if cfg.min_foreground > 0:
+        if least > 0:
             fraction = detect.foreground_fraction(image, background, corners, thr, faint)
-            if fraction < cfg.min_foreground:
+            if fraction < least:
                 return False
         if ring:
             outside = detect.outside_foreground_fraction(
@@ -1780,7 +1797,8 @@ class BoxTracker:
         # centre plus half the box (a partly occluded box can fit an occluder's edges); split
         # along the line of sight for the frame's own fits once all else failed (depth_gate)
         gate = None
-        if self._started and self._misses < cfg.lost_after:
+        running = self._started and self._misses < cfg.lost_after  # the filter runs
+        if running:
             p_cov = np.asarray(self._predicted.cov)[:3, :3]
             radius = 3.0 * np.sqrt(np.max(np.linalg.eigvalsh(p_cov))) + 0.5 * self.size
             gate = Gate(np.asarray(self._predicted.mean[:3]), radius, cfg.depth_gate)
@@ -1798,7 +1816,9 @@ class BoxTracker:
                 if seen is f:
                     return passed
             t_f = np.asarray(f.translation)
-            passed = (gate is None or gate.admits(t_f)) and self._confirmed(gray, f.rotation, t_f)
+            passed = (gate is None or gate.admits(t_f)) and self._confirmed(
+                gray, f.rotation, t_f, tracked=running
+            )
             checked.append((f, passed))
             return passed
 
@@ -1851,7 +1871,6 @@ class BoxTracker:
                 fin, source = got
         # while the filter runs, the first ``defer_search`` failed frames in a row are left
         # to the prediction rather than searched from scratch
-        running = self._started and self._misses < cfg.lost_after  # as before this frame
         deferred = not gated(fin) and running and self._misses < cfg.defer_search
         # once lost, and the search from scratch kept failing, only every lost_search_every-th
         # frame is searched
