@@ -284,6 +284,23 @@ def test_faint_masks_confirm_a_low_contrast_cube():
         assert usual < cfg.min_foreground < with_faint, (t, usual, with_faint)
 
 
+def _fit_from_truth(tracker, seq, t: int, first: bool):
+    """(the tracker's final fit of frame ``t`` from its rendered true pose as the prior, the
+    frame in gray, the number of segments in the moving window), through the tracked fit's
+    own steps (its segments, ``prior_segments``, the refinement)."""
+    from hec_jax.geometry import detect
+    from hec_jax.geometry.box_model import project_corners_np
+    from hec_jax.geometry.track import _window
+
+    cfg, prior = tracker.config, (seq.rotation[t], seq.position[t])
+    tracker._frame_rgb = seq.frames[t]
+    gray = detect.to_gray(seq.frames[t])
+    corners = project_corners_np(*prior, tracker.size, seq.intrinsics)
+    seg = tracker._moving_segments(gray, _window(corners, cfg.roi_margin))
+    segp, mask = detect.pad_segments(tracker._near_prior(seg, prior), cfg.max_segments)
+    return tracker._fit(prior, segp, mask, gray, first), gray, len(seg)
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_segments_near_edges_are_those_the_first_gate_can_assign(seed):
     """``segments_near_edges`` (NumPy, host) keeps exactly the segments that
@@ -325,9 +342,7 @@ def test_prior_segments_keep_a_large_wood_box_s_fit_from_its_true_pose():
     holds over 100 segments, most on the grain. From the true pose the final fit slides off
     (invalid, 7-16 cm) where the longest ``max_segments`` are kept, and stays within 2 cm where
     they are first cut to the prior's first gate (``prior_segments``)."""
-    from hec_jax.geometry import BoxTracker, detect
-    from hec_jax.geometry.box_model import project_corners_np
-    from hec_jax.geometry.track import _window
+    from hec_jax.geometry import BoxTracker
 
     scene = draw_scene(43)
     seq, background = render_random_sequence(scene, 16, FPS, 640, 480)
@@ -335,15 +350,9 @@ def test_prior_segments_keep_a_large_wood_box_s_fit_from_its_true_pose():
         cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, prior_segments=on)
         tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
         for t in (11, 15):
-            frame, rot, pos = seq.frames[t], seq.rotation[t], seq.position[t]
-            tracker._frame_rgb = frame
-            gray = detect.to_gray(frame)
-            corners = project_corners_np(rot, pos, scene.edge_m, seq.intrinsics)
-            seg = tracker._moving_segments(gray, _window(corners, cfg.roi_margin))
-            assert len(seg) > 2 * cfg.max_segments
-            segp, mask = detect.pad_segments(tracker._near_prior(seg, (rot, pos)), cfg.max_segments)
-            fit = tracker._fit((rot, pos), segp, mask, gray, True)
-            err = np.linalg.norm(np.asarray(fit.translation) - pos)
+            fit, _, segments = _fit_from_truth(tracker, seq, t, first=True)
+            assert segments > 2 * cfg.max_segments
+            err = np.linalg.norm(np.asarray(fit.translation) - seq.position[t])
             if on:
                 assert fit.valid and err < 0.02
             else:
@@ -356,9 +365,8 @@ def test_a_low_contrast_box_s_true_fit_passes_the_tracked_silhouette_check():
     foreground, so the full silhouette check (``min_foreground`` 0.5) rejects it; while the
     filter runs the benchmark asks a quarter (``min_foreground_tracked``). The same box moved
     off the cube, onto the static background beside it, fails both."""
-    from hec_jax.geometry import BoxTracker, detect
+    from hec_jax.geometry import BoxTracker
     from hec_jax.geometry.box_model import project_corners_np
-    from hec_jax.geometry.track import _window
 
     scene = draw_scene(135)
     seq, background = render_random_sequence(scene, 25, FPS, 640, 480)
@@ -366,15 +374,9 @@ def test_a_low_contrast_box_s_true_fit_passes_the_tracked_silhouette_check():
     assert cfg.min_foreground == 0.5 and cfg.min_foreground_tracked == 0.25
     tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
     for t in (14, 24):
-        frame, rot, pos = seq.frames[t], seq.rotation[t], seq.position[t]
-        tracker._frame_rgb = frame
-        gray = detect.to_gray(frame)
-        corners = project_corners_np(rot, pos, scene.edge_m, seq.intrinsics)
-        seg = tracker._moving_segments(gray, _window(corners, cfg.roi_margin))
-        segp, mask = detect.pad_segments(seg, cfg.max_segments)
-        fit = tracker._fit((rot, pos), segp, mask, gray, False)
+        fit, gray, _ = _fit_from_truth(tracker, seq, t, first=False)
         fit_rot, fit_pos = np.asarray(fit.rotation), np.asarray(fit.translation)
-        assert fit.valid and np.linalg.norm(fit_pos - pos) < 0.005
+        assert fit.valid and np.linalg.norm(fit_pos - seq.position[t]) < 0.005
         assert not tracker._confirmed(gray, fit_rot, fit_pos)
         assert tracker._confirmed(gray, fit_rot, fit_pos, tracked=True)
         beside = fit_pos + np.array([3 * scene.edge_m, 0.0, 0.0])
