@@ -37,6 +37,7 @@ LATER = {
     "lost_search_every": 1,
     "prior_segments": False,
     "min_foreground_tracked": None,
+    "shadow_candidates": False,
 }
 LATER_ORDER = tuple(LATER)  # the order they were added in
 OFF = {
@@ -63,7 +64,8 @@ VARIANTS = {  # name: fields of RANDOMIZED_BENCHMARK replaced
             ("+ faint_masks (session 28)", LATER_ORDER[:5]),
             ("+ lost_search_every 2 (session 29)", LATER_ORDER[:6]),
             ("+ prior_segments (session 29)", LATER_ORDER[:7]),
-            ("+ min_foreground_tracked 0.25 (the benchmark's, session 29)", LATER_ORDER),
+            ("+ min_foreground_tracked 0.25 (session 29)", LATER_ORDER[:8]),
+            ("+ shadow_candidates (the benchmark's, session 29)", LATER_ORDER),
         )
     },
 }

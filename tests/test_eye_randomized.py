@@ -16,6 +16,7 @@ from hec_jax.geometry.synthetic import random_rotation
 from hec_jax.geometry.track import (
     RANDOMIZED_BENCHMARK,
     UNSEEN_SCENES,
+    _iou,
     cube_symmetries,
     track_box,
 )
@@ -117,20 +118,23 @@ def test_stretch_points_give_edge_points_on_a_box_of_the_background_s_grey(seed)
     threshold over the box window's stretch gain (``stretch_points``, on in
     ``RANDOMIZED_BENCHMARK``) a fresh tracker finds the cube within 2 cm of the rendered
     truth; without it, no valid fit."""
-    import dataclasses
-
-    from hec_jax.geometry import BoxTracker
-
     scene = draw_scene(seed)
     seq, background = render_random_sequence(scene, 6, FPS, 640, 480)
-    frame, truth = seq.frames[5], seq.position[5]
-    assert RANDOMIZED_BENCHMARK.stretch_points
+    _found_at_frame_5_only_with("stretch_points", scene, seq, background)
+
+
+def _found_at_frame_5_only_with(option: str, scene, seq, background):
+    """A fresh tracker (``RANDOMIZED_BENCHMARK``, where ``option`` is on) finds the cube at
+    frame 5 within 2 cm of the rendered truth; with ``option`` off, no valid fit."""
+    from hec_jax.geometry import BoxTracker
+
+    assert getattr(RANDOMIZED_BENCHMARK, option) is True
     for on in (True, False):
-        cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, stretch_points=on)
-        st = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background).update(frame)
+        cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, **{option: on})
+        st = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background).update(seq.frames[5])
         assert bool(st.valid) == on
         if on:
-            assert np.linalg.norm(st.measured_position - truth) < 0.02
+            assert np.linalg.norm(st.measured_position - seq.position[5]) < 0.02
 
 
 def test_opencv_and_paper_baselines_run(rendered):
@@ -383,3 +387,45 @@ def test_a_low_contrast_box_s_true_fit_passes_the_tracked_silhouette_check():
         moved = project_corners_np(fit_rot, beside, scene.edge_m, seq.intrinsics)
         assert np.all((moved > 0) & (moved < [640, 480]))  # in the image
         assert not tracker._confirmed(gray, fit_rot, beside, tracked=True)
+
+
+def test_a_box_of_the_wall_s_hue_passes_the_shadow_test_and_its_blob_is_found_without_it():
+    """Development seed 113 (plain, dark purple on a mauve wall: the cube's channels are the
+    wall's times 0.43-0.51): the colour difference's shadow test zeroes most of the cube, and
+    its blobs are the rod's alone; without the test (``shadows=False``) the largest blob is the
+    cube. With ``shadow_candidates`` (on in ``RANDOMIZED_BENCHMARK``) a fresh tracker finds the
+    cube at frame 5 within 2 cm; without it, no valid fit."""
+    from hec_jax.geometry import detect
+    from hec_jax.geometry.box_model import project_corners_np
+
+    scene = draw_scene(113)
+    seq, background = render_random_sequence(scene, 6, FPS, 640, 480)
+    frame, truth = seq.frames[5], seq.position[5]
+    corners = project_corners_np(seq.rotation[5], truth, scene.edge_m, seq.intrinsics)
+    box = (*corners.min(0), *corners.max(0))
+    core = RANDOMIZED_BENCHMARK.blob_core
+    with_test = detect.foreground_regions(frame, background, core=core)
+    without = detect.foreground_regions(frame, background, core=core, shadows=False)
+    assert all(_iou(r[0], box) < 0.3 for r in with_test)
+    assert _iou(without[0][0], box) > 0.8
+    _found_at_frame_5_only_with("shadow_candidates", scene, seq, background)
+
+
+def test_difference_without_the_shadow_test_keeps_a_darkened_background():
+    """A pixel at half the background in every channel is a shadow to the shadow test (0) and
+    its plain difference without it (``shadow_ratio=None``); other pixels are the same."""
+    from hec_jax.geometry import detect
+
+    rng = np.random.default_rng(0)
+    background = rng.integers(60, 200, (8, 8, 3)).astype(np.uint8)
+    image = background.copy()
+    image[2:5, 2:5] = background[2:5, 2:5] // 2  # the wall's hue, darker
+    image[6, 6] = [0, 255, 0]
+    with_test = detect.difference(image, background)
+    without = detect.difference(image, background, None)
+    plain = np.abs(image.astype(int) - background.astype(int)).max(-1)
+    np.testing.assert_array_equal(without, plain)
+    assert np.all(with_test[2:5, 2:5] == 0) and np.all(without[2:5, 2:5] >= 30)
+    outside = np.ones((8, 8), bool)
+    outside[2:5, 2:5] = False
+    np.testing.assert_array_equal(with_test[outside], without[outside])

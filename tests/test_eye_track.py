@@ -159,6 +159,7 @@ OFF = {  # the issue-24 settings and their off values
     "lost_search_every": 1,
     "prior_segments": False,
     "min_foreground_tracked": None,
+    "shadow_candidates": False,
 }
 
 

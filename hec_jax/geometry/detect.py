@@ -214,7 +214,8 @@ def difference(
     RGB only: a pixel that is the background darkened by the same factor in every channel (within
     ``shadow_tol``), the factor in ``shadow_ratio``, is a shadow (e.g. the box's own, on the floor
     or a wall: it moves with the box and has its outline) and gets difference 0. Background
-    channels darker than 24 grey levels are not tested (their ratios are noise).
+    channels darker than 24 grey levels are not tested (their ratios are noise). None: no shadow
+    test (a box of the background's hue, darker, passes it as a shadow).
     """
     kept = background if isinstance(background, Background) else None
     background = _background_image(background)
@@ -226,6 +227,8 @@ def difference(
     # the largest deviation from it (bit-identical to NumPy's: tests/test_eye_tracker.py)
     d0, d1, d2 = cv2.split(diff)
     out = cv2.max(cv2.max(d0, d1), d2)
+    if shadow_ratio is None:
+        return out
     floors, lit = (kept if kept is not None else Background(background)).terms()
     ratio = [
         cv2.divide(c.astype(np.float32), f) for c, f in zip(cv2.split(image), floors, strict=True)
@@ -247,15 +250,17 @@ def foreground_regions(
     open_px: int = 5,
     count: int = 3,
     core: float = 0.0,
+    shadows: bool = True,
 ) -> list[tuple[tuple[int, int, int, int], float]]:
     """Bounding boxes (x0, y0, x1, y1) and areas [px^2] of the ``count`` largest moving blobs.
 
-    ``gray`` and ``background`` are both (H, W) gray or both (H, W, 3) RGB (:func:`difference`).
+    ``gray`` and ``background`` are both (H, W) gray or both (H, W, 3) RGB (:func:`difference`;
+    ``shadows`` False: without its shadow test, so the pixels it takes for shadows count).
     Where the object was in the background image, the difference shows a blob too (a "ghost");
     the caller tries each blob. ``core`` > 0: each blob cut to its compact core
     (:func:`_compact_core`; a rod too thick for the opening is cut off the box).
     """
-    diff = difference(gray, background)
+    diff = difference(gray, background) if shadows else difference(gray, background, None)
     return _largest_blobs(diff > threshold, open_px, count, core)
 
 
