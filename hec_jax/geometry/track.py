@@ -279,9 +279,9 @@ class TrackConfig:
             blobs of the colour difference without its shadow test
             (``detect.foreground_regions(shadows=False)``) that no blob tried already overlaps
             by IoU >= 0.7: a box of the background's hue but darker passes that test as a
-            shadow, and its blobs were the rod's alone (development seed 113). A shadow's blob
-            found this way has to pass the fit's checks, whose masks keep the shadow test.
-            False: off (as before).
+            shadow, and its blobs were the rod's alone (docs/eye_randomized.md, "Dark boxes
+            taken for shadows"). A shadow's blob found this way has to pass the fit's checks,
+            whose masks keep the shadow test. False: off (as before).
     """
 
     max_segments: int = 48
