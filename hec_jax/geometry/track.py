@@ -364,12 +364,10 @@ UNSEEN_SCENES = TrackConfig(
 # mostly background (the largest true pose's over 2382 development frames is 0.155), no fits
 # taken along the line of sight (``depth_gate`` is for the hand-eye loop's held cube: here 19 of
 # its 26 fits on the development seeds were more than 5 cm off) and the faint foreground in the
-# masks and silhouette checks; session 29: once lost, a search that keeps failing on every
-# other frame only (the per-frame budget; the first 4 frames always searched), and the tracked
-# fit's segments cut to the prior's first gate where there are too many (a large wood box), and a
-# quarter of the silhouette in the foreground enough while the filter runs (0.1-0.25 alike on the
-# development seeds, 0.35 less), and the blobs without the shadow test searched too (a box of the
-# wall's hue, darker)
+# masks and silhouette checks; session 29: once lost, a search that keeps failing run on every
+# other frame (the first 4 always), the tracked fit's segments cut to the prior's first gate where
+# there are too many, a quarter of the silhouette in the foreground enough while the filter runs
+# (0.1-0.25 alike on the development seeds, 0.35 less), the blobs without the shadow test searched
 RANDOMIZED_BENCHMARK = dataclasses.replace(
     UNSEEN_SCENES,
     min_region_fraction=0.25,
