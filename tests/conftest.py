@@ -28,3 +28,17 @@ from hypothesis import settings as _hypothesis_settings  # noqa: E402
 _hypothesis_settings.register_profile("ci", derandomize=True, deadline=None)
 if os.environ.get("CI"):
     _hypothesis_settings.load_profile("ci")
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _clear_jax_caches():
+    """Drop the in-memory compiled executables after each test module (the persistent cache on
+    disk stays). Without it, one process that ran tests/test_eye_randomized.py,
+    tests/test_eye_tracker.py and then tests/test_gradients.py crashed reproducibly (a
+    segmentation fault in jaxlib 0.10.2 while compiling or caching the float32 gradient test's
+    executable); either eye file alone before it did not, nor this set with the fixture.
+    """
+    yield
+    jax.clear_caches()
