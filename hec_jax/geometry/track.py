@@ -1390,18 +1390,16 @@ class BoxTracker:
         regions = []
         if background is not None:
             regions = self._large(detect.foreground_regions(image, background, core=cfg.blob_core))
-            if cfg.low_contrast and (cfg.faint_candidates or not regions):
-                faint = detect.faint_foreground_regions(image, background, core=cfg.blob_core)
-                regions += [
-                    r for r in self._large(faint) if all(_iou(r[0], q[0]) < 0.7 for q in regions)
-                ]
-            if cfg.shadow_candidates and image.ndim == 3:
-                dark = detect.foreground_regions(
-                    image, background, core=cfg.blob_core, shadows=False
+
+            def add(more):  # blobs no blob tried already overlaps by IoU >= 0.7
+                regions.extend(
+                    [r for r in self._large(more) if all(_iou(r[0], q[0]) < 0.7 for q in regions)]
                 )
-                regions += [
-                    r for r in self._large(dark) if all(_iou(r[0], q[0]) < 0.7 for q in regions)
-                ]
+
+            if cfg.low_contrast and (cfg.faint_candidates or not regions):
+                add(detect.faint_foreground_regions(image, background, core=cfg.blob_core))
+            if cfg.shadow_candidates and image.ndim == 3:
+                add(detect.foreground_regions(image, background, core=cfg.blob_core, shadows=False))
         candidates = []
         for (x0, y0, x1, y1), area in regions:
             pad = 0.2 * max(x1 - x0, y1 - y0) + 4
