@@ -282,6 +282,14 @@ class TrackConfig:
             shadow, and its blobs were the rod's alone (docs/eye_randomized.md, "Dark boxes
             taken for shadows"). A shadow's blob found this way has to pass the fit's checks,
             whose masks keep the shadow test. False: off (as before).
+        keep_labelling: every accepted fit is relabelled to the one of the cube's 24 labellings
+            of its axes nearest the last rotation (``snap_to_symmetry``): the same box, one
+            naming of its axes over the track. Before 2026-11-27 only a re-acquisition was
+            relabelled, so a search while the filter ran could return another labelling (a
+            flip of 90, 120 or 180 deg); the constant-angular-velocity prediction then turned
+            the box by that much on every later frame, and the smoother took the flips for
+            motion (docs/eye_randomized.md, "One labelling over a track"). The reference is
+            the last accepted fit (not a rotation coasted since). False: as before.
     """
 
     max_segments: int = 48
@@ -342,6 +350,7 @@ class TrackConfig:
     prior_segments: bool = False
     min_foreground_tracked: float | None = None
     shadow_candidates: bool = False
+    keep_labelling: bool = True
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -1234,6 +1243,7 @@ class BoxTracker:
         self._rot_prev2 = None
         self._last_good = None  # (frame, centre [m]) of the last valid frame
         self._rot_anchor = None  # labelling reference for re-acquisitions
+        self._rot_fitted = None  # the last accepted fit's rotation (keep_labelling)
         self._frame = 0
         self._bg_frames: list[np.ndarray] = []
         self._bg_dirty = False
@@ -1260,6 +1270,7 @@ class BoxTracker:
         "_rot_prev2",
         "_last_good",
         "_rot_anchor",
+        "_rot_fitted",
         "_frame",
         "_bg_frames",
         "_bg_dirty",
@@ -1267,7 +1278,7 @@ class BoxTracker:
     )
     # fields added since snapshots were first recorded, and their values before they existed
     # (a snapshot without them restores as the tracker of that time ran)
-    _LATER_STATE = {"_failed_searches": 0, "_searches_skipped": 0}
+    _LATER_STATE = {"_failed_searches": 0, "_searches_skipped": 0, "_rot_fitted": None}
 
     def snapshot(self) -> dict:
         """The track between frames (filter, rotations, misses, frame count; the background
@@ -1925,9 +1936,16 @@ class BoxTracker:
             self._misses = 0
             self._failed_searches = self._searches_skipped = 0
             self._last_good = (i, np.asarray(fin.translation))
+            # one labelling of the cube's axes over the track (config.keep_labelling): the
+            # nearest to the last fit's (not to a rotation coasted since: a wrong angular
+            # velocity turns it by tens of degrees a frame)
+            rotation = np.asarray(fin.rotation)
+            if cfg.keep_labelling and self._rot_fitted is not None:
+                rotation = snap_to_symmetry(rotation, self._rot_fitted)
+            self._rot_fitted = rotation
             if tracking and gated(fin):
-                self._rot_anchor = np.asarray(fin.rotation)
-            self._rot_prev2, self._rot_prev = self._rot_prev, np.asarray(fin.rotation)
+                self._rot_anchor = rotation
+            self._rot_prev2, self._rot_prev = self._rot_prev, rotation
             wts = fin.asc_weights
             segs = np.array(fin.asc_endpoints)
             segs[wts <= 0] = np.nan
