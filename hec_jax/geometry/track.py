@@ -289,7 +289,8 @@ class TrackConfig:
             flip of 90, 120 or 180 deg); the constant-angular-velocity prediction then turned
             the box by that much on every later frame, and the smoother took the flips for
             motion (docs/eye_randomized.md, "One labelling over a track"). The reference is
-            the last accepted fit (not a rotation coasted since). False: as before.
+            the last accepted fit (not a rotation coasted since), for re-acquisitions too.
+            False: as before (re-acquisitions relabelled to the last tracked fit's rotation).
     """
 
     max_segments: int = 48
@@ -1242,8 +1243,9 @@ class BoxTracker:
         self._rot_prev = None
         self._rot_prev2 = None
         self._last_good = None  # (frame, centre [m]) of the last valid frame
-        self._rot_anchor = None  # labelling reference for re-acquisitions
-        self._rot_fitted = None  # the last accepted fit's rotation (keep_labelling)
+        # labelling reference: of re-acquisitions (the last tracked fit's rotation) and, with
+        # keep_labelling, of every fit (the last accepted fit's rotation)
+        self._rot_anchor = None
         self._frame = 0
         self._bg_frames: list[np.ndarray] = []
         self._bg_dirty = False
@@ -1270,7 +1272,6 @@ class BoxTracker:
         "_rot_prev2",
         "_last_good",
         "_rot_anchor",
-        "_rot_fitted",
         "_frame",
         "_bg_frames",
         "_bg_dirty",
@@ -1278,7 +1279,7 @@ class BoxTracker:
     )
     # fields added since snapshots were first recorded, and their values before they existed
     # (a snapshot without them restores as the tracker of that time ran)
-    _LATER_STATE = {"_failed_searches": 0, "_searches_skipped": 0, "_rot_fitted": None}
+    _LATER_STATE = {"_failed_searches": 0, "_searches_skipped": 0}
 
     def snapshot(self) -> dict:
         """The track between frames (filter, rotations, misses, frame count; the background
@@ -1940,10 +1941,9 @@ class BoxTracker:
             # nearest to the last fit's (not to a rotation coasted since: a wrong angular
             # velocity turns it by tens of degrees a frame)
             rotation = np.asarray(fin.rotation)
-            if cfg.keep_labelling and self._rot_fitted is not None:
-                rotation = snap_to_symmetry(rotation, self._rot_fitted)
-            self._rot_fitted = rotation
-            if tracking and gated(fin):
+            if cfg.keep_labelling and self._rot_anchor is not None:
+                rotation = snap_to_symmetry(rotation, self._rot_anchor)
+            if cfg.keep_labelling or (tracking and gated(fin)):
                 self._rot_anchor = rotation
             self._rot_prev2, self._rot_prev = self._rot_prev, rotation
             wts = fin.asc_weights
