@@ -19,7 +19,8 @@ Methods, on the same frames:
   ``min_foreground_tracked=0.25``, ``shadow_candidates`` and, once lost,
   ``lost_search_every=2``, without ``depth_gate``;
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
-  ``max_gap_s=0.2``; the library's defaults, which the hand-eye loop uses, have them off): its
+  ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``; the
+  library's defaults, which the hand-eye loop uses, have them off): its
   offline smoothed output and its causal one (``BoxTracker``);
 * ``opencv_pnp``: the visible face as a quadrilateral (``baselines.face_quad``) and
   ``cv2.solvePnP(IPPE_SQUARE)`` per frame, velocity by differences;

@@ -26,6 +26,20 @@ and a tilt error moves the fitted centre sideways; both are fixed by using the w
    frames), but a fixed axis ties every frame's tilt to the frames where it is well observed,
    and to the centre's circle about the axis (its plane fixes the axis' tilt).
 
+4. one fixed axis over the whole track (``SmootherConfig.hinge_whole_track``): the fixed-axis
+   model of 3. fitted once over every valid frame of the sequence, across the segments that the
+   gaps split (a hinge's axis and pivot do not change while the eye loses the object), robustly:
+   iteratively reweighted, each frame's information scaled by the Cauchy weight
+   1 / (1 + c_i / c0) of its normalised squared residual c_i (``hinge_robust_scale`` c0), so a
+   wrong fit of a few frames (a Necker-like twin, a fit 1 m off before a loss) does not pull the
+   axis. Accepted when at least ``hinge_min_inliers`` of the valid frames (and
+   ``hinge_min_frames``) are inliers (c_i < 9 c0, weight over 0.1) and their median c_i is at
+   most ``hinge_max_cost``; then every frame inside a segment takes the model's pose, and its
+   velocity and acceleration from the model, v_i = dtheta_i/dt a x (t_i - p),
+   a_i = d2theta_i/dt2 a x (t_i - p) + (dtheta_i/dt)^2 a x (a x (t_i - p)), the angle's
+   derivatives by central differences (one-sided at the ends). Frames outside every segment
+   still hold the nearest segment end's state (nothing extrapolated across a long gap).
+
 Frames without a measurement get zero information (bridged by the priors).
 """
 
@@ -89,6 +103,17 @@ class SmootherConfig:
             benchmark because over its development seeds it did more harm than good: a
             restart on a wrong fit leaves a short segment whose smoothed velocity follows that
             fit (docs/eye_randomized.md, session 28).
+        hinge_whole_track: fit the fixed-axis model once, robustly, over all valid frames of
+            the sequence (4. above) and use it, where it is accepted, for every frame inside a
+            segment (the per-segment result where not). Needs ``hinge``. False (the default,
+            the smoother as it was before); True in :data:`NO_EXTRAPOLATION`
+            (docs/eye_randomized.md, "One hinge over the whole track").
+        hinge_robust_scale: c0 of the Cauchy weights [-] (same units as ``hinge_max_cost``;
+            chosen on the benchmark's development seeds from {0.5, 1, 3}).
+        hinge_robust_passes: fits of the reweighting (each ``hinge_iters`` Gauss-Newton steps).
+        hinge_min_inliers: least share of the valid frames that must be inliers [-]: the model
+            must explain at least half of the track (0.6 and 0.75 tried, same docs section).
+        hinge_min_frames: least number of inlier frames.
     """
 
     angular_accel_psd: float = 20.0
@@ -100,18 +125,26 @@ class SmootherConfig:
     hinge_max_cost: float = 0.5
     max_gap_s: float | None = None
     split_at_restarts: bool = False
+    hinge_whole_track: bool = False
+    hinge_robust_scale: float = 1.0
+    hinge_robust_passes: int = 5
+    hinge_min_inliers: float = 0.5
+    hinge_min_frames: int = 8
 
 
 # The smoother of the randomized benchmark (``benchmarks/eye_randomized.py``): no extrapolation
-# across gaps over 0.2 s
-NO_EXTRAPOLATION = SmootherConfig(max_gap_s=0.2)
+# across gaps over 0.2 s; one robust fixed-axis fit over the whole track
+NO_EXTRAPOLATION = SmootherConfig(max_gap_s=0.2, hinge_whole_track=True)
 
 
 class SmoothedTrack(NamedTuple):
     """Attributes: rotation (T, 3, 3) R_cam_box; position, velocity, acceleration (T, 3)
     [m, m/s, m/s^2]; position_cov (T, 3, 3) [m^2]; hinge (bool, the fixed-axis model was used);
     hinge_axis (3,) its unit axis a (camera frame); hinge_cost its median normalised squared
-    residual over the measured frames (NaN where not fitted).
+    residual over the measured frames (NaN where not fitted; over the inliers for the
+    whole-track fit); hinge_outlier (T,) bool, valid frames whose own fit the accepted
+    whole-track model down-weighted as inconsistent (their state is the model's; all False
+    otherwise; None from the per-segment pass).
     """
 
     rotation: Array
@@ -122,6 +155,7 @@ class SmoothedTrack(NamedTuple):
     hinge: Array
     hinge_axis: Array
     hinge_cost: Array
+    hinge_outlier: Array | None = None
 
 
 def _split(info: Array) -> tuple[Array, Array, Array]:
@@ -278,6 +312,93 @@ def fit_hinge(
     return HingeFit(rot, pos, a, p, theta, frame_cost, jnp.nanmedian(frame_cost))
 
 
+class RobustHinge(NamedTuple):
+    """Whole-track fixed-axis fit (:func:`fit_hinge_robust`). Attributes: fit (:class:`HingeFit`,
+    its ``frame_cost`` unweighted, its ``cost`` the median over the inliers), velocity and
+    acceleration (T, 3) of the centre from the model [m/s, m/s^2], inlier (T,) bool, accepted
+    (bool).
+    """
+
+    fit: HingeFit
+    velocity: Array
+    acceleration: Array
+    inlier: Array
+    accepted: Array
+
+
+def fit_hinge_robust(
+    rotations: Array,
+    positions: Array,
+    information: Array,
+    valid: Array,
+    rot_init: Array,
+    pos_init: Array,
+    dt: float,
+    cfg: SmootherConfig,
+) -> RobustHinge:
+    """:func:`fit_hinge` reweighted against outlier frames (module docstring, 4.; pure JAX).
+
+    ``information`` (T, 6, 6) is already scaled by ``cfg.info_scale`` and zero where not
+    ``valid``. Each pass refits from the previous pass's poses with every frame's information
+    times its Cauchy weight 1 / (1 + c_i / c0); c_i is the frame's normalised squared residual
+    under the unweighted information. Acceptance: finite, at least ``hinge_min_frames`` and
+    ``hinge_min_inliers`` of the valid frames inliers (weight over 0.1), median inlier c_i at
+    most ``hinge_max_cost``. The model's velocity and acceleration use the angle's central
+    differences (one-sided at both ends of the array).
+    """
+    c0 = cfg.hinge_robust_scale
+    wv = valid.astype(rotations.dtype)
+
+    def costs(fit, weight):
+        return jnp.where(valid, fit.frame_cost / weight, jnp.nan)
+
+    def weights(cost):
+        return jnp.where(valid, 1.0 / (1.0 + jnp.nan_to_num(cost) / c0), 1.0)
+
+    def one_pass(carry, _):
+        weight, r_init, p_init = carry
+        fit = fit_hinge(
+            rotations,
+            positions,
+            information * weight[:, None, None],
+            valid,
+            r_init,
+            p_init,
+            dt,
+            cfg,
+        )
+        return (weights(costs(fit, weight)), fit.rotation, fit.position), None
+
+    weight = jnp.ones_like(wv)
+    (weight, r_init, p_init), _ = jax.lax.scan(
+        one_pass, (weight, rot_init, pos_init), None, cfg.hinge_robust_passes - 1
+    )
+    fit = fit_hinge(
+        rotations, positions, information * weight[:, None, None], valid, r_init, p_init, dt, cfg
+    )
+    cost = costs(fit, weight)
+    inlier = valid & (weights(cost) > 0.1)
+    n_in = jnp.sum(inlier)
+    median = jnp.nanmedian(jnp.where(inlier, cost, jnp.nan))
+    finite = jnp.all(jnp.isfinite(fit.rotation)) & jnp.all(jnp.isfinite(fit.position))
+    accepted = (
+        finite
+        & (n_in >= cfg.hinge_min_frames)
+        & (n_in >= cfg.hinge_min_inliers * jnp.sum(wv))
+        & (median <= cfg.hinge_max_cost)
+    )
+    omega = jnp.gradient(fit.angle, dt)  # [rad/s]
+    alpha = jnp.gradient(omega, dt)  # [rad/s^2]
+    arm = fit.position - fit.pivot[None]
+    a_x_arm = jnp.cross(fit.axis[None], arm)
+    velocity = omega[:, None] * a_x_arm
+    acceleration = alpha[:, None] * a_x_arm + (omega**2)[:, None] * jnp.cross(
+        fit.axis[None], a_x_arm
+    )
+    fit = fit._replace(frame_cost=cost, cost=median)
+    return RobustHinge(fit, velocity, acceleration, inlier, accepted)
+
+
 def _smooth(rotations, positions, information, valid, dt, cfg: SmootherConfig):
     info = jnp.where(valid[:, None, None], cfg.info_scale * information, 0.0)
     marg, ltt_inv, cond = jax.vmap(_split)(info)
@@ -358,11 +479,17 @@ def smooth_track(
         np.full(3, np.nan),
         np.float64(np.nan),
     )
+    out = out._replace(hinge_outlier=np.zeros(t_n, bool))
     idx = np.flatnonzero(valid)
     if idx.size < 4:
         return out
     if cfg.max_gap_s is None and not split:
-        return _smooth_segment(rotations, positions, information, valid, dt, cfg)
+        seg = _smooth_segment(rotations, positions, information, valid, dt, cfg)
+        out = seg._replace(hinge_outlier=np.zeros(t_n, bool))
+        inside = np.ones(t_n, bool)
+        if cfg.hinge and cfg.hinge_whole_track:
+            out = _whole_track(out, rotations, positions, information, valid, inside, dt, cfg)
+        return out
     gap = t_n if cfg.max_gap_s is None else max(int(np.floor(cfg.max_gap_s / dt + 1e-9)), 1)
     new_segment = np.diff(idx) > gap + 1
     if split:
@@ -386,13 +513,15 @@ def smooth_track(
             near = idx[(idx >= a) & (idx < b)]
             j = near[np.abs(np.arange(a, b)[:, None] - near[None, :]).argmin(1)]
             out.rotation[sl], out.position[sl] = rotations[j], positions[j]
-    # frames outside every segment hold the nearest segment end (no extrapolation)
     inside = np.zeros(t_n, bool)
     ends_all = []
     for a, b in zip(starts, ends, strict=True):
         inside[a:b] = True
         ends_all += [a, b - 1]
     ends_all = np.asarray(ends_all)
+    if cfg.hinge and cfg.hinge_whole_track:
+        out = _whole_track(out, rotations, positions, information, valid, inside, dt, cfg)
+    # frames outside every segment hold the nearest segment end (no extrapolation)
     for t in np.flatnonzero(~inside):
         e = ends_all[np.argmin(np.abs(ends_all - t))]
         out.rotation[t], out.position[t] = out.rotation[e], out.position[e]
@@ -408,19 +537,60 @@ def _smooth_segment(rotations, positions, information, valid, dt, cfg) -> Smooth
     key = (cfg, float(dt))
     if key not in _JIT:
         _JIT[key] = jax.jit(lambda r, p, i, v: _smooth(r, p, i, v, dt, cfg))
-    # pad to a multiple of PAD frames (unmeasured: only the priors act there) to share compilations
-    n = -(-t_n // PAD) * PAD
-    pad = n - t_n
+    # padded to a multiple of PAD frames to share compilations
+    out = _JIT[key](*_pad_inputs(rotations, positions, information, valid))
+    per_frame = (np.array(x)[:t_n] for x in out[:5])
+    return SmoothedTrack(*per_frame, *(np.asarray(x) for x in out[5:8]))
+
+
+def _pad_inputs(rotations, positions, information, valid):
+    """Pad (T, ...) arrays to a multiple of ``PAD`` frames (unmeasured: only the priors act)."""
+    t_n = len(valid)
+    pad = -(-t_n // PAD) * PAD - t_n
 
     def ext(x, fill):
         x = np.asarray(x, np.float64)
         return np.concatenate([x, np.repeat(fill, pad, axis=0)]) if pad else x
 
-    out = _JIT[key](
+    return (
         ext(rotations, np.asarray(rotations)[-1:]),
         ext(positions, np.zeros((1, 3))),
         ext(information, np.zeros((1, 6, 6))),
         np.concatenate([valid, np.zeros(pad, bool)]),
     )
-    per_frame = (np.array(x)[:t_n] for x in out[:5])
-    return SmoothedTrack(*per_frame, *(np.asarray(x) for x in out[5:]))
+
+
+def _whole_track(out, rotations, positions, information, valid, inside, dt, cfg):
+    """The robust whole-track fixed-axis fit (module docstring, 4.) on top of the per-segment
+    result ``out`` (its poses start the fit); where accepted, the frames ``inside`` a segment
+    take the model's state. NumPy in and out.
+    """
+    t_n = len(valid)
+    key = ("whole", cfg, float(dt))
+    if key not in _JIT:
+
+        def run(r, p, i, v, r0, p0):
+            info = jnp.where(v[:, None, None], cfg.info_scale * i, 0.0)
+            return fit_hinge_robust(r, p, info, v, r0, p0, dt, cfg)
+
+        _JIT[key] = jax.jit(run)
+    r, p, i, v = _pad_inputs(rotations, positions, information, valid)
+    r0, p0, _, _ = _pad_inputs(out.rotation, out.position, information, valid)
+    robust = _JIT[key](r, p, i, v, r0, p0)
+    if not bool(robust.accepted):
+        return out
+    fit = robust.fit
+    take = {
+        "rotation": np.asarray(fit.rotation)[:t_n],
+        "position": np.asarray(fit.position)[:t_n],
+        "velocity": np.asarray(robust.velocity)[:t_n],
+        "acceleration": np.asarray(robust.acceleration)[:t_n],
+    }
+    for name, model in take.items():
+        getattr(out, name)[inside] = model[inside]
+    return out._replace(
+        hinge=np.bool_(True),
+        hinge_axis=np.asarray(fit.axis),
+        hinge_cost=np.float64(fit.cost),
+        hinge_outlier=valid & ~np.asarray(robust.inlier)[:t_n],
+    )
