@@ -202,6 +202,27 @@ def test_whole_track_hinge_ignores_wrong_fits_and_bridges_a_long_gap():
     np.testing.assert_array_equal(robust.velocity[20:32], 0.0)
 
 
+def test_whole_track_hinge_leaves_a_segment_it_disagrees_with():
+    """A segment after a long gap whose fits are all 15 cm deeper (a twin held for 10 frames):
+    the whole-track model is accepted on the rest, but that segment keeps the per-segment
+    smoother's state bit for bit (the model's would be carried across the gap), unflagged."""
+    (_, pos, _, _), (meas_rot, meas_pos, info) = _pendulum(seed=8)
+    meas_pos = meas_pos.copy()
+    valid = np.ones(len(pos), bool)
+    valid[40:50] = False
+    meas_pos[50:] *= 1.0 + 0.15 / np.linalg.norm(meas_pos[50:], axis=-1, keepdims=True)
+    base = SmootherConfig(
+        info_scale=1.0, hinge_max_cost=12.6, max_gap_s=0.2, hinge_robust_scale=6.0
+    )
+    args = (meas_rot, meas_pos, info, valid, DT)
+    robust = smooth_track(*args, dataclasses.replace(base, hinge_whole_track=True))
+    per_segment = smooth_track(*args, base)
+    assert robust.hinge and not robust.hinge_outlier.any()
+    for name in ("rotation", "position", "velocity", "acceleration"):
+        np.testing.assert_array_equal(getattr(robust, name)[50:], getattr(per_segment, name)[50:])
+    assert np.max(np.linalg.norm(robust.position[:40] - pos[:40], axis=-1)) < 0.01
+
+
 def test_whole_track_hinge_rejects_motion_about_a_moving_axis():
     """On a rotation about a moving axis the whole-track model is rejected and the result is
     the per-segment smoother's, bit for bit."""
@@ -244,3 +265,26 @@ def test_whole_track_hinge_velocity_is_the_model_s():
     )
     a_err = np.max(np.linalg.norm(np.asarray(fit.acceleration[0]) - acc, axis=-1)[2:-2])
     assert a_err < 0.1, a_err  # |a| up to 4.5 m/s^2
+
+
+def test_smooth_track_is_float64_without_x64():
+    """With ``jax_enable_x64`` off the smoother still computes in float64: the same outputs, and
+    the fixed-axis model is not lost (in float32 its fit can return NaN)."""
+    (_, _, _, _), (meas_rot, meas_pos, info) = _pendulum(t_n=50, seed=7)
+    valid = np.ones(50, bool)
+    valid[25:35] = False
+    cfg = SmootherConfig(
+        info_scale=1.0,
+        hinge_max_cost=12.6,
+        max_gap_s=0.2,
+        hinge_whole_track=True,
+        hinge_robust_scale=6.0,
+    )
+    args = (meas_rot, meas_pos, info, valid, DT, cfg)
+    ref = smooth_track(*args)
+    with jax.enable_x64(False):
+        out = smooth_track(*args)
+        assert not jax.config.jax_enable_x64  # the caller's setting is left as it was
+    assert ref.hinge and out.hinge
+    for name in ("rotation", "position", "velocity", "acceleration"):
+        np.testing.assert_allclose(getattr(out, name), getattr(ref, name), rtol=0, atol=1e-12)

@@ -34,8 +34,10 @@ and a tilt error moves the fitted centre sideways; both are fixed by using the w
    wrong fit of a few frames (a Necker-like twin, a fit 1 m off before a loss) does not pull the
    axis. Accepted when at least ``hinge_min_inliers`` of the valid frames (and
    ``hinge_min_frames``) are inliers (c_i < 9 c0, weight over 0.1) and their median c_i is at
-   most ``hinge_max_cost``; then every frame inside a segment takes the model's pose, and its
-   velocity and acceleration from the model, v_i = dtheta_i/dt a x (t_i - p),
+   most ``hinge_max_cost``; then every frame inside a segment in which at least half the valid
+   frames are inliers takes the model's pose (a segment the model disagrees with keeps its own
+   result: the model's state there would be carried across a gap from the other segments), and
+   its velocity and acceleration from the model, v_i = dtheta_i/dt a x (t_i - p),
    a_i = d2theta_i/dt2 a x (t_i - p) + (dtheta_i/dt)^2 a x (a x (t_i - p)), the angle's
    derivatives by central differences (one-sided at the ends). Frames outside every segment
    still hold the nearest segment end's state (nothing extrapolated across a long gap).
@@ -105,7 +107,7 @@ class SmootherConfig:
             fit (docs/eye_randomized.md, session 28).
         hinge_whole_track: fit the fixed-axis model once, robustly, over all valid frames of
             the sequence (4. above) and use it, where it is accepted, for every frame inside a
-            segment (the per-segment result where not). Needs ``hinge``. False (the default,
+            segment it agrees with (the per-segment result elsewhere). Needs ``hinge``. False (the default,
             the smoother as it was before); True in :data:`NO_EXTRAPOLATION`
             (docs/eye_randomized.md, "One hinge over the whole track").
         hinge_robust_scale: c0 of the Cauchy weights [-] (same units as ``hinge_max_cost``;
@@ -443,7 +445,8 @@ def smooth_track(
     measurements (zero velocity and acceleration), the others hold the nearest valid frame's.
     With fewer than 4 valid frames in all, the inputs are returned unchanged (positions zeroed
     where not valid), with zero velocity and acceleration.
-    ``hinge``, ``hinge_axis`` and ``hinge_cost`` are those of the longest smoothed segment.
+    ``hinge``, ``hinge_axis`` and ``hinge_cost`` are those of the longest smoothed segment, or
+    of the whole-track fit where ``cfg.hinge_whole_track`` and it is accepted.
 
     Args:
         rotations: (T, 3, 3) per-frame R_cam_box (a guess where not valid, e.g. coasted).
@@ -455,9 +458,26 @@ def smooth_track(
         restarts: (T,) bool, the frames where the causal tracker started a new filter
             (``TrackStep.restarted``); used with ``cfg.split_at_restarts``. None: none.
 
+    Computed in float64 whatever ``jax_enable_x64`` says (``jax.enable_x64`` around the jitted
+    fits): in float32 the fixed-axis fit returns NaN on many sequences and is silently dropped.
+
     Raises:
         ValueError: ``restarts`` not of ``valid``'s shape.
     """
+    with jax.enable_x64(True):
+        return _smooth_track(rotations, positions, information, valid, dt, cfg, restarts)
+
+
+def _smooth_track(
+    rotations,
+    positions,
+    information,
+    valid,
+    dt: float,
+    cfg: SmootherConfig = SmootherConfig(),
+    restarts=None,
+) -> SmoothedTrack:
+    """:func:`smooth_track` under float64."""
     valid = np.asarray(valid, bool)
     t_n = len(valid)
     split = cfg.split_at_restarts and restarts is not None
@@ -486,9 +506,8 @@ def smooth_track(
     if cfg.max_gap_s is None and not split:
         seg = _smooth_segment(rotations, positions, information, valid, dt, cfg)
         out = seg._replace(hinge_outlier=np.zeros(t_n, bool))
-        inside = np.ones(t_n, bool)
         if cfg.hinge and cfg.hinge_whole_track:
-            out = _whole_track(out, rotations, positions, information, valid, inside, dt, cfg)
+            out = _whole_track(out, rotations, positions, information, valid, [(0, t_n)], dt, cfg)
         return out
     gap = t_n if cfg.max_gap_s is None else max(int(np.floor(cfg.max_gap_s / dt + 1e-9)), 1)
     new_segment = np.diff(idx) > gap + 1
@@ -520,7 +539,8 @@ def smooth_track(
         ends_all += [a, b - 1]
     ends_all = np.asarray(ends_all)
     if cfg.hinge and cfg.hinge_whole_track:
-        out = _whole_track(out, rotations, positions, information, valid, inside, dt, cfg)
+        segments = list(zip(starts, ends, strict=True))
+        out = _whole_track(out, rotations, positions, information, valid, segments, dt, cfg)
     # frames outside every segment hold the nearest segment end (no extrapolation)
     for t in np.flatnonzero(~inside):
         e = ends_all[np.argmin(np.abs(ends_all - t))]
@@ -560,10 +580,12 @@ def _pad_inputs(rotations, positions, information, valid):
     )
 
 
-def _whole_track(out, rotations, positions, information, valid, inside, dt, cfg):
+def _whole_track(out, rotations, positions, information, valid, segments, dt, cfg):
     """The robust whole-track fixed-axis fit (module docstring, 4.) on top of the per-segment
-    result ``out`` (its poses start the fit); where accepted, the frames ``inside`` a segment
-    take the model's state. NumPy in and out.
+    result ``out`` (its poses start the fit). Where accepted, each segment [a, b) of
+    ``segments`` in which at least half the valid frames are inliers takes the model's state; a
+    segment the model disagrees with keeps its own (the model's state there would be carried
+    across the gap from other segments). NumPy in and out.
     """
     t_n = len(valid)
     key = ("whole", cfg, float(dt))
@@ -586,11 +608,15 @@ def _whole_track(out, rotations, positions, information, valid, inside, dt, cfg)
         "velocity": np.asarray(robust.velocity)[:t_n],
         "acceleration": np.asarray(robust.acceleration)[:t_n],
     }
+    inlier = np.asarray(robust.inlier)[:t_n]
+    use = np.zeros(t_n, bool)
+    for a, b in segments:
+        use[a:b] = 2 * np.sum(inlier[a:b]) >= np.sum(valid[a:b])
     for name, model in take.items():
-        getattr(out, name)[inside] = model[inside]
+        getattr(out, name)[use] = model[use]
     return out._replace(
         hinge=np.bool_(True),
         hinge_axis=np.asarray(fit.axis),
         hinge_cost=np.float64(fit.cost),
-        hinge_outlier=valid & ~np.asarray(robust.inlier)[:t_n],
+        hinge_outlier=valid & ~inlier & use,
     )
