@@ -107,9 +107,10 @@ class SmootherConfig:
             fit (docs/eye_randomized.md, session 28).
         hinge_whole_track: fit the fixed-axis model once, robustly, over all valid frames of
             the sequence (4. above) and use it, where it is accepted, for every frame inside a
-            segment it agrees with (the per-segment result elsewhere). Needs ``hinge``. False (the default,
-            the smoother as it was before); True in :data:`NO_EXTRAPOLATION`
-            (docs/eye_randomized.md, "One hinge over the whole track").
+            segment it agrees with (the per-segment result elsewhere; ``position_cov`` stays
+            the per-segment one). Needs ``hinge``. False (the default, the smoother as it was
+            before); True in :data:`NO_EXTRAPOLATION` (docs/eye_randomized.md, "One hinge
+            over the whole track").
         hinge_robust_scale: c0 of the Cauchy weights [-] (same units as ``hinge_max_cost``;
             chosen on the benchmark's development seeds from {0.5, 1, 3}).
         hinge_robust_passes: fits of the reweighting (each ``hinge_iters`` Gauss-Newton steps).
@@ -498,8 +499,8 @@ def _smooth_track(
         np.bool_(False),
         np.full(3, np.nan),
         np.float64(np.nan),
+        np.zeros(t_n, bool),
     )
-    out = out._replace(hinge_outlier=np.zeros(t_n, bool))
     idx = np.flatnonzero(valid)
     if idx.size < 4:
         return out
@@ -597,7 +598,7 @@ def _whole_track(out, rotations, positions, information, valid, segments, dt, cf
 
         _JIT[key] = jax.jit(run)
     r, p, i, v = _pad_inputs(rotations, positions, information, valid)
-    r0, p0, _, _ = _pad_inputs(out.rotation, out.position, information, valid)
+    r0, p0, _, _ = _pad_inputs(out.rotation, out.position, information, valid)  # the start
     robust = _JIT[key](r, p, i, v, r0, p0)
     if not bool(robust.accepted):
         return out
