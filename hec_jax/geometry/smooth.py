@@ -37,10 +37,11 @@ and a tilt error moves the fitted centre sideways; both are fixed by using the w
    most ``hinge_max_cost``; then every frame inside a segment in which at least half the valid
    frames are inliers takes the model's pose (a segment the model disagrees with keeps its own
    result: the model's state there would be carried across a gap from the other segments), and
-   its velocity and acceleration from the model, v_i = dtheta_i/dt a x (t_i - p),
-   a_i = d2theta_i/dt2 a x (t_i - p) + (dtheta_i/dt)^2 a x (a x (t_i - p)), the angle's
-   derivatives by central differences (one-sided at the ends). Frames outside every segment
-   still hold the nearest segment end's state (nothing extrapolated across a long gap).
+   its velocity from the model, v_i = dtheta_i/dt a x (t_i - p), the angle's derivative by
+   central differences (one-sided at the ends). The acceleration stays the per-segment
+   smoother's: the angle's second difference under the white-angular-acceleration prior is
+   noisy (docs/eye_randomized.md, "One hinge over the whole track"). Frames outside every
+   segment still hold the nearest segment end's state (nothing extrapolated across a long gap).
 
 Frames without a measurement get zero information (bridged by the priors).
 """
@@ -107,8 +108,8 @@ class SmootherConfig:
             fit (docs/eye_randomized.md, session 28).
         hinge_whole_track: fit the fixed-axis model once, robustly, over all valid frames of
             the sequence (4. above) and use it, where it is accepted, for every frame inside a
-            segment it agrees with (the per-segment result elsewhere; ``position_cov`` stays
-            the per-segment one). Needs ``hinge``. False (the default, the smoother as it was
+            segment it agrees with (the per-segment result elsewhere; ``acceleration`` and
+            ``position_cov`` stay the per-segment ones). Needs ``hinge``. False (the default, the smoother as it was
             before); True in :data:`NO_EXTRAPOLATION` (docs/eye_randomized.md, "One hinge
             over the whole track").
         hinge_robust_scale: c0 of the Cauchy weights [-] (same units as ``hinge_max_cost``;
@@ -586,7 +587,8 @@ def _whole_track(out, rotations, positions, information, valid, segments, dt, cf
     result ``out`` (its poses start the fit). Where accepted, each segment [a, b) of
     ``segments`` in which at least half the valid frames are inliers takes the model's state; a
     segment the model disagrees with keeps its own (the model's state there would be carried
-    across the gap from other segments). NumPy in and out.
+    across the gap from other segments); the acceleration stays the per-segment one. NumPy in
+    and out.
     """
     t_n = len(valid)
     key = ("whole", cfg, float(dt))
@@ -607,7 +609,6 @@ def _whole_track(out, rotations, positions, information, valid, segments, dt, cf
         "rotation": np.asarray(fit.rotation)[:t_n],
         "position": np.asarray(fit.position)[:t_n],
         "velocity": np.asarray(robust.velocity)[:t_n],
-        "acceleration": np.asarray(robust.acceleration)[:t_n],
     }
     inlier = np.asarray(robust.inlier)[:t_n]
     use = np.zeros(t_n, bool)
