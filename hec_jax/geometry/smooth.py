@@ -359,27 +359,20 @@ def fit_hinge_robust(
     def weights(cost):
         return jnp.where(valid, 1.0 / (1.0 + jnp.nan_to_num(cost) / c0), 1.0)
 
+    def refit(weight, r_init, p_init):
+        info = information * weight[:, None, None]
+        return fit_hinge(rotations, positions, info, valid, r_init, p_init, dt, cfg)
+
     def one_pass(carry, _):
         weight, r_init, p_init = carry
-        fit = fit_hinge(
-            rotations,
-            positions,
-            information * weight[:, None, None],
-            valid,
-            r_init,
-            p_init,
-            dt,
-            cfg,
-        )
+        fit = refit(weight, r_init, p_init)
         return (weights(costs(fit, weight)), fit.rotation, fit.position), None
 
     weight = jnp.ones_like(wv)
     (weight, r_init, p_init), _ = jax.lax.scan(
         one_pass, (weight, rot_init, pos_init), None, cfg.hinge_robust_passes - 1
     )
-    fit = fit_hinge(
-        rotations, positions, information * weight[:, None, None], valid, r_init, p_init, dt, cfg
-    )
+    fit = refit(weight, r_init, p_init)
     cost = costs(fit, weight)
     inlier = valid & (weights(cost) > 0.1)
     n_in = jnp.sum(inlier)
