@@ -160,6 +160,8 @@ OFF = {  # the issue-24 settings and their off values
     "prior_segments": False,
     "min_foreground_tracked": None,
     "shadow_candidates": False,
+    "faint_min_threshold": 6.0,
+    "faint_segment_min_threshold": None,
 }
 
 
