@@ -162,6 +162,7 @@ OFF = {  # the issue-24 settings and their off values
     "shadow_candidates": False,
     "faint_min_threshold": 6.0,
     "faint_segment_min_threshold": None,
+    "shadow_faces": None,
 }
 
 

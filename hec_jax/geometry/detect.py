@@ -202,10 +202,13 @@ def _background_image(background) -> np.ndarray:
     return background.image if isinstance(background, Background) else background
 
 
+_SHADOW_RATIO = (0.25, 0.92)  # difference's default shadow_ratio
+
+
 def difference(
     image: np.ndarray,
     background: np.ndarray | Background,
-    shadow_ratio=(0.25, 0.92),
+    shadow_ratio=_SHADOW_RATIO,
     shadow_tol: float = 0.08,
 ) -> np.ndarray:
     """(H, W) uint8 absolute difference of two gray images, or the largest over the channels of
@@ -475,6 +478,7 @@ def foreground_mask(
     dilate_px: int = 0,
     faint_threshold: float | None = None,
     faint_blur_px: int = 5,
+    shadows: bool = True,
 ) -> tuple[np.ndarray, tuple[int, int, int, int]] | None:
     """Pixels of ``gray`` (or RGB, :func:`difference`) that differ from the background inside ``roi`` = (x0, y0, x1, y1) [px]: ((h, w) bool
     mask of the clipped window, the window), or None if the window is empty.
@@ -484,17 +488,19 @@ def foreground_mask(
     both images blurred by a ``faint_blur_px`` square (the window's, and the whole background's
     cut to the window) exceeds it are added (the faint foreground of
     :func:`faint_foreground_regions`: a box close to the background's colour). The mask is then
-    dilated by ``dilate_px`` (a square of 2 dilate_px + 1).
+    dilated by ``dilate_px`` (a square of 2 dilate_px + 1). ``shadows`` False: both differences
+    without :func:`difference`'s shadow test (the pixels it takes for shadows count).
     """
     h, w = gray.shape[:2]
     box = clip_roi(roi, w, h)
     if box is None:
         return None
     x0, y0, x1, y1 = box
-    diff = difference(gray[y0:y1, x0:x1], background[y0:y1, x0:x1])
+    ratio = _SHADOW_RATIO if shadows else None
+    diff = difference(gray[y0:y1, x0:x1], background[y0:y1, x0:x1], ratio)
     mask = cv2.blur(diff, (3, 3)) > threshold
     if faint_threshold is not None:
-        mask |= faint_window(gray, background, box, faint_threshold, faint_blur_px)
+        mask |= faint_window(gray, background, box, faint_threshold, faint_blur_px, shadows)
     mask = mask.astype(np.uint8)
     if dilate_px > 0:
         mask = cv2.dilate(mask, np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8))
@@ -520,18 +526,20 @@ def _opened(mask: np.ndarray, open_px: int) -> np.ndarray:
 
 
 def faint_window(
-    image: np.ndarray, background, box, threshold: float, blur_px: int = 5
+    image: np.ndarray, background, box, threshold: float, blur_px: int = 5, shadows: bool = True
 ) -> np.ndarray:
     """(h, w) bool: the window ``box`` = (x0, y0, x1, y1) (inside the image) of the faint
     foreground, the difference of the window blurred by a ``blur_px`` square and the whole
-    background blurred (kept by a :class:`Background`) cut to the window, over ``threshold``.
+    background blurred (kept by a :class:`Background`) cut to the window, over ``threshold``
+    (``shadows`` False: without :func:`difference`'s shadow test).
     """
     x0, y0, x1, y1 = box
     k = (blur_px, blur_px)
     if not isinstance(background, Background):
         background = Background(background)
     window = cv2.blur(np.ascontiguousarray(image[y0:y1, x0:x1]), k)
-    return difference(window, background.blurred(k)[y0:y1, x0:x1]) > threshold
+    ratio = _SHADOW_RATIO if shadows else None
+    return difference(window, background.blurred(k)[y0:y1, x0:x1], ratio) > threshold
 
 
 def foreground_fraction(
@@ -540,10 +548,11 @@ def foreground_fraction(
     polygon_px: np.ndarray,
     threshold: int = 12,
     faint_threshold: float | None = None,
+    shadows: bool = True,
 ) -> float:
     """Fraction of the convex hull of ``polygon_px`` (N, 2) [px, intrinsics convention] whose
-    pixels differ from the background (:func:`foreground_mask`, with its ``faint_threshold``);
-    0 if it lies outside the image.
+    pixels differ from the background (:func:`foreground_mask`, with its ``faint_threshold`` and
+    ``shadows``); 0 if it lies outside the image.
 
     Confirms a model fit: a box fitted to the edges of a static object (clutter) lies on pixels
     that match the background.
@@ -553,7 +562,9 @@ def foreground_fraction(
         return 0.0
     lo, hi = np.floor(pts.min(0)), np.ceil(pts.max(0)) + 1
     roi = (lo[0], lo[1], hi[0], hi[1])
-    got = foreground_mask(gray, background, roi, threshold, faint_threshold=faint_threshold)
+    got = foreground_mask(
+        gray, background, roi, threshold, faint_threshold=faint_threshold, shadows=shadows
+    )
     if got is None:
         return 0.0
     mask, (x0, y0, _, _) = got
@@ -629,10 +640,11 @@ def foreground_iou(
     margin: float = 0.3,
     open_px: int = 3,
     faint_threshold: float | None = None,
+    shadows: bool = True,
 ) -> float:
     """Intersection over union of the convex hull of ``polygon_px`` (N, 2) [px, intrinsics
-    convention] and the foreground (:func:`foreground_mask`, with its ``faint_threshold``,
-    opened by ``open_px`` to drop thin things such as a rod) in a window of the hull's bounding
+    convention] and the foreground (:func:`foreground_mask`, with its ``faint_threshold`` and
+    ``shadows``, opened by ``open_px`` to drop thin things such as a rod) in a window of the hull's bounding
     box grown by ``margin`` of its size.
 
     Confirms a model fit found from scratch: a box fitted a few centimetres off, or to a static
@@ -644,7 +656,9 @@ def foreground_iou(
     lo, hi = pts.min(0), pts.max(0)
     pad = margin * float(np.max(hi - lo)) + 2
     roi = (lo[0] - pad, lo[1] - pad, hi[0] + pad, hi[1] + pad)
-    got = foreground_mask(image, background, roi, threshold, faint_threshold=faint_threshold)
+    got = foreground_mask(
+        image, background, roi, threshold, faint_threshold=faint_threshold, shadows=shadows
+    )
     if got is None:
         return 0.0
     mask, (x0, y0, _, _) = got
