@@ -16,8 +16,9 @@ Methods, on the same frames:
   ``min_region_fraction=0.25``, the two-stage search ``search_keep=8``, ``blob_required``,
   ``low_contrast``, ``blob_core=0.4``, ``faint_candidates``, ``batched_search``,
   ``stretch_points``, ``max_outside_foreground=0.2``, ``faint_masks``, ``prior_segments``,
-  ``min_foreground_tracked=0.25``, ``shadow_candidates`` and, once lost,
-  ``lost_search_every=2``, without ``depth_gate``;
+  ``min_foreground_tracked=0.25``, ``shadow_candidates``, ``faint_min_threshold=3`` (6 for the
+  segments' mask), ``shadow_faces=0.25`` and, once lost, ``lost_search_every=2``, without
+  ``depth_gate``;
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
   ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``; the
   library's defaults, which the hand-eye loop uses, have them off): its

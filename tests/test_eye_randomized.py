@@ -365,24 +365,30 @@ def test_prior_segments_keep_a_large_wood_box_s_fit_from_its_true_pose():
 
 def test_a_low_contrast_box_s_true_fit_passes_the_tracked_silhouette_check():
     """Development seed 135 (low contrast): at frames 14 and 24 the fit from the true pose is
-    within 5 mm, but under half its silhouette differs from the background even with the faint
-    foreground, so the full silhouette check (``min_foreground`` 0.5) rejects it; while the
-    filter runs the benchmark asks a quarter (``min_foreground_tracked``). The same box moved
-    off the cube, onto the static background beside it, fails both."""
+    within 5 mm, but with session 29's faint masks (the faint floor at 6 grey levels, no
+    ``shadow_faces``) under half its silhouette differs from the background, so the full
+    silhouette check (``min_foreground`` 0.5) rejects it; while the filter runs the benchmark
+    asks a quarter (``min_foreground_tracked``). The same box moved off the cube, onto the
+    static background beside it, fails both. With session 32's preset (floor 3,
+    ``shadow_faces``) the true fits pass the full check too."""
     from hec_jax.geometry import BoxTracker
     from hec_jax.geometry.box_model import project_corners_np
 
     scene = draw_scene(135)
     seq, background = render_random_sequence(scene, 25, FPS, 640, 480)
-    cfg = RANDOMIZED_BENCHMARK
+    preset = RANDOMIZED_BENCHMARK
+    cfg = dataclasses.replace(preset, faint_min_threshold=6.0, shadow_faces=None)
     assert cfg.min_foreground == 0.5 and cfg.min_foreground_tracked == 0.25
     tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
+    now = BoxTracker(seq.intrinsics, scene.edge_m, FPS, preset, background)
     for t in (14, 24):
         fit, gray, _ = _fit_from_truth(tracker, seq, t, first=False)
         fit_rot, fit_pos = np.asarray(fit.rotation), np.asarray(fit.translation)
         assert fit.valid and np.linalg.norm(fit_pos - seq.position[t]) < 0.005
         assert not tracker._confirmed(gray, fit_rot, fit_pos)
         assert tracker._confirmed(gray, fit_rot, fit_pos, tracked=True)
+        now._frame_rgb = tracker._frame_rgb  # the frame _fit_from_truth gave the first tracker
+        assert now._confirmed(gray, fit_rot, fit_pos)
         beside = fit_pos + np.array([3 * scene.edge_m, 0.0, 0.0])
         moved = project_corners_np(fit_rot, beside, scene.edge_m, seq.intrinsics)
         assert np.all((moved > 0) & (moved < [640, 480]))  # in the image
@@ -411,18 +417,18 @@ def test_a_box_of_the_wall_s_hue_passes_the_shadow_test_and_its_blob_is_found_wi
     _found_at_frame_5_only_with("shadow_candidates", scene, seq, background)
 
 
-@pytest.mark.parametrize("seed", [48, 53])
-def test_a_faint_cube_under_six_grey_levels_is_found_with_the_lower_floor(seed):
-    """Development seeds 48 and 53 (low contrast; not acquired in time, or never, with the faint
-    threshold's floor at 6 grey levels): the cube differs from the wall by 4-6 grey levels in the
-    5x5-blurred colour difference, the sensor noise there by 1-2. At frame 5 no faint blob at
+def test_a_faint_cube_under_six_grey_levels_is_found_with_the_lower_floor():
+    """Development seed 53 (low contrast; never acquired with the faint threshold's floor at 6
+    grey levels; seed 48, not acquired in time there, behaves alike): the cube differs from the
+    wall by 4-6 grey levels in the 5x5-blurred colour difference, the sensor noise there by
+    1-2. At frame 5 no faint blob at
     the floor 6 matches the cube's true box (IoU under 0.5); at ``RANDOMIZED_BENCHMARK``'s floor
     (3) the largest does (over 0.7). A fresh tracker over frames 0-5 has a valid fit within 2 cm
     of the rendered truth on every frame with that floor, and none with the floor at 6."""
     from hec_jax.geometry import BoxTracker, detect
     from hec_jax.geometry.box_model import project_corners_np
 
-    scene = draw_scene(seed)
+    scene = draw_scene(53)
     seq, background = render_random_sequence(scene, 6, FPS, 640, 480)
     corners = project_corners_np(seq.rotation[5], seq.position[5], scene.edge_m, seq.intrinsics)
     box = (*corners.min(0), *corners.max(0))
