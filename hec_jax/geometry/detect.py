@@ -644,8 +644,8 @@ def foreground_iou(
 ) -> float:
     """Intersection over union of the convex hull of ``polygon_px`` (N, 2) [px, intrinsics
     convention] and the foreground (:func:`foreground_mask`, with its ``faint_threshold`` and
-    ``shadows``, opened by ``open_px`` to drop thin things such as a rod) in a window of the hull's bounding
-    box grown by ``margin`` of its size.
+    ``shadows``, opened by ``open_px`` to drop thin things such as a rod) in a window of the
+    hull's bounding box grown by ``margin`` of its size.
 
     Confirms a model fit found from scratch: a box fitted a few centimetres off, or to a static
     object, covers the moving blob poorly. 0 where the window leaves the image.

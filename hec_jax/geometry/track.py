@@ -1280,9 +1280,8 @@ class BoxTracker:
         self._frame = 0
         self._bg_frames: list[np.ndarray] = []
         self._bg_dirty = False
-        self._faint_threshold = (
-            None  # the faint masks' noise level (config.faint_masks), once per background
-        )
+        # the faint masks' noise level (config.faint_masks), once per background
+        self._faint_threshold = None
         if not self._given_background:
             self.background = None
 
@@ -1689,7 +1688,8 @@ class BoxTracker:
         """The fit's projected silhouette differs from the background (``min_foreground``), the
         ring outside it does not (``max_outside_foreground``) and, for a box found from scratch
         (``acquire``), it covers the moving blob (``min_iou_acquire``); the foreground with the
-        faint one where ``faint_masks``. True where a check is off or impossible (no
+        faint one where ``faint_masks``, and with the shadow test's pixels in the silhouette
+        checks where ``shadow_faces`` allows. True where a check is off or impossible (no
         background yet).
         """
         cfg = self.config
