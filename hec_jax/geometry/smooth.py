@@ -463,16 +463,8 @@ def smooth_track(
         return _smooth_track(rotations, positions, information, valid, dt, cfg, restarts)
 
 
-def _smooth_track(
-    rotations,
-    positions,
-    information,
-    valid,
-    dt: float,
-    cfg: SmootherConfig = SmootherConfig(),
-    restarts=None,
-) -> SmoothedTrack:
-    """:func:`smooth_track` under float64."""
+def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -> SmoothedTrack:
+    """:func:`smooth_track` under float64 (the same arguments, all given)."""
     valid = np.asarray(valid, bool)
     t_n = len(valid)
     split = cfg.split_at_restarts and restarts is not None
