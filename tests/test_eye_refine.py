@@ -196,7 +196,7 @@ def test_two_frame_grad_finite(noisy):
         )
 
     x = jnp.asarray(noisy.pixels_before[0])
-    g = np.asarray(jax.grad(loss)(x))
+    g = np.asarray(jax.jit(jax.grad(loss))(x))
     assert np.all(np.isfinite(g))
     # against central differences of the forward map (the LM's derivative is the implicit one at
     # its optimum, not the unrolled iterations')

@@ -187,6 +187,7 @@ def test_local_search_reacquires_without_a_search_from_scratch(seq):
         assert st.fit_source == ("local" if starts else "search")
 
 
+@pytest.mark.slow  # the turned starts' recovery itself is in the default suite (the next test)
 def test_local_search_runs_its_turned_starts_only_when_the_predicted_rotation_fails(seq):
     # the local search's two stages: the predicted rotation at both centres, then its turns;
     # a passing first stage ends the search, a failing one (forced here) hands on to the turns
@@ -222,7 +223,16 @@ def test_local_search_runs_its_turned_starts_only_when_the_predicted_rotation_fa
     assert one._local[1] is None  # no turns: the first stage only
 
 
-@pytest.mark.parametrize("keep, merge", [(0, 0.0), (4, 0.0), (4, 0.1), (0, 10.0)])
+# the default suite keeps the real-time eye's setting (4, 0.1); the others are slow
+@pytest.mark.parametrize(
+    "keep, merge",
+    [
+        pytest.param(0, 0.0, marks=pytest.mark.slow),
+        pytest.param(4, 0.0, marks=pytest.mark.slow),
+        (4, 0.1),
+        pytest.param(0, 10.0, marks=pytest.mark.slow),
+    ],
+)
 def test_local_search_recovers_a_sudden_turn_from_its_turned_starts(seq, keep, merge):
     # the last rotations turned by 25 deg (as by an impact): the tracked fit and the predicted
     # rotation fail, a turned start finds the cube; with ``local_keep`` 4 only the 4 best
@@ -250,7 +260,10 @@ def test_local_search_recovers_a_sudden_turn_from_its_turned_starts(seq, keep, m
     assert [f._cache_size() for f in (first, rest)] == compiled
 
 
-@pytest.mark.parametrize("defer", [0, 1, 2])
+# the default suite keeps the real-time eye's setting (1); the others are slow
+@pytest.mark.parametrize(
+    "defer", [pytest.param(0, marks=pytest.mark.slow), 1, pytest.param(2, marks=pytest.mark.slow)]
+)
 def test_the_search_from_scratch_waits_for_defer_search_failed_frames(seq, defer):
     # black frames while the filter runs (the cube hidden): with ``defer_search`` n the first n
     # failed frames in a row are left to the prediction (invalid, no search from scratch), the
@@ -293,7 +306,7 @@ _LOST_SEARCHED = {
 }
 
 
-@pytest.mark.parametrize("every", [1, 2, 3])
+@pytest.mark.parametrize("every", [1, 2, pytest.param(3, marks=pytest.mark.slow)])
 def test_once_lost_a_failing_search_runs_on_every_lost_search_every_frames(seq, every):
     # the search from scratch stubbed to fail (a blob it cannot fit): the first
     # ``lost_search_after`` (4) frames are searched, then one in ``every``; a searched frame
@@ -504,7 +517,8 @@ def _held_cube_frames(name="held_cube_failed_frames.npz", **changes):
         yield tracker, image, occluded, truth, world
 
 
-@pytest.mark.parametrize("floor", [4, 3])
+# slow: 4, the negative control (every hypothesis fails these frames without the change)
+@pytest.mark.parametrize("floor", [pytest.param(4, marks=pytest.mark.slow), 3])
 def test_a_fit_with_fewer_segments_where_the_mask_hides_an_edge(floor):
     # independent truth: the simulator's cube centre at each frame's exposure. With 4 segments
     # required (as before) every hypothesis fails these frames; with an edge hidden by the mask,
@@ -567,7 +581,8 @@ def test_a_filter_run_away_in_depth_gets_the_frame_s_own_fit(depth_gate):
         np.testing.assert_array_equal(st.acceleration, np.zeros(3))
 
 
-@pytest.mark.parametrize("keep, merge", [(0, 0.0), (4, 0.1)])
+# slow: (0, 0.0), every turned start at both centres, as the frames were run
+@pytest.mark.parametrize("keep, merge", [pytest.param(0, 0.0, marks=pytest.mark.slow), (4, 0.1)])
 def test_the_held_cube_s_turned_recoveries_with_fewer_turned_starts(keep, merge):
     # real-time frames (sessions 24-25, 3 runs) where the tracked fit, the stop hypothesis and the
     # local search's predicted rotation failed and its turned starts recovered the held cube,

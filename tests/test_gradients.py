@@ -71,6 +71,7 @@ def _float32_grads(conds, batched):
     return grad, np.asarray(f_contact)
 
 
+@pytest.mark.slow  # a second compile of the whole differentiable rollout (float32)
 def test_gradient_finite_float32():
     grad, f_contact = _float32_grads(default_conditions(), batched=False)
     assert np.all(np.isfinite(grad))

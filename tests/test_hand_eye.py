@@ -192,6 +192,7 @@ def test_frames_fall_on_the_control_grid():
         tl.CameraConfig(latency_s=-1.0)
 
 
+@pytest.mark.slow  # its own MJX compile; the camera loop below fails if the cube is rendered elsewhere
 def test_render_model_follows_the_mjx_geometry():
     """The C model used for rendering puts the cube where MJX does (moved hinge, longer rod)."""
     m_c = load_mj_model()

@@ -345,9 +345,11 @@ def _vmapped_step(kernel, eta, u, active=False):
 @pytest.mark.parametrize(
     ("dtype", "hidden", "with_active", "n_axes"),
     [
-        (jnp.float32, (20, 20), False, 2),
-        (jnp.float64, (20, 20), False, 2),
-        (jnp.float64, (12, 24), False, 2),
+        # the default suite keeps the last two (both dtypes, with ``active``, runs straddled by
+        # a kernel program); the others are slow (each compiles its own kernel program)
+        pytest.param(jnp.float32, (20, 20), False, 2, marks=pytest.mark.slow),
+        pytest.param(jnp.float64, (20, 20), False, 2, marks=pytest.mark.slow),
+        pytest.param(jnp.float64, (12, 24), False, 2, marks=pytest.mark.slow),
         (jnp.float32, (20, 20), True, 2),
         # 3 networks per run: kernel programs (2 networks each) straddle runs
         (jnp.float64, (20, 20), True, 1),
@@ -434,6 +436,7 @@ def test_network_step_triton_off_the_gpu_and_unbatched_is_the_reference():
             nets.network_step(wide, net_in[0], g[0], learning[0], eta, u, 0.1, "triton")
 
 
+@pytest.mark.slow  # the kernel's step against the reference is in the default suite (above)
 def test_learning_with_the_kernel_follows_the_reference_world():
     """Two 1.2 s episodes of the 1-D world for three network seeds (vmapped) with the learner's
     kernel (through Pallas' interpreter) and with the reference: the same contact forces,

@@ -516,7 +516,8 @@ def test_property_arbitrary_points_never_nan(seed, scale):
 # --- transformations ----------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("polish_steps", [0, POLISH_STEPS])
+# slow: polish 0 (the closed form alone, whose float64 gradient the default suite checks below)
+@pytest.mark.parametrize("polish_steps", [pytest.param(0, marks=pytest.mark.slow), POLISH_STEPS])
 def test_jit_vmap_agree_with_batched_call(scenes, polish_steps):
     b, a = jnp.asarray(scenes.points_before[:64]), jnp.asarray(scenes.points_after[:64])
     length = jnp.full((64,), EDGE)
@@ -614,8 +615,17 @@ def gradient_batch(scenes, degenerate_scenes):
     return before, after, names, grads
 
 
-@pytest.mark.parametrize("polish_steps", [0, POLISH_STEPS])
-@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+# One compile per (dtype, polish_steps), shared with the degenerate test below; the default suite
+# keeps both dtypes with the polish (whose float64 gradient goes through the closed form).
+GRADIENT_CASES = [
+    pytest.param(jnp.float64, 0, marks=pytest.mark.slow),
+    (jnp.float64, POLISH_STEPS),
+    pytest.param(jnp.float32, 0, marks=pytest.mark.slow),
+    (jnp.float32, POLISH_STEPS),
+]
+
+
+@pytest.mark.parametrize(("dtype", "polish_steps"), GRADIENT_CASES)
 def test_grad_finite_and_matches_central_differences(gradient_batch, dtype, polish_steps):
     before_all, after_all, _, grads = gradient_batch
     (_, g_after, _), _ = grads(dtype, polish_steps)
@@ -634,8 +644,7 @@ def test_grad_finite_and_matches_central_differences(gradient_batch, dtype, poli
         np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6 * np.max(np.abs(fd)))
 
 
-@pytest.mark.parametrize("polish_steps", [0, POLISH_STEPS])
-@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize(("dtype", "polish_steps"), GRADIENT_CASES)
 def test_grad_finite_on_degenerate_input(gradient_batch, dtype, polish_steps):
     """Degenerate input gives finite values AND finite derivatives (w.r.t. before, after and
     length), for every kind of degeneracy, both dtypes, with and without the polish."""
@@ -653,7 +662,7 @@ def test_grad_finite_on_degenerate_input(gradient_batch, dtype, polish_steps):
     valid = est.valid.reshape(len(names), PER_KIND)
     exact = [i for i, k in enumerate(names) if k not in ("non-parallel segments", "no real root")]
     assert not np.any(valid[exact])
-    if dtype == np.float64:  # non-parallel pairs show up in the rigidity residual only
+    if np.dtype(dtype) == np.float64:  # non-parallel pairs show up in the rigidity residual only
         assert not np.any(pm.consistency_check(est, 1e-6))
 
 

@@ -79,7 +79,15 @@ def test_shards_merge_and_resume(sharded_by_process):
     assert chunk0.stat().st_mtime_ns == mtime0
 
 
-@pytest.mark.parametrize("spmd", [False, True], ids=["executable-per-device", "gspmd"])
+@pytest.mark.parametrize(
+    "spmd",
+    [
+        # slow: the sweep in two more processes; the default suite keeps tests/test_devices.py
+        # (one executable per device on two forced devices, the GSPMD program on one)
+        pytest.param(False, id="executable-per-device", marks=pytest.mark.slow),
+        pytest.param(True, id="gspmd", marks=pytest.mark.slow),
+    ],
+)
 def test_sharding_over_two_devices_matches(sharded_by_process, tmp_path, spmd):
     """Two forced CPU devices, one chunk of both runs split over them (one executable per device,
     or one GSPMD program with --spmd): the one-device results."""
@@ -103,6 +111,7 @@ def test_a_chunk_with_its_plain_rows_divides_over_the_devices():
     assert plain_rows(4, 2, 2) == 4 and plain_rows(6, 2, 1) == 4
 
 
+@pytest.mark.slow  # compiles the sweep's summary in this process
 def test_plain_runs_are_shared_across_seeds(sharded_by_process):
     """Plain impedance ignores the networks: the sweep runs it once per distinct condition. Run it
     here with two other network seeds and check both against the sweep's (seed-0) result."""
@@ -134,6 +143,7 @@ def test_plain_runs_are_shared_across_seeds(sharded_by_process):
         sweep.unique_conditions({k: np.arange(3.0) for k in conditions}, 2)
 
 
+@pytest.mark.slow  # compiles the learned sweep in this process
 def test_networks_inside_the_sphere_only_give_the_same_sweep(sharded_by_process):
     """``--nets-inside-only`` (O = 0 outside the virtual sphere, where Eq. 47 gives F_o = 0): the
     same learned peaks and settle forces as the sweep's default runs, in both swings."""
