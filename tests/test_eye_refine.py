@@ -187,6 +187,7 @@ def test_two_frame_beats_ippe_by_half(noisy):
     assert np.median(ours) <= 0.5 * np.median(ippe), (np.median(ours), np.median(ippe))
 
 
+@pytest.mark.slow  # two compiles of the two-frame LM (gradient and value)
 def test_two_frame_grad_finite(noisy):
     def loss(pb):
         return jnp.sum(

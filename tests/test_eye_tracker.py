@@ -164,6 +164,7 @@ def _offset_prediction(tracker, dx_m):
     tracker._predicted = kf.FilterState(mean, tracker._predicted.cov)
 
 
+@pytest.mark.slow  # the local search's recovery of a sudden turn stays in the default suite
 def test_local_search_reacquires_without_a_search_from_scratch(seq):
     # the filter's prediction 6 cm off the cube (as after an unmodelled push): the tracked fit
     # fails; with local_starts the search around the prediction and the last fit finds the cube

@@ -251,6 +251,7 @@ def test_camera_loop_overlay_video(camera_run, tmp_path):
     assert (tmp_path / "loop.mp4").stat().st_size > 1000
 
 
+@pytest.mark.slow  # its own loop compile; the tracker's blind frames: tests/test_eye_tracker.py
 def test_camera_loop_survives_blind_frames():
     """Frames where the cube cannot be seen (here: blacked out for 0.2 s while it is held, as an
     occluder would) degrade to the filter's prediction, are counted, and the run neither crashes

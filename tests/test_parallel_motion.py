@@ -616,12 +616,12 @@ def gradient_batch(scenes, degenerate_scenes):
 
 
 # One compile per (dtype, polish_steps), shared with the degenerate test below; the default suite
-# keeps both dtypes with the polish (whose float64 gradient goes through the closed form).
+# keeps float64 with the polish (its gradient goes through the closed form); the rest are slow.
 GRADIENT_CASES = [
     pytest.param(jnp.float64, 0, marks=pytest.mark.slow),
     (jnp.float64, POLISH_STEPS),
     pytest.param(jnp.float32, 0, marks=pytest.mark.slow),
-    (jnp.float32, POLISH_STEPS),
+    pytest.param(jnp.float32, POLISH_STEPS, marks=pytest.mark.slow),
 ]
 
 
