@@ -516,7 +516,7 @@ def test_property_arbitrary_points_never_nan(seed, scale):
 # --- transformations ----------------------------------------------------------------------------
 
 
-# slow: polish 0 (the closed form alone, whose float64 gradient the default suite checks below)
+# slow: polish 0 (the closed form alone; the default suite runs it under the polish)
 @pytest.mark.parametrize("polish_steps", [pytest.param(0, marks=pytest.mark.slow), POLISH_STEPS])
 def test_jit_vmap_agree_with_batched_call(scenes, polish_steps):
     b, a = jnp.asarray(scenes.points_before[:64]), jnp.asarray(scenes.points_after[:64])
