@@ -1,5 +1,6 @@
 """The online tracker (``BoxTracker``): same causal path as ``track_box``, extrapolation, reset."""
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -641,3 +642,45 @@ def test_edge_points_sample_only_near_the_image():
     assert common.sum() >= len(p_short) - 1
     by_x = dict(zip(p_short[:, 0], p_short[:, 1], strict=True))
     np.testing.assert_allclose(p_long[common, 1], [by_x[x] for x in p_long[common, 0]])
+
+
+def test_configs_differing_only_on_the_host_share_their_compiled_functions():
+    """Every TrackConfig field read inside the jitted functions (or by the functions they call in
+    ``track.py``) is in ``_TRACED``, so normalising the others cannot change a compiled program;
+    configs that differ only in host-read fields get the same compiled functions."""
+    import ast
+    import inspect
+
+    from hec_jax.geometry import track
+
+    tree = ast.parse(inspect.getsource(track))  # the reachable set: module-level functions
+    functions = {n.name: n for n in tree.body if isinstance(n, ast.FunctionDef)}
+    roots = ["_make_locate", "_make_finish", "_make_search", "_make_local_search"]
+    reached, stack = set(), list(roots)
+    while stack:
+        name = stack.pop()
+        if name in reached:
+            continue
+        reached.add(name)
+        for node in ast.walk(functions[name]):
+            if isinstance(node, ast.Name) and node.id in functions:
+                stack.append(node.id)
+    read = {
+        node.attr
+        for name in reached
+        for node in ast.walk(functions[name])
+        if isinstance(node, ast.Attribute)
+        and isinstance(node.value, ast.Name)
+        and node.value.id in ("cfg", "config")
+    }
+    assert {"locate", "associate", "refine_points"} <= reached
+    assert read and read <= track._TRACED, sorted(read - track._TRACED)
+    assert set(track._TRACED) <= {f.name for f in dataclasses.fields(TrackConfig)}
+    base = TrackConfig()
+    host = dataclasses.replace(base, defer_search=3, max_segments=17, min_iou_acquire=0.5)
+    traced = dataclasses.replace(base, huber_px=base.huber_px + 1.0)
+    assert track._compiled(host, FPS) is track._compiled(base, FPS)
+    assert track._compiled(traced, FPS) is not track._compiled(base, FPS)
+    # the filter's noise is read through its config, so it stays in the key
+    jerk = dataclasses.replace(base, jerk_psd=2.0 * base.jerk_psd)
+    assert track._compiled(jerk, FPS)[3] != track._compiled(base, FPS)[3]

@@ -996,30 +996,38 @@ def snap_to_symmetry(rotation: np.ndarray, reference: np.ndarray) -> np.ndarray:
 _CACHE: dict = {}
 
 
-# fields read only on the host (the issue-24 checks): configs that differ only in these share
-# their compiled functions
+# The fields the jitted functions below read (locate, associate, refine_points, the searches;
+# ``jerk_psd`` through the filter's config): every other field is read only on the host, so
+# configs that differ only there share their compiled functions (one trace per program, not one
+# per test or preset variant; ``tests/test_eye_tracker.py`` checks the list against the source).
+_TRACED = frozenset(
+    {
+        "batched_search",
+        "gate_deg",
+        "gates_px",
+        "huber_px",
+        "info_scale",
+        "init_gates",
+        "init_starts",
+        "iters",
+        "jerk_psd",
+        "local_keep",
+        "local_spread_deg",
+        "local_starts",
+        "maneuver_nis",
+        "max_rms_px",
+        "min_coverage",
+        "min_edge_px",
+        "rotation_prior_deg",
+        "search_keep",
+        "seed",
+        "sigma_floor_px",
+    }
+)
 _HOST_ONLY = {
-    name: getattr(TrackConfig(), name)
-    for name in (
-        "colour_background",
-        "foreground_edges",
-        "mask_px",
-        "foreground_threshold",
-        "min_foreground",
-        "min_iou_acquire",
-        "min_inner_support",
-        "inner_edge_px",
-        "min_region_fraction",
-        "blob_required",
-        "low_contrast",
-        "blob_core",
-        "depth_gate",
-        "max_outside_foreground",
-        "faint_masks",
-        "faint_min_threshold",
-        "faint_segment_min_threshold",
-        "shadow_faces",
-    )
+    f.name: getattr(TrackConfig(), f.name)
+    for f in dataclasses.fields(TrackConfig)
+    if f.name not in _TRACED
 }
 
 
