@@ -142,6 +142,61 @@ def pad_segments(segments: np.ndarray, max_segments: int) -> tuple[np.ndarray, n
     return out, mask
 
 
+def _side_pixels(segments: np.ndarray, fraction: float, offset_px: float, shape, origin):
+    """The two pixels (row, column index arrays, each (2, N)) ``offset_px`` to either side of
+    each segment (N, 2, 2) [px, intrinsics convention] at ``fraction`` of its length, in a
+    window of ``shape`` (h, w) whose top-left pixel is ``origin`` (clamped to the window).
+    """
+    a, d = segments[:, 0], segments[:, 1] - segments[:, 0]
+    length = np.maximum(np.linalg.norm(d, axis=1), 1e-9)
+    normal = np.stack([-d[:, 1], d[:, 0]], 1) / length[:, None]
+    centre = a + fraction * d - PIXEL_OFFSET - np.asarray(origin, np.float64)
+    rows, cols = [], []
+    for sign in (1.0, -1.0):
+        q = centre + sign * offset_px * normal
+        cols.append(np.clip(np.round(q[:, 0]).astype(int), 0, shape[1] - 1))
+        rows.append(np.clip(np.round(q[:, 1]).astype(int), 0, shape[0] - 1))
+    return np.stack(rows), np.stack(cols)
+
+
+def texture_segments(
+    segments: np.ndarray,
+    foreground: np.ndarray,
+    origin=(0, 0),
+    offset_px: float = 3.0,
+    fractions=(0.25, 0.5, 0.75),
+) -> np.ndarray:
+    """(N,) bool: the segments (N, 2, 2) [px] with foreground on both sides, ``offset_px`` to
+    either side at each of ``fractions`` of their length: lines inside a moving object (its
+    texture, or a crease between two of its faces), not its outline against the background.
+
+    ``foreground``: (h, w) bool, a window of the frame whose top-left pixel is ``origin`` =
+    (x0, y0) (e.g. :func:`foreground_mask`'s); sides outside it are read at its border.
+    """
+    segments = np.asarray(segments, np.float64).reshape(-1, 2, 2)
+    out = np.ones(len(segments), bool)
+    for fraction in fractions:
+        rows, cols = _side_pixels(segments, fraction, offset_px, foreground.shape, origin)
+        out &= foreground[rows[0], cols[0]] & foreground[rows[1], cols[1]]
+    return out
+
+
+def segment_steps(
+    segments: np.ndarray, gray: np.ndarray, offset_px: float = 2.0, samples: int = 8
+) -> np.ndarray:
+    """(N,) the grey step across each segment (N, 2, 2) [px]: the mean absolute difference of
+    ``gray`` ((H, W), the whole frame) ``offset_px`` to either side, at ``samples`` points from
+    0.15 to 0.85 of its length [grey levels].
+    """
+    segments = np.asarray(segments, np.float64).reshape(-1, 2, 2)
+    total = np.zeros(len(segments))
+    for fraction in np.linspace(0.15, 0.85, samples):
+        rows, cols = _side_pixels(segments, fraction, offset_px, gray.shape, (0, 0))
+        sides = gray[rows, cols].astype(np.float64)
+        total += np.abs(sides[0] - sides[1])
+    return total / samples
+
+
 def background_model(frames: np.ndarray, samples: int = 25) -> np.ndarray:
     """Per-pixel median (H, W) uint8 gray of up to ``samples`` evenly spaced frames.
 
