@@ -120,6 +120,7 @@ BAD = {
         (["--sequences", "0"], "--sequences: must be an integer >= 1"),
         (["--fps", "0"], "--fps: must be finite and > 0"),
         (["--split", "test"], "--split: 'test' is not one of dev, heldout"),
+        (["--search-texture", "-1"], "--search-texture: must be finite and >= 0"),
         (["--out", USED], "exists and is not empty"),
     ],
     "benchmarks/gradients.py": [
