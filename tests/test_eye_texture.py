@@ -6,6 +6,7 @@ silhouette edges against the outline's geometry, and the search on a rendered wo
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -93,7 +94,7 @@ def test_texture_segments_are_kept_off_the_silhouette_edges(view):
     every = np.ones(12, bool)
 
     def run(texture, keep=every):
-        return associate(
+        return jax.jit(associate)(
             pose, jnp.asarray(segments), jnp.asarray(keep), size, jnp.asarray(k), 2.0,
             np.cos(np.deg2rad(cfg.gate_deg)), cfg.min_edge_px,
             texture=None if texture is None else jnp.asarray(texture),
