@@ -1568,18 +1568,18 @@ class BoxTracker:
             rot = snap_to_symmetry(rot, self._rot_anchor)
         return (rot, np.asarray(cand.pose.translation)), segp_c, mask_c, texture_c
 
-    def _texture_roles(self, segp, mask, gray, roi) -> tuple[np.ndarray, np.ndarray]:
-        """(mask, texture) of the search's padded segments (``config.search_texture``; the
-        mask, (M,) bool, unchanged and no texture where it is off or there is no background):
-        texture, segments with foreground on both sides in the search window ``roi`` (x0, y0,
-        x1, y1) [px] (:func:`detect.texture_segments`); the texture segments whose grey step
-        is under ``search_texture`` x the largest of the others' (all segments' where every
-        one is texture) taken out of the mask.
+    def _texture_roles(self, segp, mask, gray, roi) -> tuple[np.ndarray, np.ndarray | None]:
+        """(mask, texture) of the search's padded segments (``config.search_texture``): texture,
+        (M,) bool, the segments with foreground on both sides in the search window ``roi``
+        (x0, y0, x1, y1) [px] (:func:`detect.texture_segments`), and the texture segments whose
+        grey step is under ``search_texture`` x the largest of the others' (all segments' where
+        every one is texture) taken out of the mask. Texture None (the jitted fits' form without
+        the rule) where no segment is left flagged, and the mask unchanged too where the rule is
+        off or there is no background.
         """
         cfg = self.config
-        texture = np.zeros_like(mask)
         if cfg.search_texture is None or self.background is None or not mask.any():
-            return mask, texture
+            return mask, None
         if roi is None:
             roi = (0, 0, gray.shape[1], gray.shape[0])
         margin = 6  # [px] beyond the window: the sides' samples, and the 3x3 blur's border
@@ -1587,17 +1587,20 @@ class BoxTracker:
         image, background = self._difference_pair(gray)
         got = detect.foreground_mask(image, background, window, cfg.foreground_threshold)
         if got is None:
-            return mask, texture
+            return mask, None
         foreground, box = got
         index = np.flatnonzero(mask)
         inside = detect.texture_segments(segp[index], foreground, box[:2])
         if not inside.any():
-            return mask, texture
+            return mask, None
         step = detect.segment_steps(segp[index], gray)
         reference = np.max(step[~inside]) if (~inside).any() else np.max(step)
         weak = inside & (step < cfg.search_texture * reference)
         mask = mask.copy()
         mask[index[weak]] = False
+        if not np.any(inside & ~weak):
+            return mask, None
+        texture = np.zeros_like(mask)
         texture[index[inside & ~weak]] = True
         return mask, texture
 
@@ -1849,8 +1852,6 @@ class BoxTracker:
         the segments kept off the silhouette edges (:meth:`_texture_roles`; None: none).
         """
         cfg, k, size_a = self.config, self.intrinsics, np.float64(self.size)
-        if texture is None:
-            texture = np.zeros_like(mask)
         loc = self._locate(Pose(*prior), segp, mask, size_a, k, self._occluded, texture)
         pose_np = jax.device_get(loc.pose)
         edges_px, usable = usable_edges(pose_np.rotation, pose_np.translation, self.size, k, cfg)
