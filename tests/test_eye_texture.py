@@ -16,8 +16,6 @@ from hec_jax.geometry.box_model import EDGES, Pose, corners_camera, project_corn
 from hec_jax.geometry.synthetic import random_rotation
 from hec_jax.geometry.track import RANDOMIZED_BENCHMARK, TrackConfig, associate
 
-P = detect.PIXEL_OFFSET  # pixel (x, y) covers [x, x + 1) x [y, y + 1); its centre is x + P
-
 
 def test_texture_segments_are_those_with_foreground_on_both_sides():
     foreground = np.zeros((120, 160), bool)
