@@ -18,7 +18,7 @@ Methods, on the same frames:
   ``stretch_points``, ``max_outside_foreground=0.2``, ``faint_masks``, ``prior_segments``,
   ``min_foreground_tracked=0.25``, ``shadow_candidates``, ``faint_min_threshold=3`` (6 for the
   segments' mask), ``shadow_faces=0.25`` and, once lost, ``lost_search_every=2``, without
-  ``depth_gate``;
+  ``depth_gate``, on two host threads (``--threads``; the baselines on one);
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
   ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``; the
   library's defaults, which the hand-eye loop uses, have them off): its
@@ -74,9 +74,12 @@ class EyeRandomized:
     # TrackConfig.search_texture of the tracker (None: the preset's, off; 0.25: the value chosen
     # on the development seeds, docs/eye_randomized.md "Texture segments in the search")
     search_texture: float | None = None
+    # TrackConfig.threads of the tracker (its host threads; the same outputs for any number; the
+    # baselines run on one)
+    threads: int = TRACK.threads
 
     def __post_init__(self):
-        require(self, "count", "sequences", "width", "height")
+        require(self, "count", "sequences", "width", "height", "threads")
         require(self, "seed", "first")
         require(self, "positive", "seconds", "fps")
         if self.search_texture is not None:
@@ -85,7 +88,7 @@ class EyeRandomized:
 
 def tracker_config(a: EyeRandomized):
     """The tracker's configuration: ``TRACK`` with the flags' overrides."""
-    return dataclasses.replace(TRACK, search_texture=a.search_texture)
+    return dataclasses.replace(TRACK, search_texture=a.search_texture, threads=a.threads)
 
 
 def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:

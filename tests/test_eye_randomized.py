@@ -5,6 +5,9 @@ and the smoother's ``max_gap_s`` are off by default (the hand-eye loop's tracker
 turn them on, as the benchmark does."""
 
 import dataclasses
+import functools
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -84,6 +87,52 @@ def test_tracker_acquires_and_tracks_a_new_scene(rendered, tracker):
     assert np.median(rot) < 1.0
 
 
+@functools.cache
+def _rendered_six(seed: int):
+    """(scene, 6 rendered frames, background) of a development seed (made once per module)."""
+    scene = draw_scene(seed)
+    return (scene, *render_random_sequence(scene, 6, FPS, 640, 480))
+
+
+def test_host_threads_give_the_one_thread_outputs_bit_for_bit():
+    """Development seed 130 (wood, shadows): frame 0's search from scratch tries three blobs,
+    which ``threads=2`` (``RANDOMIZED_BENCHMARK``'s) searches side by side, as it finds the
+    blob masks; frames 1-5 are tracked, the gray segments beside the foreground mask. Every
+    output of every frame equals the one-thread tracker's exactly."""
+    from hec_jax.geometry import BoxTracker
+
+    scene, seq, background = _rendered_six(130)
+    assert RANDOMIZED_BENCHMARK.threads == 2
+    steps, mapped = {}, []
+    for threads in (1, 2):
+        cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, threads=threads)
+        tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
+        spread = tracker._map
+
+        def spy(fn, items, _f=spread, _threads=threads):
+            mapped.append((_threads, len(items)))
+            return _f(fn, items)
+
+        tracker._map = spy
+        steps[threads] = [tracker.update(f) for f in seq.frames]
+        assert (tracker._pool is not None) == (threads == 2)
+    assert (2, 3) in mapped  # three candidates on the threads
+    assert [s.fit_source for s in steps[2]] == ["search"] + ["tracked"] * 5
+    for one, two in zip(steps[1], steps[2], strict=True):
+        for name in one._fields:
+            if name != "timing_ms":  # NaN equal to NaN
+                np.testing.assert_array_equal(getattr(one, name), getattr(two, name), name)
+    # in the items' order, the first on the calling thread, whatever finishes first
+    names = spread(
+        lambda x: (time.sleep(0.02 * (3 - x)), threading.current_thread().name), [0, 1, 2]
+    )
+    assert [n[1] for n in names][0] == threading.current_thread().name
+    assert all(n[1].startswith("box-tracker") for n in names[1:])
+    assert spread(lambda x: (time.sleep(0.02 * (3 - x)), x)[1], [0, 1, 2]) == [0, 1, 2]
+    with pytest.raises(ValueError, match="threads"):
+        BoxTracker(seq.intrinsics, scene.edge_m, FPS, dataclasses.replace(cfg, threads=0))
+
+
 @pytest.mark.parametrize("seed", [130, 139])
 def test_faint_candidates_find_a_box_the_usual_blobs_cut_into_faces(seed):
     """Development seeds 130 (wood, shadows) and 139 (low contrast): at frame 5 the usual blobs
@@ -95,8 +144,7 @@ def test_faint_candidates_find_a_box_the_usual_blobs_cut_into_faces(seed):
 
     from hec_jax.geometry import BoxTracker, detect
 
-    scene = draw_scene(seed)
-    seq, background = render_random_sequence(scene, 6, FPS, 640, 480)
+    scene, seq, background = _rendered_six(seed)
     frame, truth = seq.frames[5], seq.position[5]
     usual = detect.foreground_regions(frame, background, core=RANDOMIZED_BENCHMARK.blob_core)
     faint = detect.faint_foreground_regions(frame, background, core=RANDOMIZED_BENCHMARK.blob_core)

@@ -12,12 +12,14 @@ Detectors (``benchmarks/eye_pipeline.py`` measures them against the projected tr
 
 from __future__ import annotations
 
+import threading
+
 import cv2
 import numpy as np
 
 PIXEL_OFFSET = 0.5  # OpenCV pixel centre (integer) -> intrinsics convention (k + 1/2)
 EDGE_MIN_STEP = 6.0  # [grey levels / px] the weakest step edge_points keeps by default
-_LSD = None
+_LSD = threading.local()  # one detector per thread (an OpenCV detector keeps per-call state)
 
 
 def check_frames(frames) -> np.ndarray:
@@ -39,10 +41,9 @@ def to_gray(frame: np.ndarray) -> np.ndarray:
 
 
 def _lsd():
-    global _LSD
-    if _LSD is None:
-        _LSD = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
-    return _LSD
+    if not hasattr(_LSD, "detector"):
+        _LSD.detector = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
+    return _LSD.detector
 
 
 def clip_roi(roi, width: int, height: int):
@@ -453,6 +454,7 @@ def edge_points(
     min_step: float = EDGE_MIN_STEP,
     blur: float = 0.8,
     interpolation: int = cv2.INTER_LINEAR,
+    blurred: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel edge points along predicted model edges ("moving edges").
 
@@ -463,9 +465,9 @@ def edge_points(
     [grey levels / px] are dropped; ``blur`` is the Gaussian's sigma [px]. Only the points
     within ``search`` + 2 px of the image are sampled (the same grid along each edge; an edge
     far outside, as a wrong fit can project, costs nothing). Returns (points (N, 2) [px], edge
-    index (N,)).
+    index (N,)). ``blurred``: :func:`edge_blur` of ``gray`` and ``blur``, if already made.
     """
-    img = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur)
+    img = edge_blur(gray, blur) if blurred is None else blurred
     offs = np.arange(-search, search + 1e-9, step)
     h, w = gray.shape[:2]
     pad = search + 2.0  # [px] points farther outside the image sample only its replicated border
@@ -508,6 +510,13 @@ def edge_points(
     keep = y1 >= min_step
     found = pts + offset[:, None] * normals
     return found[keep], ids[keep]
+
+
+def edge_blur(gray: np.ndarray, blur: float = 0.8) -> np.ndarray:
+    """The smoothed image :func:`edge_points` samples: ``gray`` as float32, Gaussian sigma
+    ``blur`` [px].
+    """
+    return cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur)
 
 
 def _inside_interval(a, u, length: float, box) -> tuple[float, float]:
