@@ -428,6 +428,28 @@ def test_faint_regions_and_their_median_as_numpy_computes_them():
     assert faint_foreground_regions(image, kept) == want  # the kept blur, second use
 
 
+def test_stretch_percentiles_as_numpy_computes_them():
+    """The contrast stretch's 1st and 99th percentiles of a uint8 window (from its histogram)
+    are NumPy's ``np.percentile(x, (1, 99))`` bit for bit: sizes from 1 to a frame, wide,
+    narrow and constant grey ranges, and NumPy's interpolation on both sides of a half."""
+    from hec_jax.geometry.detect import _percentile_uint8
+
+    rng = np.random.default_rng(5)
+    for size in (1, 2, 3, 51, 100, 101, 257, 1000, 4097, 307200):
+        for low, high in ((0, 256), (100, 104), (37, 38)):
+            x = rng.integers(low, high, size, dtype=np.uint8)
+            want = np.percentile(x, (1, 99))
+            assert [_percentile_uint8(x, q) for q in (0.01, 0.99)] == [float(w) for w in want]
+    # the windows of a frame, as the tracker takes them
+    frame = np.clip(rng.normal(120, 25, (480, 640)), 0, 255).astype(np.uint8)
+    for _ in range(50):
+        x0, y0 = rng.integers(0, 600), rng.integers(0, 440)
+        w, h = rng.integers(1, 200, 2)
+        window = frame[y0 : y0 + h, x0 : x0 + w]
+        want = np.percentile(window, (1, 99))
+        assert [_percentile_uint8(window, q) for q in (0.01, 0.99)] == [float(v) for v in want]
+
+
 def test_snapshot_and_restore_replay_the_track_frame_for_frame(seq):
     # a snapshot taken mid-swing, restored into a new tracker, gives the same fits on the next
     # frames as the tracker it came from (how a failed frame of a real-time run is replayed)

@@ -87,7 +87,7 @@ def _stretch(patch: np.ndarray) -> tuple[float, float]:
     """(1st percentile, gain) of :func:`stretch_contrast` (gain 1: unchanged)."""
     if patch.size == 0:
         return 0.0, 1.0
-    lo, hi = np.percentile(patch, (1, 99))
+    lo, hi = _percentile_uint8(patch, 0.01), _percentile_uint8(patch, 0.99)
     if hi - lo >= STRETCH_RANGE:
         return float(lo), 1.0
     return float(lo), float(STRETCH_RANGE / max(hi - lo, STRETCH_RANGE / STRETCH_MAX_GAIN))
@@ -366,6 +366,22 @@ def faint_threshold(
     """
     diff = _faint_difference(image, background, blur_px)
     return max(min_threshold, noise_factor * _median_uint8(diff))
+
+
+def _percentile_uint8(x: np.ndarray, q: float) -> float:
+    """``float(np.percentile(x, 100 q))`` of a uint8 array, bit for bit (its default linear
+    method: the order statistics around (n - 1) q, interpolated as NumPy's ``_lerp``), from
+    the histogram (a tenth of the time on a tracking window).
+    """
+    n = x.size
+    below = np.cumsum(np.bincount(x.ravel(), minlength=256))
+    index = (n - 1) * q
+    lower = int(np.floor(index))
+    gamma = index - lower
+    a = int(np.searchsorted(below, lower, side="right"))  # sorted[lower]
+    b = int(np.searchsorted(below, min(lower + 1, n - 1), side="right"))  # sorted[lower + 1]
+    diff = float(b - a)
+    return float(b) - diff * (1.0 - gamma) if gamma >= 0.5 else float(a) + diff * gamma
 
 
 def _median_uint8(x: np.ndarray) -> float:
