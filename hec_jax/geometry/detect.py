@@ -371,7 +371,7 @@ def faint_threshold(
 def _percentile_uint8(x: np.ndarray, q: float) -> float:
     """``float(np.percentile(x, 100 q))`` of a uint8 array, bit for bit (its default linear
     method: the order statistics around (n - 1) q, interpolated as NumPy's ``_lerp``), from
-    the histogram (a tenth of the time on a tracking window).
+    the histogram instead of a partition of the pixels (``docs/eye_randomized.md``).
     """
     n = x.size
     below = np.cumsum(np.bincount(x.ravel(), minlength=256))
