@@ -121,6 +121,7 @@ BAD = {
         (["--fps", "0"], "--fps: must be finite and > 0"),
         (["--split", "test"], "--split: 'test' is not one of dev, heldout"),
         (["--search-texture", "-1"], "--search-texture: must be finite and >= 0"),
+        (["--lsd-contrast", "0"], "--lsd-contrast: must be finite and > 0"),
         (["--threads", "0"], "--threads: must be an integer >= 1"),
         (["--out", USED], "exists and is not empty"),
     ],

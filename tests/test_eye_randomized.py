@@ -511,13 +511,17 @@ def test_the_segments_mask_keeps_its_floor_on_a_far_faint_cube():
     grey levels also in the mask that keeps the segments on the moving box, the tracked fits
     slide along the line of sight over the last third of the swing (more than 20 cm off by
     frame 44, still valid); ``RANDOMIZED_BENCHMARK`` keeps that mask's floor at 6
-    (``faint_segment_min_threshold``), and its fits of frames 35-44 stay within 5 cm."""
+    (``faint_segment_min_threshold``), and its fits of frames 35-44 stay within 5 cm. Both
+    without ``lsd_contrast`` (session 32's preset; with it, session 37, the lower floor's fits
+    of frames 35-44 stay within 5 cm, but an earlier fit is 24 cm off)."""
     scene = draw_scene(157)
     seq, background = render_random_sequence(scene, 45, FPS, 640, 480)
     assert RANDOMIZED_BENCHMARK.faint_segment_min_threshold == 6.0
     late = slice(35, 45)
     for segment_floor in (6.0, None):
-        cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, faint_segment_min_threshold=segment_floor)
+        cfg = dataclasses.replace(
+            RANDOMIZED_BENCHMARK, faint_segment_min_threshold=segment_floor, lsd_contrast=None
+        )
         tr = track_box(seq.frames, seq.intrinsics, scene.edge_m, FPS, cfg, background=background)
         err = np.linalg.norm(tr.measured_position - seq.position, axis=-1)[late][tr.valid[late]]
         assert tr.valid[late].sum() >= 5

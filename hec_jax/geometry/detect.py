@@ -19,7 +19,11 @@ import numpy as np
 
 PIXEL_OFFSET = 0.5  # OpenCV pixel centre (integer) -> intrinsics convention (k + 1/2)
 EDGE_MIN_STEP = 6.0  # [grey levels / px] the weakest step edge_points keeps by default
-_LSD = threading.local()  # one detector per thread (an OpenCV detector keeps per-call state)
+# LSD's bound on the gradient's quantisation error [grey levels] (OpenCV's default); LSD keeps the
+# pixels whose gradient exceeds quant / sin(22.5 deg), 5.2 grey levels per pixel at the default
+LSD_QUANT = 2.0
+LSD_MIN_QUANT = 0.5  # the lowest :func:`lsd_quant` gives (a quarter of the default's threshold)
+_LSD = threading.local()  # detectors per thread (an OpenCV detector keeps per-call state)
 
 
 def check_frames(frames) -> np.ndarray:
@@ -40,10 +44,21 @@ def to_gray(frame: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
 
 
-def _lsd():
-    if not hasattr(_LSD, "detector"):
-        _LSD.detector = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD)
-    return _LSD.detector
+def _lsd(quant: float = LSD_QUANT):
+    detectors = getattr(_LSD, "detectors", None)
+    if detectors is None:
+        detectors = _LSD.detectors = {}
+    if quant not in detectors:  # OpenCV's defaults but the quantisation bound
+        detectors[quant] = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD, 0.8, 0.6, quant)
+    return detectors[quant]
+
+
+def lsd_quant(contrast: float, full_contrast: float) -> float:
+    """LSD's quantisation bound for a box that differs from its background by ``contrast`` grey
+    levels: :data:`LSD_QUANT` at ``full_contrast`` or more, in proportion below, at least
+    :data:`LSD_MIN_QUANT` (LSD's gradient threshold scales with it).
+    """
+    return float(np.clip(LSD_QUANT * contrast / full_contrast, LSD_MIN_QUANT, LSD_QUANT))
 
 
 def clip_roi(roi, width: int, height: int):
@@ -99,13 +114,17 @@ def detect_segments(
     method: str = "lsd",
     min_length: float = 5.0,
     stretch: bool = False,
+    quant: float = LSD_QUANT,
 ) -> np.ndarray:
     """Line segments (N, 2, 2) [px, intrinsics convention] in ``gray`` (optionally inside a ROI).
 
     ``roi`` = (x0, y0, x1, y1) in pixels; segments shorter than ``min_length`` [px] are dropped.
     ``stretch``: a window (``roi`` given) of low contrast is stretched first
-    (:func:`stretch_contrast`).
+    (:func:`stretch_contrast`). ``quant``: LSD's quantisation bound (:data:`LSD_QUANT`; lower
+    finds weaker edges, :func:`lsd_quant`).
     """
+    if not quant > 0:
+        raise ValueError(f"quant must be > 0, got {quant!r}")
     h, w = gray.shape
     box = (0, 0, w, h) if roi is None else clip_roi(roi, w, h)
     if box is None:
@@ -115,7 +134,7 @@ def detect_segments(
     if stretch and roi is not None:
         patch = stretch_contrast(patch)
     if method == "lsd":
-        lines = _lsd().detect(patch)[0]
+        lines = _lsd(quant).detect(patch)[0]
     elif method == "hough":
         edges = cv2.Canny(patch, 40, 120)
         lines = cv2.HoughLinesP(

@@ -162,10 +162,25 @@ class SmoothedTrack(NamedTuple):
     hinge_outlier: Array | None = None
 
 
+SINGULAR_TT = 1e-9  # a frame's Lambda_tt whose eigenvalues span more than 1 / this is singular
+
+
 def _split(info: Array) -> tuple[Array, Array, Array]:
-    """(marginal rotation information (3, 3), Lambda_tt^-1 (3, 3), Lambda_tt^-1 Lambda_tw (3, 3))."""
+    """(marginal rotation information (3, 3), Lambda_tt^-1 (3, 3), Lambda_tt^-1 Lambda_tw (3, 3)).
+
+    A fit can leave a direction of its centre unmeasured (its points on too few edges: Lambda_tt
+    singular, e.g. along the line of sight). Where Lambda_tt's smallest eigenvalue is under
+    :data:`SINGULAR_TT` x its largest, they are floored there before the inverse (that direction
+    then unknown to within metres); the plain inverse of such a frame overflows, and the
+    rotation pass, one fit over every frame, returned NaN for the whole sequence.
+    """
     lww, lwt, ltt = info[:3, :3], info[:3, 3:], info[3:, 3:]
-    ltt_inv = jnp.linalg.inv(ltt + 1e-12 * jnp.eye(3))
+    evals, evecs = jnp.linalg.eigh(0.5 * (ltt + ltt.T))
+    floor = jnp.maximum(SINGULAR_TT * evals[-1], 1e-12)
+    floored = (evecs / jnp.maximum(evals, floor)[None, :]) @ evecs.T
+    # the plain inverse where well conditioned or unmeasured (zeros): the same numbers as before
+    well = evals[0] >= SINGULAR_TT * evals[-1]
+    ltt_inv = jnp.where(well, jnp.linalg.inv(ltt + 1e-12 * jnp.eye(3)), floored)
     cond = ltt_inv @ lwt.T
     marg = lww - lwt @ cond
     return 0.5 * (marg + marg.T), 0.5 * (ltt_inv + ltt_inv.T), cond
