@@ -17,8 +17,7 @@ Methods, on the same frames:
   ``low_contrast``, ``blob_core=0.4``, ``faint_candidates``, ``batched_search``,
   ``stretch_points``, ``max_outside_foreground=0.2``, ``faint_masks``, ``prior_segments``,
   ``min_foreground_tracked=0.25``, ``shadow_candidates``, ``faint_min_threshold=3`` (6 for the
-  segments' mask), ``shadow_faces=0.25``, ``lsd_contrast=20`` (``--lsd-contrast``) and, once
-  lost, ``lost_search_every=2``, without
+  segments' mask), ``shadow_faces=0.25`` and, once lost, ``lost_search_every=2``, without
   ``depth_gate``, on two host threads (``--threads``; the baselines on one);
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
   ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``; the
@@ -75,9 +74,9 @@ class EyeRandomized:
     # TrackConfig.search_texture of the tracker (None: the preset's, off; 0.25: the value chosen
     # on the development seeds, docs/eye_randomized.md "Texture segments in the search")
     search_texture: float | None = None
-    # TrackConfig.lsd_contrast of the tracker [grey levels] (the preset's 20; None: off, as
-    # before session 37)
-    lsd_contrast: float | None = TRACK.lsd_contrast
+    # TrackConfig.lsd_contrast of the tracker [grey levels] (None: the preset's, off; 20: the
+    # value chosen on the development seeds, docs/eye_randomized.md "A lower LSD threshold")
+    lsd_contrast: float | None = None
     # TrackConfig.threads of the tracker (its host threads; the same outputs for any number; the
     # baselines run on one)
     threads: int = TRACK.threads
