@@ -113,6 +113,9 @@ def test_texture_segments_are_kept_off_the_silhouette_edges(view):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+# slow (session 37, the suite's time): ``search_texture`` is off in every preset; the drawn-image
+# tests above keep its flags, steps and association in the default suite
+@pytest.mark.slow
 def test_the_search_finds_a_wood_cube_whose_grain_it_fitted_without_the_rule():
     """Development seed 149 (wood, a 9.6 cm cube; not one of the seeds the rule was built on):
     a new tracker's search from scratch on frames 0 and 1 fits the cube within 1 cm and 2 deg
