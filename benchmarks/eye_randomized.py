@@ -17,7 +17,8 @@ Methods, on the same frames:
   ``low_contrast``, ``blob_core=0.4``, ``faint_candidates``, ``batched_search``,
   ``stretch_points``, ``max_outside_foreground=0.2``, ``faint_masks``, ``prior_segments``,
   ``min_foreground_tracked=0.25``, ``shadow_candidates``, ``faint_min_threshold=3`` (6 for the
-  segments' mask), ``shadow_faces=0.25`` and, once lost, ``lost_search_every=2``, without
+  segments' mask), ``shadow_faces=0.25``, ``faint_unshadowed`` and, once lost,
+  ``lost_search_every=2``, without
   ``depth_gate``, on two host threads (``--threads``; the baselines on one);
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
   ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``; the
@@ -77,6 +78,9 @@ class EyeRandomized:
     # TrackConfig.lsd_contrast of the tracker [grey levels] (None: the preset's, off; 20: the
     # value chosen on the development seeds, docs/eye_randomized.md "A lower LSD threshold")
     lsd_contrast: float | None = None
+    # TrackConfig.faint_unshadowed of the tracker (the preset's, on; False for the ablation,
+    # docs/eye_randomized.md "Low views of a low-contrast box")
+    faint_unshadowed: bool = TRACK.faint_unshadowed
     # TrackConfig.threads of the tracker (its host threads; the same outputs for any number; the
     # baselines run on one)
     threads: int = TRACK.threads
@@ -94,7 +98,11 @@ class EyeRandomized:
 def tracker_config(a: EyeRandomized):
     """The tracker's configuration: ``TRACK`` with the flags' overrides."""
     return dataclasses.replace(
-        TRACK, search_texture=a.search_texture, lsd_contrast=a.lsd_contrast, threads=a.threads
+        TRACK,
+        search_texture=a.search_texture,
+        lsd_contrast=a.lsd_contrast,
+        faint_unshadowed=a.faint_unshadowed,
+        threads=a.threads,
     )
 
 

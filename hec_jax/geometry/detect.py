@@ -351,15 +351,24 @@ def faint_foreground_regions(
     open_px: int = 5,
     count: int = 3,
     core: float = 0.0,
+    shadows: bool = True,
 ) -> list[tuple[tuple[int, int, int, int], float]]:
     """:func:`foreground_regions` for a box close to the background's colour: the difference
     (:func:`difference`, shadows included) of both images blurred by a ``blur_px`` square (the
     sensor noise averages out, a box's faces do not), thresholded at ``noise_factor`` x its
     median over the frame (most pixels are background: the median is the noise's level), at
-    least ``min_threshold`` grey levels.
+    least ``min_threshold`` grey levels. ``shadows`` False: the same threshold on the difference
+    without the shadow test (a box of the background's hue, darker, passes that test as a
+    shadow).
     """
-    diff = _faint_difference(image, background, blur_px)
+    k = (blur_px, blur_px)
+    if not isinstance(background, Background):
+        background = Background(background)
+    blurred, blurred_bg = cv2.blur(image, k), background.blurred(k)
+    diff = difference(blurred, blurred_bg)
     threshold = max(min_threshold, noise_factor * _median_uint8(diff))
+    if not shadows:
+        diff = difference(blurred, blurred_bg, None)
     return _largest_blobs(diff > threshold, open_px, count, core)
 
 
