@@ -4,6 +4,7 @@ metrics never hold NaN; the eye experiment survives a sequence without a usable 
 progress display.
 """
 
+import dataclasses
 import importlib.util
 import json
 import signal
@@ -187,6 +188,27 @@ def test_eye_paper_is_accepted(script):
     run = parse(TaskRun(experiment=PRESETS[preset]()), ["--eye", "paper", "--seeds", "2"])
     assert run.experiment.eye == "paper" and run.experiment.seeds == 2
     assert run.experiment.camera == PRESETS[preset]().camera
+
+
+def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
+    """``benchmarks/eye_randomized.py``: the preset's options by default, each flag into the
+    tracker's configuration (the ablations of docs/eye_randomized.md)."""
+    from hec_jax.cli import parse
+    from hec_jax.geometry.track import RANDOMIZED_BENCHMARK
+
+    bench = _script("benchmarks/eye_randomized.py")
+    default = bench.tracker_config(parse(bench.EyeRandomized(), []))
+    assert default == RANDOMIZED_BENCHMARK and default.faint_unshadowed
+    argv = ["--no-faint-unshadowed", "--lsd-contrast", "20", "--search-texture", "0.25"]
+    argv += ["--threads", "1"]
+    changed = bench.tracker_config(parse(bench.EyeRandomized(), argv))
+    assert changed == dataclasses.replace(
+        RANDOMIZED_BENCHMARK,
+        faint_unshadowed=False,
+        lsd_contrast=20.0,
+        search_texture=0.25,
+        threads=1,
+    )
 
 
 def test_a_folder_of_another_sweep_is_refused_up_front(tmp_path, capsys):
