@@ -361,23 +361,27 @@ def faint_foreground_regions(
     without the shadow test (a box of the background's hue, darker, passes that test as a
     shadow).
     """
+    blurred = _blurred_pair(image, background, blur_px)
+    diff = difference(*blurred)
+    threshold = max(min_threshold, noise_factor * _median_uint8(diff))
+    if not shadows:
+        diff = difference(*blurred, None)
+    return _largest_blobs(diff > threshold, open_px, count, core)
+
+
+def _blurred_pair(image: np.ndarray, background, blur_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """Both images blurred by a ``blur_px`` square (whole frames; the background's kept by a
+    :class:`Background`).
+    """
     k = (blur_px, blur_px)
     if not isinstance(background, Background):
         background = Background(background)
-    blurred, blurred_bg = cv2.blur(image, k), background.blurred(k)
-    diff = difference(blurred, blurred_bg)
-    threshold = max(min_threshold, noise_factor * _median_uint8(diff))
-    if not shadows:
-        diff = difference(blurred, blurred_bg, None)
-    return _largest_blobs(diff > threshold, open_px, count, core)
+    return cv2.blur(image, k), background.blurred(k)
 
 
 def _faint_difference(image: np.ndarray, background, blur_px: int) -> np.ndarray:
     """:func:`difference` of both images blurred by a ``blur_px`` square (whole frames)."""
-    k = (blur_px, blur_px)
-    if not isinstance(background, Background):
-        background = Background(background)
-    return difference(cv2.blur(image, k), background.blurred(k))
+    return difference(*_blurred_pair(image, background, blur_px))
 
 
 def faint_threshold(
