@@ -170,7 +170,8 @@ def test_face_pose_from_homography_exact_without_noise():
 
 
 def test_two_frame_exact_without_noise():
-    sc = make_cube_scenes(np.random.default_rng(3), 100, CFG, noise_px=0.0)
+    # as many scenes as ``noisy``: the two-frame LM compiles once for both tests
+    sc = make_cube_scenes(np.random.default_rng(3), 300, CFG, noise_px=0.0)
     out = _run(sc)
     assert np.all(np.asarray(out.valid))
     assert np.max(rotation_error_deg(np.asarray(out.rotation), sc.rotation)) < 1e-8

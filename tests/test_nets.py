@@ -43,13 +43,14 @@ def test_stability_by_construction_under_random_weights():
     config = NetConfig()
     m_e, b_e, k_e = jnp.array([1.0, 2.0]), jnp.array([40.0, 30.0]), jnp.array([400.0, 100.0])
     u = nets.u_max(config, m_e, b_e, k_e)
+    # test data from NumPy and one jit: eager JAX compiles each operation (the suite's time)
+    apply = jax.jit(jax.vmap(nets.apply, in_axes=(None, None, 0, None)), static_argnums=1)
     for seed in range(5):
-        key, k_in = jax.random.split(jax.random.PRNGKey(seed))
-        params = nets.init_params(key, config, jnp.float64)
+        params = nets.init_params(jax.random.PRNGKey(seed), config, jnp.float64)
         # Blow the weights up so outputs saturate (tanh rounds to +-1).
         params = jax.tree_util.tree_map(lambda p, s=seed: p * 1e3 * (s + 1), params)
-        inputs = jax.random.normal(k_in, (256, 2, 4)) * 10.0
-        o = jax.vmap(nets.apply, in_axes=(None, None, 0, None))(params, config, inputs, u)
+        inputs = jnp.asarray(np.random.default_rng(seed).normal(size=(256, 2, 4)) * 10.0)
+        o = apply(params, config, inputs, u)
         margins = nets.stability_margins(o, m_e, b_e, k_e)
         assert np.all(np.asarray(margins) > 0)
         assert np.min(margins) >= config.margin * 0.999  # at least margin x min(M_e) (M_e >= 1)
@@ -58,31 +59,24 @@ def test_stability_by_construction_under_random_weights():
 def test_apply_matches_the_flax_reference_module():
     """``apply`` (weights (out, in), multiply-and-sum layers) against Flax ``nn.Dense`` layers
     (kernels (in, out), matrix products) on the same weights, for a non-default structure too."""
+    apply = jax.jit(jax.vmap(nets.apply, in_axes=(None, None, 0, None)), static_argnums=1)
     for config in (NetConfig(), NetConfig(n_axes=3, hidden=(7, 5, 3), theta=-0.4)):
-        key, k_in, k_w = jax.random.split(jax.random.PRNGKey(len(config.hidden)), 3)
-        params = nets.init_params(key, config, jnp.float64)
+        rng = np.random.default_rng(len(config.hidden))  # test data from NumPy (one compile)
+        params = nets.init_params(jax.random.PRNGKey(len(config.hidden)), config, jnp.float64)
         # random weights everywhere (the initial output layer is nearly zero)
-        leaves, tree = jax.tree_util.tree_flatten(params)
-        noise = jax.random.split(k_w, len(leaves))
-        params = jax.tree_util.tree_unflatten(
-            tree,
-            [
-                w + jax.random.normal(kk, w.shape, w.dtype)
-                for w, kk in zip(leaves, noise, strict=True)
-            ],
-        )
+        params = jax.tree_util.tree_map(lambda w, r=rng: w + r.normal(size=w.shape), params)
         flax_params = nets.to_flax(params, len(config.hidden))
         back = nets.from_flax(flax_params, len(config.hidden))
         for a, b in zip(
             jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(back), strict=True
         ):
             np.testing.assert_array_equal(a, b)
-        inputs = jax.random.normal(k_in, (64, config.n_axes, 4), jnp.float64)
+        inputs = jnp.asarray(rng.normal(size=(64, config.n_axes, 4)))
         u = jnp.arange(1.0, 1.0 + 3 * config.n_axes).reshape(config.n_axes, 3)
-        got = jax.vmap(nets.apply, in_axes=(None, None, 0, None))(params, config, inputs, u)
+        got = apply(params, config, inputs, u)
         model = nets.FlaxMlp(config.hidden, config.init_output_std)
         per_net = lambda p, x, model=model: model.apply({"params": p}, x)  # noqa: E731
-        pre = jax.vmap(jax.vmap(jax.vmap(per_net, (0, None)), (0, 0)), (None, 0))(
+        pre = jax.jit(jax.vmap(jax.vmap(jax.vmap(per_net, (0, None)), (0, 0)), (None, 0)))(
             flax_params, inputs
         )
         want = np.asarray(u) / 2 * np.tanh((np.asarray(pre) - config.theta) / 2)
@@ -319,9 +313,9 @@ def _batch_of_steps(dtype, batch=5, n_axes=2, hidden=(20, 20)):
     keys = jax.random.split(jax.random.PRNGKey(7), batch)
     params = jax.vmap(lambda k: nets.init_params(k, cfg, dtype))(keys)
     params = jax.tree_util.tree_map(lambda p: 3.0 * p, params)  # outputs away from 0
-    k1, k2 = jax.random.split(jax.random.PRNGKey(8))
-    net_in = jax.random.normal(k1, (batch, n_axes, 4), dtype)
-    g_scale = 10.0 * jax.random.normal(k2, (batch, n_axes, 3), dtype)
+    rng = np.random.default_rng(8)  # test data from NumPy (eager JAX compiles each operation)
+    net_in = jnp.asarray(rng.normal(size=(batch, n_axes, 4)), dtype)
+    g_scale = jnp.asarray(10.0 * rng.normal(size=(batch, n_axes, 3)), dtype)
     g_scale = g_scale.at[1, 0, 0].set(jnp.nan)
     learning = jnp.arange(batch) % 3 != 1  # run 1 (with the NaN) does not learn
     eta = jnp.asarray([0.3, 0.2, 0.1], dtype)
