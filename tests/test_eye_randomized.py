@@ -553,13 +553,15 @@ def _silhouette_frame(background, corners, colour_of):
 
 def test_shadow_faces_count_a_dark_face_but_not_a_shadow():
     """Synthetic, the rule of ``TrackConfig.shadow_faces``: on a mauve wall, a box whose lower
-    two thirds are the wall darkened by 0.5 in every channel (what the shadow test calls a
-    shadow: a cube of the wall's hue in shade) and whose top third is lighter and redder
-    passes the silhouette checks only with the option; a box-shaped patch that is all shadow
-    (the cube's own shadow) fails them with it too."""
+    part is the wall darkened by 0.5 in every channel (what the shadow test calls a shadow: a
+    cube of the wall's hue in shade) and whose top is lighter and redder passes the silhouette
+    checks only with the option, and only where its lit part is at least the option's bar (a
+    top third passes at the preset's 0.1 and at 0.25, a top fifth at 0.1 only); a box-shaped
+    patch that is all shadow (the cube's own shadow) fails them at every bar."""
     from hec_jax.geometry import BoxTracker
     from hec_jax.geometry.box_model import project_corners_np
 
+    assert RANDOMIZED_BENCHMARK.shadow_faces == 0.1
     k = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
     rng = np.random.default_rng(3)
     wall = np.clip(np.array([150, 100, 130]) + rng.normal(0, 1.0, (480, 640, 3)), 0, 255)
@@ -567,26 +569,35 @@ def test_shadow_faces_count_a_dark_face_but_not_a_shadow():
     rotation = random_rotation(np.random.default_rng(11))
     translation = np.array([0.0, 0.0, 1.0])
     corners = project_corners_np(rotation, translation, 0.1, k)
-    top = corners[:, 1].min() + (corners[:, 1].max() - corners[:, 1].min()) / 3
+    height = corners[:, 1].max() - corners[:, 1].min()
+    frames = {}
+    for name, part in (("third", 1 / 3), ("fifth", 1 / 5)):
+        top = corners[:, 1].min() + height * part
 
-    def face(r, c, bg):
-        return np.array([200.0, 110, 120]) if r < top else 0.5 * bg
+        def face(r, c, bg, top=top):
+            return np.array([200.0, 110, 120]) if r < top else 0.5 * bg
 
-    box_frame, box_mask = _silhouette_frame(background, corners, face)
-    shadow_frame, _ = _silhouette_frame(background, corners, lambda r, c, bg: 0.5 * bg)
-    assert 0.2 < (np.nonzero(box_mask)[0] < top).mean() < 0.5  # the lit part of the box
+        frames[name], mask = _silhouette_frame(background, corners, face)
+        lit = (np.nonzero(mask)[0] < top).mean()  # the lit part of the box
+        assert 0.2 < lit < 0.5 if name == "third" else 0.1 < lit < 0.2, (name, lit)
+    frames["shadow"], _ = _silhouette_frame(background, corners, lambda r, c, bg: 0.5 * bg)
     results = {}
-    for option in (0.25, None):
+    for option in (0.1, 0.25, None):
         cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, shadow_faces=option)
-        for name, frame in (("box", box_frame), ("shadow", shadow_frame)):
+        for name, frame in frames.items():
             tracker = BoxTracker(k, 0.1, FPS, cfg, background)
             tracker._frame_rgb = frame  # as update() sets it for the frame being checked
             gray = frame.mean(-1).astype(np.uint8)
             results[option, name] = tracker._confirmed(gray, rotation, translation, acquire=True)
     assert results == {
-        (0.25, "box"): True,
+        (0.1, "third"): True,
+        (0.1, "fifth"): True,
+        (0.1, "shadow"): False,
+        (0.25, "third"): True,
+        (0.25, "fifth"): False,
         (0.25, "shadow"): False,
-        (None, "box"): False,
+        (None, "third"): False,
+        (None, "fifth"): False,
         (None, "shadow"): False,
     }
 
@@ -602,8 +613,8 @@ def test_shadow_faces_find_a_cube_of_the_wall_s_hue():
 
     scene = draw_scene(21)
     seq, background = render_random_sequence(scene, 6, FPS, 640, 480)
-    assert RANDOMIZED_BENCHMARK.shadow_faces == 0.25
-    for option in (0.25, None):
+    assert RANDOMIZED_BENCHMARK.shadow_faces == 0.1
+    for option in (0.1, None):
         cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, shadow_faces=option)
         tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
         steps = [tracker.update(f) for f in seq.frames]

@@ -455,7 +455,10 @@ UNSEEN_SCENES = TrackConfig(
 # the held-out seeds it gave more gross errors (one wrong low-contrast track) for 13 valid frames.
 # Session 38: ``faint_unshadowed``, chosen on the development seeds (0-239, 60 low-contrast ones
 # after 239, 60 low-contrast ones from low views after 490; it changed none for the worse), before
-# the held-out run
+# the held-out run. Session 39: ``shadow_faces`` 0.25 -> 0.1 (a tenth of the silhouette differing
+# with the shadow test is enough to count the rest; a fit to the cube's own shadow has none), on
+# the same development seeds before the held-out run: 3 sequences gained, none changed for the
+# worse
 RANDOMIZED_BENCHMARK = dataclasses.replace(
     UNSEEN_SCENES,
     min_region_fraction=0.25,
@@ -475,7 +478,7 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
     shadow_candidates=True,
     faint_min_threshold=3.0,
     faint_segment_min_threshold=6.0,
-    shadow_faces=0.25,
+    shadow_faces=0.1,
     faint_unshadowed=True,
     threads=2,
 )
