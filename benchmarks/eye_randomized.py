@@ -17,7 +17,7 @@ Methods, on the same frames:
   ``low_contrast``, ``blob_core=0.4``, ``faint_candidates``, ``batched_search``,
   ``stretch_points``, ``max_outside_foreground=0.2``, ``faint_masks``, ``prior_segments``,
   ``min_foreground_tracked=0.25``, ``shadow_candidates``, ``faint_min_threshold=3`` (6 for the
-  segments' mask), ``shadow_faces=0.1``, ``faint_unshadowed`` and, once lost,
+  segments' mask), ``shadow_faces=0.1``, ``faint_unshadowed``, ``blob_scales=(3,)`` and, once lost,
   ``lost_search_every=2``, without
   ``depth_gate``, on two host threads (``--threads``; the baselines on one);
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
@@ -81,6 +81,9 @@ class EyeRandomized:
     # TrackConfig.faint_unshadowed of the tracker (the preset's, on; False for the ablation,
     # docs/eye_randomized.md "Low views of a low-contrast box")
     faint_unshadowed: bool = TRACK.faint_unshadowed
+    # TrackConfig.blob_scales of the tracker (the preset's, (3,); none given, off, for the
+    # ablation, docs/eye_randomized.md "Blobs of one face")
+    blob_scales: tuple[float, ...] = TRACK.blob_scales
     # TrackConfig.threads of the tracker (its host threads; the same outputs for any number; the
     # baselines run on one)
     threads: int = TRACK.threads
@@ -89,6 +92,8 @@ class EyeRandomized:
         require(self, "count", "sequences", "width", "height", "threads")
         require(self, "seed", "first")
         require(self, "positive", "seconds", "fps")
+        if self.blob_scales:
+            require(self, "positive", "blob_scales")
         if self.search_texture is not None:
             require(self, "non_negative", "search_texture")
         if self.lsd_contrast is not None:
@@ -102,6 +107,7 @@ def tracker_config(a: EyeRandomized):
         search_texture=a.search_texture,
         lsd_contrast=a.lsd_contrast,
         faint_unshadowed=a.faint_unshadowed,
+        blob_scales=a.blob_scales,
         threads=a.threads,
     )
 

@@ -9,7 +9,7 @@ import pytest
 
 from hec_jax.geometry import TrackConfig, rotation_error_deg
 from hec_jax.geometry.smooth import SmootherConfig
-from hec_jax.geometry.track import UNSEEN_SCENES, track_box
+from hec_jax.geometry.track import UNSEEN_SCENES, BoxTracker, track_box
 from hec_jax.loop.config import LAB_CHECKS, CameraConfig, scene_tracker
 from hec_jax.mjx_scene.render import render_swing
 
@@ -91,6 +91,13 @@ def test_bad_arguments_raise(seq):
         track_box(seq.frames[:2], seq.intrinsics, EDGE, 0.0)
 
 
+@pytest.mark.parametrize("scales", [[3.0], (3.0, 0.0), (float("nan"),), ("3",)])
+def test_bad_blob_scales_raise(scales):
+    config = dataclasses.replace(TrackConfig(), blob_scales=scales)
+    with pytest.raises(ValueError, match="blob_scales"):
+        BoxTracker(np.diag([500.0, 500.0, 1.0]), EDGE, FPS, config)
+
+
 def test_no_box_visible_gives_invalid(seq):
     frames = np.zeros((6, 480, 640, 3), np.uint8)
     out = track_box(frames, seq.intrinsics, EDGE, FPS)
@@ -163,6 +170,7 @@ OFF = {  # the issue-24 settings and their off values
     "faint_min_threshold": 6.0,
     "faint_segment_min_threshold": None,
     "shadow_faces": None,
+    "blob_scales": (),
 }
 
 
