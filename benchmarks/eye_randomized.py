@@ -17,7 +17,7 @@ Methods, on the same frames:
   ``low_contrast``, ``blob_core=0.4``, ``faint_candidates``, ``batched_search``,
   ``stretch_points``, ``max_outside_foreground=0.2``, ``faint_masks``, ``prior_segments``,
   ``min_foreground_tracked=0.25``, ``shadow_candidates``, ``faint_min_threshold=3`` (6 for the
-  segments' mask), ``shadow_faces=0.1``, ``faint_unshadowed``, ``blob_scales=(3,)`` and, once lost,
+  segments' mask), ``shadow_faces=0.1``, ``faint_unshadowed`` and, once lost,
   ``lost_search_every=2``, without
   ``depth_gate``, on two host threads (``--threads``; the baselines on one);
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
@@ -81,8 +81,8 @@ class EyeRandomized:
     # TrackConfig.faint_unshadowed of the tracker (the preset's, on; False for the ablation,
     # docs/eye_randomized.md "Low views of a low-contrast box")
     faint_unshadowed: bool = TRACK.faint_unshadowed
-    # TrackConfig.blob_scales of the tracker (the preset's, (3,); none given, off, for the
-    # ablation, docs/eye_randomized.md "Blobs of one face")
+    # TrackConfig.blob_scales of the tracker (the preset's, off; 3: the value chosen on the
+    # development seeds, docs/eye_randomized.md "A last search round at 3x the blob")
     blob_scales: tuple[float, ...] = TRACK.blob_scales
     # TrackConfig.threads of the tracker (its host threads; the same outputs for any number; the
     # baselines run on one)

@@ -199,16 +199,16 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     bench = _script("benchmarks/eye_randomized.py")
     default = bench.tracker_config(parse(bench.EyeRandomized(), []))
     assert default == RANDOMIZED_BENCHMARK and default.faint_unshadowed
-    assert default.blob_scales == (3.0,)
+    assert default.blob_scales == ()
     argv = ["--no-faint-unshadowed", "--lsd-contrast", "20", "--search-texture", "0.25"]
-    argv += ["--threads", "1", "--blob-scales"]
+    argv += ["--threads", "1", "--blob-scales", "3"]
     changed = bench.tracker_config(parse(bench.EyeRandomized(), argv))
     assert changed == dataclasses.replace(
         RANDOMIZED_BENCHMARK,
         faint_unshadowed=False,
         lsd_contrast=20.0,
         search_texture=0.25,
-        blob_scales=(),
+        blob_scales=(3.0,),
         threads=1,
     )
     two = bench.tracker_config(parse(bench.EyeRandomized(), ["--blob-scales", "2", "3"]))
