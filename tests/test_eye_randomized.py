@@ -602,6 +602,18 @@ def test_shadow_faces_count_a_dark_face_but_not_a_shadow():
     }
 
 
+def _fresh_tracker_fits(scene, seq, background, cfg) -> tuple[np.ndarray, np.ndarray]:
+    """A fresh ``BoxTracker`` (``cfg``) over the rendered frames: per frame, whether its fit is
+    valid and the fit's distance from the rendered cube centre [m] (NaN where not valid)."""
+    from hec_jax.geometry import BoxTracker
+
+    tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
+    steps = [tracker.update(f) for f in seq.frames]
+    valid = np.array([bool(st.valid) for st in steps])
+    fitted = np.stack([st.measured_position for st in steps])
+    return valid, np.linalg.norm(fitted - seq.position, axis=-1)
+
+
 def test_shadow_faces_find_a_cube_of_the_wall_s_hue():
     """Development seed 21 (low contrast: a magenta cube on a magenta wall, never acquired
     before the option): the colour difference's shadow test takes the cube's darker faces
@@ -609,19 +621,12 @@ def test_shadow_faces_find_a_cube_of_the_wall_s_hue():
     silhouette in the foreground, IoU 0.35). Counting the test's pixels there (``shadow_faces``,
     on in ``RANDOMIZED_BENCHMARK``), a fresh tracker has a valid fit within 2 cm of the
     rendered truth on each of frames 0-5; without, none within 5 cm."""
-    from hec_jax.geometry import BoxTracker
-
     scene = draw_scene(21)
     seq, background = render_random_sequence(scene, 6, FPS, 640, 480)
     assert RANDOMIZED_BENCHMARK.shadow_faces == 0.1
     for option in (0.1, None):
         cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, shadow_faces=option)
-        tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
-        steps = [tracker.update(f) for f in seq.frames]
-        valid = np.array([bool(st.valid) for st in steps])
-        err = np.linalg.norm(
-            np.stack([st.measured_position for st in steps]) - seq.position, axis=-1
-        )
+        valid, err = _fresh_tracker_fits(scene, seq, background, cfg)
         if option is None:
             assert not (valid & (err < 0.05)).any()
         else:
@@ -636,19 +641,12 @@ def test_blob_scales_find_a_low_view_box_the_blob_s_own_search_misses():
     value chosen on the development seeds; off in the preset), a fresh tracker has a valid fit
     within 3 cm of the rendered truth on each of frames 1-3 (the benchmark's gross bar is
     5 cm); without it (the preset), no valid fit."""
-    from hec_jax.geometry import BoxTracker
-
     scene = draw_scene(507)
     seq, background = render_random_sequence(scene, 4, FPS, 640, 480)
     assert RANDOMIZED_BENCHMARK.blob_scales == ()
     for option in ((3.0,), ()):
         cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, blob_scales=option)
-        tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
-        steps = [tracker.update(f) for f in seq.frames]
-        valid = np.array([bool(st.valid) for st in steps])
-        err = np.linalg.norm(
-            np.stack([st.measured_position for st in steps]) - seq.position, axis=-1
-        )
+        valid, err = _fresh_tracker_fits(scene, seq, background, cfg)
         if option:
             assert valid[1:].all() and err[1:].max() < 0.03
         else:
