@@ -373,12 +373,18 @@ def _difference_numpy(image, background, shadow_ratio=(0.25, 0.92), shadow_tol=0
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_colour_difference_is_the_numpy_one_bit_for_bit(seed):
+@pytest.mark.parametrize("block_px", [None, 1000])
+def test_colour_difference_is_the_numpy_one_bit_for_bit(seed, block_px, monkeypatch):
     """The OpenCV colour difference with its shadow test equals the NumPy reference on a
     background with a darkened (shadow) patch, a differently coloured box, sensor noise, dark
     pixels, windows (non-contiguous views) and gray images, with the background as an array
-    and as a ``detect.Background`` (its terms kept); shadows and the box are found."""
+    and as a ``detect.Background`` (its terms kept); shadows and the box are found. The same
+    with the shadow test in blocks of 1000 pixels (here 6 rows each)."""
+    from hec_jax.geometry import detect
     from hec_jax.geometry.detect import Background, difference
+
+    if block_px is not None:
+        monkeypatch.setattr(detect, "_SHADOW_BLOCK_PX", block_px)
 
     rng = np.random.default_rng(seed)
     h, w = 120, 160
@@ -706,3 +712,72 @@ def test_configs_differing_only_on_the_host_share_their_compiled_functions():
     # the filter's noise is read through its config, so it stays in the key
     jerk = dataclasses.replace(base, jerk_psd=2.0 * base.jerk_psd)
     assert track._compiled(jerk, FPS)[3] != track._compiled(base, FPS)[3]
+
+
+def test_cpu_small_kernels_reach_the_compiler_and_change_only_round_off(seq):
+    """``cpu_small_kernels`` compiles the fit without YNNPACK fusions (XLA's default fit has
+    them) and changes only round-off: from a prior 3 mm and 2 deg off the true pose of a rendered
+    frame, the fit is the same pose to 1e-9 either way, and within 2 mm of the truth."""
+    import jax
+
+    from hec_jax.geometry import detect, track
+    from hec_jax.geometry.box_model import Pose, project_corners_np
+
+    if jax.default_backend() != "cpu":
+        pytest.skip("CPU compiler options")
+    i = 5
+    turn = rotation_from_axis_angle(np.array([0.3, -1.0, 0.5]), np.deg2rad(2.0))
+    prior = (turn @ seq.rotation[i], seq.position[i] + np.array([0.003, 0.0, 0.0]))
+    gray = detect.to_gray(seq.frames[i])
+    corners = project_corners_np(*prior, EDGE, seq.intrinsics)
+    segments, mask = detect.pad_segments(
+        detect.detect_segments(gray, track._window(corners, 0.6)), 48
+    )
+    args = (Pose(*prior), segments, mask, np.float64(EDGE), seq.intrinsics, None, None)
+    fits, has_ynn = {}, {}
+    for small in (False, True):
+        locate = track._compiled(TrackConfig(cpu_small_kernels=small), FPS)[0]
+        has_ynn[small] = "ynn" in locate.lower(*args).compile().as_text()
+        fits[small] = jax.device_get(locate(*args))
+    assert has_ynn == {False: True, True: False}
+    a, b = fits[False], fits[True]
+    assert bool(a.valid) and bool(b.valid)
+    assert np.linalg.norm(a.pose.translation - seq.position[i]) < 2e-3
+    np.testing.assert_allclose(b.pose.translation, a.pose.translation, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(b.pose.rotation, a.pose.rotation, rtol=0, atol=1e-9)
+
+
+def test_a_fit_is_never_a_measurement_that_leaves_the_filter_non_finite():
+    """``finish`` (the jitted fit and filter update) flags a fit invalid where the filter update
+    would not be finite, and keeps the prediction: a filter already run away (an infinite
+    position variance, as the infinite covariance of a fit whose centre float32 left unobserved
+    gave on a rendered sequence) takes no measurement. The same fit into a finite filter is
+    valid, within 1 mm of the truth."""
+    from hec_jax.geometry import track
+    from hec_jax.geometry.box_model import EDGES, Pose, project_corners_np
+
+    k = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+    rot, t, size = np.eye(3), np.array([0.02, -0.01, 1.5]), np.float64(EDGE)
+    cfg = TrackConfig()
+    locate, finish, _, fcfg, _ = track._compiled(cfg, FPS)
+    edges = project_corners_np(rot, t, size, k)[EDGES]
+    segments = np.zeros((cfg.max_segments, 2, 2))
+    mask = np.zeros(cfg.max_segments, bool)
+    segments[:12], mask[:12] = edges, True
+    visible = np.flatnonzero(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=-1) > 20)
+    along = np.linspace(0.1, 0.9, 30)[:, None]
+    points = np.zeros((cfg.max_points, 2))
+    ids = np.zeros(cfg.max_points, np.int32)
+    weights = np.zeros(cfg.max_points)
+    for j, e in enumerate(visible):
+        rows = slice(30 * j, 30 * (j + 1))
+        points[rows] = edges[e, 0] + along * (edges[e, 1] - edges[e, 0])
+        ids[rows], weights[rows] = e, 1.0
+    loc = locate(Pose(rot, t + np.array([0.002, 0.0, 0.0])), segments, mask, size, k, None, None)
+    state = kf.init_np(fcfg, t)
+    run_away = kf.FilterState(state.mean, np.where(np.eye(9, dtype=bool), np.inf, state.cov))
+    for filt, want in ((state, True), (run_away, False)):
+        out = finish(filt, loc, points, ids, weights, size, k, False, rot, 0.0, False)
+        assert bool(out.valid) is want
+        assert np.all(np.isfinite(out.filter_state.mean)) or not want
+    assert np.linalg.norm(np.asarray(out.translation) - t) < 1e-3

@@ -308,17 +308,33 @@ def difference(
     if shadow_ratio is None:
         return out
     floors, lit = (kept if kept is not None else Background(background)).terms()
-    ratio = [
-        cv2.divide(c.astype(np.float32), f) for c, f in zip(cv2.split(image), floors, strict=True)
-    ]
+    # pixel by pixel, so in blocks of rows that stay in the cache (a whole frame's float32
+    # planes do not), each the same arithmetic
+    rows = max(1, _SHADOW_BLOCK_PX // out.shape[1])
+    for y in range(0, out.shape[0], rows):
+        block = slice(y, y + rows)
+        shadow = _shadow(image[block], [f[block] for f in floors], shadow_ratio, shadow_tol)
+        out[block][shadow & lit[block]] = 0
+    return out
+
+
+_SHADOW_BLOCK_PX = 65536  # pixels per block of difference's shadow test
+
+
+def _shadow(image: np.ndarray, floors: list, shadow_ratio, shadow_tol: float) -> np.ndarray:
+    """(H, W) bool: :func:`difference`'s shadow test of an RGB ``image`` against the float32
+    background channels floored at 1 (``floors``), the lit test left out.
+    """
+    # a window of a frame is split from a contiguous copy (OpenCV splits a strided one row by
+    # row, 3x the time)
+    channels = cv2.split(np.ascontiguousarray(image))
+    ratio = [cv2.divide(c.astype(np.float32), f) for c, f in zip(channels, floors, strict=True)]
     mean = cv2.add(cv2.add(ratio[0], ratio[1]), ratio[2]) / np.float32(3.0)
     deviation = cv2.max(
         cv2.max(cv2.absdiff(ratio[0], mean), cv2.absdiff(ratio[1], mean)),
         cv2.absdiff(ratio[2], mean),
     )
-    shadow = (mean >= shadow_ratio[0]) & (mean <= shadow_ratio[1]) & (deviation <= shadow_tol) & lit
-    out[shadow] = 0
-    return out
+    return (mean >= shadow_ratio[0]) & (mean <= shadow_ratio[1]) & (deviation <= shadow_tol)
 
 
 def foreground_regions(

@@ -361,6 +361,12 @@ class TrackConfig:
             compared in their usual order). 1: one thread (as before); 2 on a 2-core CPU whose
             other core is idle (the benchmark's); the real-time eye shares its core with the
             camera and keeps 1.
+        cpu_small_kernels: compile the jitted fits and searches for the CPU with XLA's
+            YNNPACK fusions off and Eigen single-threaded (:data:`CPU_SMALL_KERNEL_OPTIONS`, the
+            compiler options of these functions only; other backends ignore it). Their kernels
+            are small (a 6-vector pose, 48 segments, 96 starts), where those libraries cost more
+            than they give; the same arithmetic, equal to round-off but not bit for bit. False:
+            XLA's defaults (as before).
     """
 
     max_segments: int = 48
@@ -430,6 +436,7 @@ class TrackConfig:
     lsd_contrast: float | None = None
     blob_scales: tuple[float, ...] = ()
     threads: int = 1
+    cpu_small_kernels: bool = False
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -496,6 +503,7 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
     shadow_faces=0.1,
     faint_unshadowed=True,
     threads=2,
+    cpu_small_kernels=True,
 )
 
 
@@ -756,6 +764,25 @@ def refine_points(
     return fit, used, 0.5 * (cov + cov.T), 0.5 * (info + info.T)
 
 
+# XLA:CPU compiler options of the tracker's jitted functions with ``cpu_small_kernels``: no
+# YNNPACK fusions (library calls for its elementwise and dot fusions) and single-threaded Eigen.
+# On the 2-core CPU the fits and the search took 25-40% less time (docs/eye_randomized.md,
+# "Compiler options for the small kernels").
+CPU_SMALL_KERNEL_OPTIONS = {
+    "xla_cpu_experimental_ynn_fusion_type": "",
+    "xla_cpu_multi_thread_eigen": False,
+}
+
+
+def _jit(fn, cfg: TrackConfig):
+    """``jax.jit(fn)``, with :data:`CPU_SMALL_KERNEL_OPTIONS` where ``cfg.cpu_small_kernels``
+    and the default backend is the CPU.
+    """
+    if cfg.cpu_small_kernels and jax.default_backend() == "cpu":
+        return jax.jit(fn, compiler_options=CPU_SMALL_KERNEL_OPTIONS)
+    return jax.jit(fn)
+
+
 def _make_locate(cfg: TrackConfig):
     def run(prior, segments, mask, size, intrinsics, occluded, texture):
         gates = jnp.asarray(cfg.gates_px)
@@ -763,7 +790,7 @@ def _make_locate(cfg: TrackConfig):
             prior, segments, mask, size, intrinsics, gates, cfg, occluded, texture=texture
         )
 
-    return jax.jit(run)
+    return _jit(run, cfg)
 
 
 class Finished(NamedTuple):
@@ -800,10 +827,16 @@ def _make_finish(cfg: TrackConfig, fcfg: kf.FilterConfig):
         pred = kf.predict(fcfg, state)
         fresh = kf.init(fcfg, p.translation)
         r = cov / cfg.info_scale
+        # a fit whose centre is not observed (its information singular, as float32 round-off
+        # can leave it: an infinite covariance) is not a measurement
+        valid = valid & jnp.all(jnp.isfinite(r))
         upd = kf.correct(pred, p.translation, r, valid)
         if cfg.maneuver_nis is not None:  # an impact: restart v from the last two positions
             restart, hit = kf.maneuver_reset(fcfg, state, pred, p.translation, r, cfg.maneuver_nis)
             upd = jax.tree.map(lambda a, b: jnp.where(valid & hit, a, b), restart, upd)
+        finite_state = jnp.all(jnp.isfinite(upd.mean)) & jnp.all(jnp.isfinite(upd.cov))
+        valid = valid & finite_state  # never a NaN state (an ill-conditioned covariance)
+        upd = jax.tree.map(lambda a, b: jnp.where(finite_state, a, b), upd, pred)
         new = jax.tree.map(lambda a, b: jnp.where(first & valid, a, b), fresh, upd)
         asc = loc.association
         return Finished(
@@ -820,7 +853,7 @@ def _make_finish(cfg: TrackConfig, fcfg: kf.FilterConfig):
             asc.coverage,
         )
 
-    return jax.jit(finish)
+    return _jit(finish, cfg)
 
 
 def usable_edges(
@@ -948,7 +981,7 @@ def _make_local_search(cfg: TrackConfig):
             fine = jax.vmap(lambda p: one(p.rotation, p.translation, gates[n_coarse:]))
             return _best_start(fine(kept))
 
-        return jax.jit(local)
+        return _jit(local, cfg)
 
     return make(turns[:1], 0), (make(turns[1:], cfg.local_keep) if n else None)
 
@@ -1020,7 +1053,7 @@ def _make_search(cfg: TrackConfig):
         _, keep = jax.lax.top_k(_start_score(first), min(cfg.search_keep, rots.shape[0]))
         return _best_start(jax.vmap(fine)(jax.tree.map(lambda x: x[keep], first.pose)))
 
-    return jax.jit(search)
+    return _jit(search, cfg)
 
 
 class BoxTrack(NamedTuple):
@@ -1117,6 +1150,7 @@ _CACHE: dict = {}
 _TRACED = frozenset(
     {
         "batched_search",
+        "cpu_small_kernels",
         "gate_deg",
         "gates_px",
         "huber_px",
