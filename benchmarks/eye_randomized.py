@@ -19,7 +19,8 @@ Methods, on the same frames:
   ``min_foreground_tracked=0.25``, ``shadow_candidates``, ``faint_min_threshold=3`` (6 for the
   segments' mask), ``shadow_faces=0.1``, ``faint_unshadowed`` and, once lost,
   ``lost_search_every=2``, without
-  ``depth_gate``, on two host threads (``--threads``; the baselines on one);
+  ``depth_gate``, on two host threads (``--threads``; the baselines on one), its jitted fits and
+  searches compiled with ``cpu_small_kernels`` (``--no-cpu-small-kernels``: XLA's defaults);
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
   ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``; the
   library's defaults, which the hand-eye loop uses, have them off): its
@@ -87,6 +88,10 @@ class EyeRandomized:
     # TrackConfig.threads of the tracker (its host threads; the same outputs for any number; the
     # baselines run on one)
     threads: int = TRACK.threads
+    # TrackConfig.cpu_small_kernels of the tracker (the preset's, on: XLA:CPU compiler options of
+    # its jitted fits and searches; False for XLA's defaults, docs/eye_randomized.md "Compiler
+    # options for the small kernels")
+    cpu_small_kernels: bool = TRACK.cpu_small_kernels
 
     def __post_init__(self):
         require(self, "count", "sequences", "width", "height", "threads")
@@ -109,6 +114,7 @@ def tracker_config(a: EyeRandomized):
         faint_unshadowed=a.faint_unshadowed,
         blob_scales=a.blob_scales,
         threads=a.threads,
+        cpu_small_kernels=a.cpu_small_kernels,
     )
 
 

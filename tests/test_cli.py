@@ -199,9 +199,9 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     bench = _script("benchmarks/eye_randomized.py")
     default = bench.tracker_config(parse(bench.EyeRandomized(), []))
     assert default == RANDOMIZED_BENCHMARK and default.faint_unshadowed
-    assert default.blob_scales == ()
+    assert default.blob_scales == () and default.cpu_small_kernels
     argv = ["--no-faint-unshadowed", "--lsd-contrast", "20", "--search-texture", "0.25"]
-    argv += ["--threads", "1", "--blob-scales", "3"]
+    argv += ["--threads", "1", "--blob-scales", "3", "--no-cpu-small-kernels"]
     changed = bench.tracker_config(parse(bench.EyeRandomized(), argv))
     assert changed == dataclasses.replace(
         RANDOMIZED_BENCHMARK,
@@ -210,6 +210,7 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
         search_texture=0.25,
         blob_scales=(3.0,),
         threads=1,
+        cpu_small_kernels=False,
     )
     two = bench.tracker_config(parse(bench.EyeRandomized(), ["--blob-scales", "2", "3"]))
     assert two.blob_scales == (2.0, 3.0)

@@ -736,9 +736,10 @@ def test_cpu_small_kernels_reach_the_compiler_and_change_only_round_off(seq):
     args = (Pose(*prior), segments, mask, np.float64(EDGE), seq.intrinsics, None, None)
     fits, has_ynn = {}, {}
     for small in (False, True):
-        locate = track._compiled(TrackConfig(cpu_small_kernels=small), FPS)[0]
-        has_ynn[small] = "ynn" in locate.lower(*args).compile().as_text()
-        fits[small] = jax.device_get(locate(*args))
+        compiled = track._compiled(TrackConfig(cpu_small_kernels=small), FPS)[0]
+        compiled = compiled.lower(*args).compile()
+        has_ynn[small] = "ynn" in compiled.as_text()
+        fits[small] = jax.device_get(compiled(*args))
     assert has_ynn == {False: True, True: False}
     a, b = fits[False], fits[True]
     assert bool(a.valid) and bool(b.valid)
