@@ -752,8 +752,8 @@ def test_a_fit_is_never_a_measurement_that_leaves_the_filter_non_finite():
     """``finish`` (the jitted fit and filter update) flags a fit invalid where the filter update
     would not be finite, and keeps the prediction: a filter already run away (an infinite
     position variance, as the infinite covariance of a fit whose centre float32 left unobserved
-    gave on a rendered sequence) takes no measurement. The same fit into a finite filter is
-    valid, within 1 mm of the truth."""
+    gave on a rendered sequence) takes no measurement, but a first fit restarts it. The same fit
+    into a finite filter is valid, within 1 mm of the truth."""
     from hec_jax.geometry import track
     from hec_jax.geometry.box_model import EDGES, Pose, project_corners_np
 
@@ -777,8 +777,15 @@ def test_a_fit_is_never_a_measurement_that_leaves_the_filter_non_finite():
     loc = locate(Pose(rot, t + np.array([0.002, 0.0, 0.0])), segments, mask, size, k, None, None)
     state = kf.init_np(fcfg, t)
     run_away = kf.FilterState(state.mean, np.where(np.eye(9, dtype=bool), np.inf, state.cov))
-    for filt, want in ((state, True), (run_away, False)):
-        out = finish(filt, loc, points, ids, weights, size, k, False, rot, 0.0, False)
+    for filt, first, want in (
+        (state, False, True),
+        (run_away, False, False),
+        (run_away, True, True),
+    ):
+        out = finish(filt, loc, points, ids, weights, size, k, first, rot, 0.0, False)
         assert bool(out.valid) is want
-        assert np.all(np.isfinite(out.filter_state.mean)) or not want
+        finite = np.all(np.isfinite(out.filter_state.mean)) & np.all(
+            np.isfinite(out.filter_state.cov)
+        )
+        assert finite or not want
     assert np.linalg.norm(np.asarray(out.translation) - t) < 1e-3

@@ -834,8 +834,9 @@ def _make_finish(cfg: TrackConfig, fcfg: kf.FilterConfig):
         if cfg.maneuver_nis is not None:  # an impact: restart v from the last two positions
             restart, hit = kf.maneuver_reset(fcfg, state, pred, p.translation, r, cfg.maneuver_nis)
             upd = jax.tree.map(lambda a, b: jnp.where(valid & hit, a, b), restart, upd)
+        # never a NaN state (an ill-conditioned covariance); a first fit starts a fresh filter
         finite_state = jnp.all(jnp.isfinite(upd.mean)) & jnp.all(jnp.isfinite(upd.cov))
-        valid = valid & finite_state  # never a NaN state (an ill-conditioned covariance)
+        valid = valid & (finite_state | first)
         upd = jax.tree.map(lambda a, b: jnp.where(finite_state, a, b), upd, pred)
         new = jax.tree.map(lambda a, b: jnp.where(first & valid, a, b), fresh, upd)
         asc = loc.association
