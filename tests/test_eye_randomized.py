@@ -133,6 +133,42 @@ def test_host_threads_give_the_one_thread_outputs_bit_for_bit():
         BoxTracker(seq.intrinsics, scene.edge_m, FPS, dataclasses.replace(cfg, threads=0))
 
 
+def test_one_frame_s_windows_share_their_difference_and_change_nothing():
+    """The tracker's detection window, checks and outline points of a frame take their colour
+    difference from one ``detect.FrameDifferences`` (the checks' windows computed from none):
+    on development seed 131 (search from scratch on frame 0, then tracked) every output equals
+    a tracker's that computes each window anew, with the frames passed in one reused array (a
+    frame's kept differences are not the next frame's)."""
+    from hec_jax.geometry import BoxTracker, detect
+
+    scene, seq, background = _rendered_six(131)
+    steps, served = {}, []
+    for reuse in (False, True):
+        tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, RANDOMIZED_BENCHMARK, background)
+        kept = tracker._frame_differences
+
+        def fresh(image, bg):  # a new FrameDifferences for every window: nothing reused
+            return None if bg is None else detect.FrameDifferences(image, bg)
+
+        def counted(image, bg, _kept=kept):
+            got = _kept(image, bg)
+            served.append(sum(len(b) for _, b in got._planes.values()))
+            return got
+
+        tracker._frame_differences = counted if reuse else fresh
+        buffer = np.empty_like(seq.frames[0])
+        steps[reuse] = []
+        for frame in seq.frames:
+            buffer[...] = frame
+            steps[reuse].append(tracker.update(buffer))
+    assert sum(s.valid for s in steps[True]) >= 5
+    assert sum(n > 0 for n in served) > len(seq.frames)  # windows found kept
+    for one, two in zip(steps[False], steps[True], strict=True):
+        for name in one._fields:
+            if name != "timing_ms":
+                np.testing.assert_array_equal(getattr(one, name), getattr(two, name), name)
+
+
 @pytest.mark.parametrize("seed", [130, 139])
 def test_faint_candidates_find_a_box_the_usual_blobs_cut_into_faces(seed):
     """Development seeds 130 (wood, shadows) and 139 (low contrast): at frame 5 the usual blobs

@@ -413,6 +413,62 @@ def test_colour_difference_is_the_numpy_one_bit_for_bit(seed, block_px, monkeypa
     assert (got[70:100, 90:140] > 0).mean() > 0.9  # the box
 
 
+@pytest.mark.parametrize("seed", [3, 4])
+def test_frame_differences_are_each_window_s_difference_and_reuse_kept_windows(seed):
+    """``detect.FrameDifferences``: every window asked for, with and without the shadow test,
+    equals the NumPy reference of that window (windows inside a kept one, partly outside it,
+    at the image's borders, RGB and gray); a window inside one computed before (same shadow
+    test) computes nothing; a wrong frame at the public functions is a clear error."""
+    from hec_jax.geometry import detect
+    from hec_jax.geometry.detect import Background, FrameDifferences
+
+    rng = np.random.default_rng(seed)
+    h, w = 120, 160
+    background = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    background[30:60, 20:70] = rng.integers(60, 256, (30, 50, 3))
+    image = background.copy()
+    image[30:60, 20:70] = (background[30:60, 20:70] * rng.uniform(0.3, 0.9)).astype(np.uint8)
+    image[70:100, 90:140] = rng.integers(0, 256, 3, dtype=np.uint8)
+    image = np.clip(image + rng.normal(0, 2, image.shape), 0, 255).astype(np.uint8)
+
+    def want(img, bg, box, ratio):
+        x0, y0, x1, y1 = box
+        if ratio is None:
+            diff = np.abs(img[y0:y1, x0:x1].astype(int) - bg[y0:y1, x0:x1])
+            return diff.max(-1) if img.ndim == 3 else diff
+        return _difference_numpy(img[y0:y1, x0:x1], bg[y0:y1, x0:x1])
+
+    boxes = [(10, 20, 150, 110), (30, 40, 90, 100), (100, 5, 160, 60), (0, 0, w, h), (5, 5, 9, 9)]
+    computed = []
+    real = detect.difference
+    counting = lambda *a, **k: (computed.append(a[0].shape), real(*a, **k))[1]  # noqa: E731
+    for img, bg in ((image, Background(background)), (image[..., 1], background[..., 1])):
+        diffs = FrameDifferences(img, bg)
+        for ratio in ((0.25, 0.92), None):
+            for box in boxes:
+                computed.clear()
+                with pytest.MonkeyPatch.context() as mp:
+                    mp.setattr(detect, "difference", counting)
+                    got = diffs(box, ratio)
+                bgi = bg.image if isinstance(bg, Background) else bg
+                np.testing.assert_array_equal(
+                    got, want(img, bgi, box, ratio if img.ndim == 3 else None)
+                )
+                inside_kept = box in [
+                    (30, 40, 90, 100),
+                    (5, 5, 9, 9),
+                ]  # in (10, 20, 150, 110) / frame
+                assert (not computed) == inside_kept, (box, computed)
+    other = image.copy()
+    diffs = FrameDifferences(image, background)
+    with pytest.raises(ValueError, match="FrameDifferences"):
+        detect.foreground_mask(other, background, (0, 0, 50, 50), differences=diffs)
+    got = detect.foreground_mask(image, background, (0, 0, 50, 50), differences=diffs)
+    np.testing.assert_array_equal(
+        got[0], detect.foreground_mask(image, background, (0, 0, 50, 50))[0]
+    )
+
+
 def test_faint_regions_and_their_median_as_numpy_computes_them():
     """The faint foreground's noise level (the median of a uint8 difference, from its histogram)
     is NumPy's median, odd and even sizes; the faint blobs are the same with the background

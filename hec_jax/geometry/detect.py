@@ -321,6 +321,62 @@ def difference(
 _SHADOW_BLOCK_PX = 65536  # pixels per block of difference's shadow test
 
 
+class FrameDifferences:
+    """:func:`difference` of one frame to one background, window by window, each window kept.
+
+    ``differences(box, shadow_ratio)``, ``box`` = (x0, y0, x1, y1) inside the image [px], is
+    ``difference(image[y0:y1, x0:x1], background[y0:y1, x0:x1], shadow_ratio)`` (a new array),
+    bit for bit: the difference is pixel by pixel, so a window inside one computed before (with
+    the same ``shadow_ratio``) is copied from it, and another is computed and kept. A tracker's
+    checks of one frame ask for windows inside the one its detection window asked for first.
+    Calls from several threads are safe (a pixel computed twice is written the same value).
+    """
+
+    def __init__(self, image: np.ndarray, background: np.ndarray | Background):
+        self.image = image
+        self.background = background
+        self._lock = threading.Lock()
+        self._planes: dict = {}  # shadow_ratio -> ((H, W) uint8 plane, [boxes computed in it])
+
+    def __call__(self, box, shadow_ratio=_SHADOW_RATIO) -> np.ndarray:
+        """(y1 - y0, x1 - x0) uint8: the difference of the window ``box`` (integers, inside the
+        image), computed or copied from a kept window that holds it.
+        """
+        x0, y0, x1, y1 = box
+        key = None if shadow_ratio is None else tuple(shadow_ratio)
+        with self._lock:
+            if key not in self._planes:
+                self._planes[key] = (np.empty(self.image.shape[:2], np.uint8), [])
+            plane, boxes = self._planes[key]
+            known = any(
+                b[0] <= x0 and b[1] <= y0 and x1 <= b[2] and y1 <= b[3] for b in tuple(boxes)
+            )
+        if known:
+            return plane[y0:y1, x0:x1].copy()
+        window = (slice(y0, y1), slice(x0, x1))
+        diff = difference(self.image[window], self.background[window], shadow_ratio)
+        plane[window] = diff
+        with self._lock:
+            boxes.append((x0, y0, x1, y1))  # after its pixels are written
+        return diff
+
+    def of(self, image, background) -> bool:
+        """Whether these are the frame and background this object differences."""
+        return image is self.image and background is self.background
+
+
+def _window_difference(image, background, box, shadow_ratio, differences) -> np.ndarray:
+    """``difference`` of the window ``box`` = (x0, y0, x1, y1), from ``differences`` (a
+    :class:`FrameDifferences` of ``image`` and ``background``) where given.
+    """
+    if differences is None:
+        x0, y0, x1, y1 = box
+        return difference(image[y0:y1, x0:x1], background[y0:y1, x0:x1], shadow_ratio)
+    if not differences.of(image, background):
+        raise ValueError("differences is not a FrameDifferences of this image and background")
+    return differences(box, shadow_ratio)
+
+
 def _shadow(image: np.ndarray, floors: list, shadow_ratio, shadow_tol: float) -> np.ndarray:
     """(H, W) bool: :func:`difference`'s shadow test of an RGB ``image`` against the float32
     background channels floored at 1 (``floors``), the lit test left out.
@@ -345,6 +401,7 @@ def foreground_regions(
     count: int = 3,
     core: float = 0.0,
     shadows: bool = True,
+    differences: FrameDifferences | None = None,
 ) -> list[tuple[tuple[int, int, int, int], float]]:
     """Bounding boxes (x0, y0, x1, y1) and areas [px^2] of the ``count`` largest moving blobs.
 
@@ -353,8 +410,13 @@ def foreground_regions(
     Where the object was in the background image, the difference shows a blob too (a "ghost");
     the caller tries each blob. ``core`` > 0: each blob cut to its compact core
     (:func:`_compact_core`; a rod too thick for the opening is cut off the box).
+    ``differences``: a :class:`FrameDifferences` of ``gray`` and ``background`` to take the
+    difference from (and keep it in), or None.
     """
-    diff = difference(gray, background) if shadows else difference(gray, background, None)
+    box = (0, 0, gray.shape[1], gray.shape[0])
+    diff = _window_difference(
+        gray, background, box, _SHADOW_RATIO if shadows else None, differences
+    )
     return _largest_blobs(diff > threshold, open_px, count, core)
 
 
@@ -607,6 +669,7 @@ def foreground_mask(
     faint_threshold: float | None = None,
     faint_blur_px: int = 5,
     shadows: bool = True,
+    differences: FrameDifferences | None = None,
 ) -> tuple[np.ndarray, tuple[int, int, int, int]] | None:
     """Pixels of ``gray`` (or RGB, :func:`difference`) that differ from the background inside ``roi`` = (x0, y0, x1, y1) [px]: ((h, w) bool
     mask of the clipped window, the window), or None if the window is empty.
@@ -618,14 +681,15 @@ def foreground_mask(
     :func:`faint_foreground_regions`: a box close to the background's colour). The mask is then
     dilated by ``dilate_px`` (a square of 2 dilate_px + 1). ``shadows`` False: both differences
     without :func:`difference`'s shadow test (the pixels it takes for shadows count).
+    ``differences``: a :class:`FrameDifferences` of ``gray`` and ``background`` to take the
+    window's difference from (the same numbers), or None.
     """
     h, w = gray.shape[:2]
     box = clip_roi(roi, w, h)
     if box is None:
         return None
-    x0, y0, x1, y1 = box
     ratio = _SHADOW_RATIO if shadows else None
-    diff = difference(gray[y0:y1, x0:x1], background[y0:y1, x0:x1], ratio)
+    diff = _window_difference(gray, background, box, ratio, differences)
     mask = cv2.blur(diff, (3, 3)) > threshold
     if faint_threshold is not None:
         mask |= faint_window(gray, background, box, faint_threshold, faint_blur_px, shadows)
@@ -677,13 +741,14 @@ def foreground_fraction(
     threshold: int = 12,
     faint_threshold: float | None = None,
     shadows: bool = True,
+    differences: FrameDifferences | None = None,
 ) -> float:
     """Fraction of the convex hull of ``polygon_px`` (N, 2) [px, intrinsics convention] whose
     pixels differ from the background (:func:`foreground_mask`, with its ``faint_threshold`` and
     ``shadows``); 0 if it lies outside the image.
 
     Confirms a model fit: a box fitted to the edges of a static object (clutter) lies on pixels
-    that match the background.
+    that match the background. ``differences``: as :func:`foreground_mask`'s.
     """
     pts = np.asarray(polygon_px, np.float64) - PIXEL_OFFSET
     if not np.all(np.isfinite(pts)):
@@ -691,7 +756,13 @@ def foreground_fraction(
     lo, hi = np.floor(pts.min(0)), np.ceil(pts.max(0)) + 1
     roi = (lo[0], lo[1], hi[0], hi[1])
     got = foreground_mask(
-        gray, background, roi, threshold, faint_threshold=faint_threshold, shadows=shadows
+        gray,
+        background,
+        roi,
+        threshold,
+        faint_threshold=faint_threshold,
+        shadows=shadows,
+        differences=differences,
     )
     if got is None:
         return 0.0
@@ -711,6 +782,7 @@ def outside_foreground_fraction(
     width: float = 0.15,
     open_px: int = 3,
     ignore: np.ndarray | None = None,
+    differences: FrameDifferences | None = None,
 ) -> float:
     """Fraction of a ring just outside the convex hull of ``polygon_px`` (N, 2) [px, intrinsics
     convention] whose pixels differ from the background (:func:`foreground_mask`, opened by
@@ -722,6 +794,7 @@ def outside_foreground_fraction(
 
     Confirms a model fit: the background shows around a box's true silhouette, while a box
     fitted inside it (too far away, on the edges of its texture) has the box around it.
+    ``differences``: as :func:`foreground_mask`'s.
     """
     pts = np.asarray(polygon_px, np.float64) - PIXEL_OFFSET
     if not np.all(np.isfinite(pts)):
@@ -729,9 +802,8 @@ def outside_foreground_fraction(
     lo, hi = pts.min(0), pts.max(0)
     ring_px = max(2.0, width * float(np.max(hi - lo)))
     pad = gap_px + ring_px + 2
-    got = foreground_mask(
-        image, background, (lo[0] - pad, lo[1] - pad, hi[0] + pad + 1, hi[1] + pad + 1), threshold
-    )
+    window = (lo[0] - pad, lo[1] - pad, hi[0] + pad + 1, hi[1] + pad + 1)
+    got = foreground_mask(image, background, window, threshold, differences=differences)
     if got is None:
         return float("nan")
     mask, (x0, y0, x1, y1) = got
@@ -769,6 +841,7 @@ def foreground_iou(
     open_px: int = 3,
     faint_threshold: float | None = None,
     shadows: bool = True,
+    differences: FrameDifferences | None = None,
 ) -> float:
     """Intersection over union of the convex hull of ``polygon_px`` (N, 2) [px, intrinsics
     convention] and the foreground (:func:`foreground_mask`, with its ``faint_threshold`` and
@@ -777,6 +850,7 @@ def foreground_iou(
 
     Confirms a model fit found from scratch: a box fitted a few centimetres off, or to a static
     object, covers the moving blob poorly. 0 where the window leaves the image.
+    ``differences``: as :func:`foreground_mask`'s.
     """
     pts = np.asarray(polygon_px, np.float64) - PIXEL_OFFSET
     if not np.all(np.isfinite(pts)):
@@ -785,7 +859,13 @@ def foreground_iou(
     pad = margin * float(np.max(hi - lo)) + 2
     roi = (lo[0] - pad, lo[1] - pad, hi[0] + pad, hi[1] + pad)
     got = foreground_mask(
-        image, background, roi, threshold, faint_threshold=faint_threshold, shadows=shadows
+        image,
+        background,
+        roi,
+        threshold,
+        faint_threshold=faint_threshold,
+        shadows=shadows,
+        differences=differences,
     )
     if got is None:
         return 0.0

@@ -1439,6 +1439,7 @@ class BoxTracker:
         self._occluded_host = None  # the same on the host (the confirmation checks)
         self._pool = None  # host threads (config.threads > 1), made on first use
         self._blurred = None  # (gray frame, detect.edge_blur of it) of the frame's fits
+        self._differences = None  # the frame's detect.FrameDifferences (_frame_differences)
         self._f, self._q = (np.asarray(x) for x in kf.transition(self._fcfg))
         self.reset()
 
@@ -1611,19 +1612,22 @@ class BoxTracker:
             self._bg_dirty = False
             self._faint_threshold = None
         image, background = self._difference_pair(gray)
+        diffs = self._frame_differences(image, background)
         regions = []
         if background is not None:
             faint = cfg.low_contrast and cfg.faint_candidates  # else only where none is found
 
             def blobs(kind: str) -> list:
                 if kind == "usual":
-                    return detect.foreground_regions(image, background, core=cfg.blob_core)
+                    return detect.foreground_regions(
+                        image, background, core=cfg.blob_core, differences=diffs
+                    )
                 if kind == "faint":
                     return detect.faint_foreground_regions(
                         image, background, min_threshold=cfg.faint_min_threshold, core=cfg.blob_core
                     )
                 return detect.foreground_regions(
-                    image, background, core=cfg.blob_core, shadows=False
+                    image, background, core=cfg.blob_core, shadows=False, differences=diffs
                 )
 
             kinds = ["usual"] + ["faint"] * faint
@@ -1766,7 +1770,13 @@ class BoxTracker:
         margin = 6  # [px] beyond the window: the sides' samples, and the 3x3 blur's border
         window = (roi[0] - margin, roi[1] - margin, roi[2] + margin, roi[3] + margin)
         image, background = self._difference_pair(gray)
-        got = detect.foreground_mask(image, background, window, cfg.foreground_threshold)
+        got = detect.foreground_mask(
+            image,
+            background,
+            window,
+            cfg.foreground_threshold,
+            differences=self._frame_differences(image, background),
+        )
         if got is None:
             return mask, None
         foreground, box = got
@@ -1881,6 +1891,18 @@ class BoxTracker:
             return self._frame_rgb, self._background_terms
         return gray, self.background
 
+    def _frame_differences(self, image, background) -> detect.FrameDifferences | None:
+        """The frame's :class:`detect.FrameDifferences` of ``image`` to ``background`` (those of
+        :meth:`_difference_pair`; made on first use in a frame, so the windows of one frame's
+        detection and checks share their pixels), or None where there is no background yet.
+        """
+        if background is None:
+            return None
+        kept = self._differences
+        if kept is None or not kept.of(image, background):
+            kept = self._differences = detect.FrameDifferences(image, background)
+        return kept
+
     def _moving_segments(self, gray, roi) -> np.ndarray:
         """Segments in ``roi``; with ``foreground_edges`` and a background, only those on the
         moving blob's dilated mask (the edges of static clutter next to the box are not the box's).
@@ -1934,7 +1956,7 @@ class BoxTracker:
         if box is None:
             return None
         x0, y0, x1, y1 = box
-        diff = detect.difference(image[y0:y1, x0:x1], background[y0:y1, x0:x1])
+        diff = self._frame_differences(image, background)(box)
         mask = cv2.blur(diff, (3, 3)) > cfg.foreground_threshold
         floor = cfg.faint_segment_min_threshold
         floor = cfg.faint_min_threshold if floor is None else floor
@@ -1970,7 +1992,7 @@ class BoxTracker:
         if box is None:
             return pts, ids
         x0, y0, x1, y1 = box
-        diff = detect.difference(image[y0:y1, x0:x1], background[y0:y1, x0:x1])
+        diff = self._frame_differences(image, background)(box)
         offset = np.array([x0, y0], float)
         p2, i2 = detect.edge_points(
             diff,
@@ -2025,35 +2047,38 @@ class BoxTracker:
         thr = cfg.foreground_threshold
         faint = self._faint_level(image, background, cfg.faint_min_threshold)
         lit = None  # the silhouette's fraction that differs with the shadow test
+        kept = {"differences": self._frame_differences(image, background)}
 
         def shadowed_faces() -> bool:  # the shadow test's pixels may count (shadow_faces)
             nonlocal lit
             if cfg.shadow_faces is None:
                 return False
             if lit is None:
-                lit = detect.foreground_fraction(image, background, corners, thr, faint)
+                lit = detect.foreground_fraction(image, background, corners, thr, faint, **kept)
             return lit >= cfg.shadow_faces
 
         if least > 0:
-            lit = detect.foreground_fraction(image, background, corners, thr, faint)
+            lit = detect.foreground_fraction(image, background, corners, thr, faint, **kept)
             fraction = lit
             if fraction < least and shadowed_faces():
                 fraction = detect.foreground_fraction(
-                    image, background, corners, thr, faint, shadows=False
+                    image, background, corners, thr, faint, shadows=False, **kept
                 )
             if fraction < least:
                 return False
         if ring:
             outside = detect.outside_foreground_fraction(
-                image, background, corners, thr, ignore=self._occluded_host
+                image, background, corners, thr, ignore=self._occluded_host, **kept
             )
             if outside > cfg.max_outside_foreground:  # NaN (nothing to count) passes
                 return False
         if iou:
-            overlap = detect.foreground_iou(image, background, corners, thr, faint_threshold=faint)
+            overlap = detect.foreground_iou(
+                image, background, corners, thr, faint_threshold=faint, **kept
+            )
             if overlap < cfg.min_iou_acquire and shadowed_faces():
                 overlap = detect.foreground_iou(
-                    image, background, corners, thr, faint_threshold=faint, shadows=False
+                    image, background, corners, thr, faint_threshold=faint, shadows=False, **kept
                 )
             if overlap < cfg.min_iou_acquire:
                 return False
@@ -2181,6 +2206,7 @@ class BoxTracker:
                 not (H, W).
         """
         frame = _check_frame(frame)
+        self._differences = None  # (the caller may pass the next frame in the same array)
         self._occluded = self._occluded_pixels(occluded, frame.shape[:2])
         self._occluded_host = None if occluded is None else np.asarray(occluded, bool)
         shape = self.background.shape if self._given_background else None
