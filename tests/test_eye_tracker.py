@@ -413,6 +413,20 @@ def test_colour_difference_is_the_numpy_one_bit_for_bit(seed, block_px, monkeypa
     assert (got[70:100, 90:140] > 0).mean() > 0.9  # the box
 
 
+def _shadowed_box_scene(seed: int, noise: float) -> tuple[np.ndarray, np.ndarray]:
+    """(image, background), 120x160 RGB: a random background, a darkened (shadow) patch, a
+    box of one colour and sensor noise of ``noise`` grey levels."""
+    rng = np.random.default_rng(seed)
+    h, w = 120, 160
+    background = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    background[30:60, 20:70] = rng.integers(60, 256, (30, 50, 3))
+    image = background.copy()
+    image[30:60, 20:70] = (background[30:60, 20:70] * rng.uniform(0.3, 0.9)).astype(np.uint8)
+    image[70:100, 90:140] = rng.integers(0, 256, 3, dtype=np.uint8)
+    image = np.clip(image + rng.normal(0, noise, image.shape), 0, 255).astype(np.uint8)
+    return image, background
+
+
 @pytest.mark.parametrize("seed", [3, 4])
 def test_frame_differences_are_each_window_s_difference_and_reuse_kept_windows(seed):
     """``detect.FrameDifferences``: every window asked for, with and without the shadow test,
@@ -422,14 +436,8 @@ def test_frame_differences_are_each_window_s_difference_and_reuse_kept_windows(s
     from hec_jax.geometry import detect
     from hec_jax.geometry.detect import Background, FrameDifferences
 
-    rng = np.random.default_rng(seed)
-    h, w = 120, 160
-    background = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
-    background[30:60, 20:70] = rng.integers(60, 256, (30, 50, 3))
-    image = background.copy()
-    image[30:60, 20:70] = (background[30:60, 20:70] * rng.uniform(0.3, 0.9)).astype(np.uint8)
-    image[70:100, 90:140] = rng.integers(0, 256, 3, dtype=np.uint8)
-    image = np.clip(image + rng.normal(0, 2, image.shape), 0, 255).astype(np.uint8)
+    image, background = _shadowed_box_scene(seed, noise=2.0)
+    h, w = image.shape[:2]
 
     def want(img, bg, box, ratio):
         x0, y0, x1, y1 = box
@@ -467,6 +475,49 @@ def test_frame_differences_are_each_window_s_difference_and_reuse_kept_windows(s
     np.testing.assert_array_equal(
         got[0], detect.foreground_mask(image, background, (0, 0, 50, 50))[0]
     )
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_frame_differences_faint_windows_are_each_window_s_own_blur_bit_for_bit(seed):
+    """``FrameDifferences.faint``: each window's difference equals the NumPy reference of the
+    window blurred on its own (``cv2.blur`` of a copy, its border reflected at the window's
+    sides) against the whole background blurred, with and without the shadow test, RGB and
+    gray, for windows at the image's borders, inside others and the whole frame; a window
+    asked for again computes nothing and gives the same numbers."""
+    import cv2
+
+    from hec_jax.geometry.detect import Background, FrameDifferences
+
+    image, background = _shadowed_box_scene(seed, noise=3.0)
+    h, w = image.shape[:2]
+    blur = 5
+
+    def want(img, bg, box, ratio):
+        x0, y0, x1, y1 = box
+        window = cv2.blur(img[y0:y1, x0:x1].copy(), (blur, blur))
+        bgw = cv2.blur(bg, (blur, blur))[y0:y1, x0:x1]
+        if ratio is None or img.ndim == 2:
+            diff = np.abs(window.astype(int) - bgw)
+            return diff.max(-1) if img.ndim == 3 else diff
+        return _difference_numpy(window, bgw)
+
+    boxes = [(10, 20, 150, 110), (30, 40, 90, 100), (0, 22, 60, 80), (0, 0, w, h), (40, 50, 44, 90)]
+    for img, bg in ((image, Background(background)), (image[..., 1], background[..., 1])):
+        bgi = bg.image if isinstance(bg, Background) else bg
+        for ratio in ((0.25, 0.92), None):
+            diffs = FrameDifferences(img, bg)
+            direct = diffs._faint_direct
+            for box in boxes + boxes[::-1]:
+                computed = []
+                diffs._faint_direct = lambda b, *a, _d=direct, _c=computed: (
+                    _c.append(b),
+                    _d(b, *a),
+                )[1]
+                again = diffs._faint.get((box, blur, ratio)) is not None
+                got = diffs.faint(box, blur, ratio)
+                np.testing.assert_array_equal(got, want(img, bgi, box, ratio), str(box))
+                assert computed == ([] if again else [box])
+            assert len(diffs._faint) == len(boxes)
 
 
 def test_faint_regions_and_their_median_as_numpy_computes_them():

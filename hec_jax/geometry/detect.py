@@ -329,21 +329,25 @@ class FrameDifferences:
     bit for bit: the difference is pixel by pixel, so a window inside one computed before (with
     the same ``shadow_ratio``) is copied from it, and another is computed and kept. A tracker's
     checks of one frame ask for windows inside the one its detection window asked for first.
+    :meth:`faint` keeps the faint foreground's differences of blurred windows (one asked for
+    again is copied).
     Calls from several threads are safe (a pixel computed twice is written the same value).
     """
 
     def __init__(self, image: np.ndarray, background: np.ndarray | Background):
         self.image = image
         self.background = background
+        # the background's blurred copies kept (a gray array's too)
+        kept = isinstance(background, Background)
+        self._blurred_background = background if kept else Background(background)
         self._lock = threading.Lock()
-        self._planes: dict = {}  # shadow_ratio -> ((H, W) uint8 plane, [boxes computed in it])
+        # key -> ((H, W) uint8 plane, [boxes (x0, y0, x1, y1) whose pixels in it are known])
+        self._planes: dict = {}
+        self._faint: dict = {}  # (box, blur_px, shadow_ratio) -> the faint window's difference
 
-    def __call__(self, box, shadow_ratio=_SHADOW_RATIO) -> np.ndarray:
-        """(y1 - y0, x1 - x0) uint8: the difference of the window ``box`` (integers, inside the
-        image), computed or copied from a kept window that holds it.
-        """
+    def _plane(self, key, box) -> tuple[np.ndarray, list, bool]:
+        """(plane, its boxes, whether ``box`` lies in one of them) of ``key``."""
         x0, y0, x1, y1 = box
-        key = None if shadow_ratio is None else tuple(shadow_ratio)
         with self._lock:
             if key not in self._planes:
                 self._planes[key] = (np.empty(self.image.shape[:2], np.uint8), [])
@@ -351,14 +355,53 @@ class FrameDifferences:
             known = any(
                 b[0] <= x0 and b[1] <= y0 and x1 <= b[2] and y1 <= b[3] for b in tuple(boxes)
             )
+        return plane, boxes, known
+
+    def _keep(self, boxes: list, box) -> None:
+        with self._lock:
+            boxes.append(tuple(box))  # after its pixels are written
+
+    def __call__(self, box, shadow_ratio=_SHADOW_RATIO) -> np.ndarray:
+        """(y1 - y0, x1 - x0) uint8: the difference of the window ``box`` (integers, inside the
+        image), computed or copied from a kept window that holds it.
+        """
+        x0, y0, x1, y1 = box
+        key = None if shadow_ratio is None else tuple(shadow_ratio)
+        plane, boxes, known = self._plane(key, box)
         if known:
             return plane[y0:y1, x0:x1].copy()
         window = (slice(y0, y1), slice(x0, x1))
         diff = difference(self.image[window], self.background[window], shadow_ratio)
         plane[window] = diff
-        with self._lock:
-            boxes.append((x0, y0, x1, y1))  # after its pixels are written
+        self._keep(boxes, box)
         return diff
+
+    def faint(self, box, blur_px: int = 5, shadow_ratio=_SHADOW_RATIO) -> np.ndarray:
+        """(y1 - y0, x1 - x0) uint8: :func:`difference` of the window ``box`` (integers, inside
+        the image) blurred by a ``blur_px`` square (``cv2.blur``, its border reflected at the
+        window's sides) and the whole background blurred, cut to the window: the difference
+        of :func:`faint_window` and :func:`faint_foreground_regions`, bit for bit.
+
+        Only a window asked for before (the same box, blur and shadow test; a search from
+        scratch asks for the whole frame's more than once) is copied from the kept one: the
+        blur of a window inside another differs from it along its sides (and computing
+        those sides apart costs more than a tracked box's window).
+        """
+        key = (tuple(box), blur_px, None if shadow_ratio is None else tuple(shadow_ratio))
+        with self._lock:
+            kept = self._faint.get(key)
+        if kept is None:
+            kept = self._faint_direct(box, blur_px, shadow_ratio)
+            with self._lock:
+                self._faint[key] = kept
+        return kept.copy()
+
+    def _faint_direct(self, box, blur_px: int, shadow_ratio) -> np.ndarray:
+        """The faint difference of the window ``box``, computed (as :func:`faint_window`)."""
+        x0, y0, x1, y1 = box
+        k = (blur_px, blur_px)
+        blurred = cv2.blur(np.ascontiguousarray(self.image[y0:y1, x0:x1]), k)
+        return difference(blurred, self._blurred_background.blurred(k)[y0:y1, x0:x1], shadow_ratio)
 
     def of(self, image, background) -> bool:
         """Whether these are the frame and background this object differences."""
@@ -430,6 +473,7 @@ def faint_foreground_regions(
     count: int = 3,
     core: float = 0.0,
     shadows: bool = True,
+    differences: FrameDifferences | None = None,
 ) -> list[tuple[tuple[int, int, int, int], float]]:
     """:func:`foreground_regions` for a box close to the background's colour: the difference
     (:func:`difference`, shadows included) of both images blurred by a ``blur_px`` square (the
@@ -437,29 +481,18 @@ def faint_foreground_regions(
     median over the frame (most pixels are background: the median is the noise's level), at
     least ``min_threshold`` grey levels. ``shadows`` False: the same threshold on the difference
     without the shadow test (a box of the background's hue, darker, passes that test as a
-    shadow).
+    shadow). ``differences``: as :func:`faint_window`'s (the whole frame's kept).
     """
-    blurred = _blurred_pair(image, background, blur_px)
-    diff = difference(*blurred)
+    if differences is None:
+        differences = FrameDifferences(image, background)
+    elif not differences.of(image, background):
+        raise ValueError("differences is not a FrameDifferences of this image and background")
+    frame = (0, 0, image.shape[1], image.shape[0])
+    diff = differences.faint(frame, blur_px)
     threshold = max(min_threshold, noise_factor * _median_uint8(diff))
     if not shadows:
-        diff = difference(*blurred, None)
+        diff = differences.faint(frame, blur_px, None)
     return _largest_blobs(diff > threshold, open_px, count, core)
-
-
-def _blurred_pair(image: np.ndarray, background, blur_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """Both images blurred by a ``blur_px`` square (whole frames; the background's kept by a
-    :class:`Background`).
-    """
-    k = (blur_px, blur_px)
-    if not isinstance(background, Background):
-        background = Background(background)
-    return cv2.blur(image, k), background.blurred(k)
-
-
-def _faint_difference(image: np.ndarray, background, blur_px: int) -> np.ndarray:
-    """:func:`difference` of both images blurred by a ``blur_px`` square (whole frames)."""
-    return difference(*_blurred_pair(image, background, blur_px))
 
 
 def faint_threshold(
@@ -474,7 +507,9 @@ def faint_threshold(
     at least ``min_threshold``. A property of the camera and the scene's light: a tracker can
     take it once (:func:`foreground_mask`'s ``faint_threshold``).
     """
-    diff = _faint_difference(image, background, blur_px)
+    diff = FrameDifferences(image, background).faint(
+        (0, 0, image.shape[1], image.shape[0]), blur_px
+    )
     return max(min_threshold, noise_factor * _median_uint8(diff))
 
 
@@ -692,7 +727,9 @@ def foreground_mask(
     diff = _window_difference(gray, background, box, ratio, differences)
     mask = cv2.blur(diff, (3, 3)) > threshold
     if faint_threshold is not None:
-        mask |= faint_window(gray, background, box, faint_threshold, faint_blur_px, shadows)
+        mask |= faint_window(
+            gray, background, box, faint_threshold, faint_blur_px, shadows, differences
+        )
     mask = mask.astype(np.uint8)
     if dilate_px > 0:
         mask = cv2.dilate(mask, np.ones((2 * dilate_px + 1, 2 * dilate_px + 1), np.uint8))
@@ -718,20 +755,27 @@ def _opened(mask: np.ndarray, open_px: int) -> np.ndarray:
 
 
 def faint_window(
-    image: np.ndarray, background, box, threshold: float, blur_px: int = 5, shadows: bool = True
+    image: np.ndarray,
+    background,
+    box,
+    threshold: float,
+    blur_px: int = 5,
+    shadows: bool = True,
+    differences: FrameDifferences | None = None,
 ) -> np.ndarray:
     """(h, w) bool: the window ``box`` = (x0, y0, x1, y1) (inside the image) of the faint
     foreground, the difference of the window blurred by a ``blur_px`` square and the whole
     background blurred (kept by a :class:`Background`) cut to the window, over ``threshold``
-    (``shadows`` False: without :func:`difference`'s shadow test).
+    (``shadows`` False: without :func:`difference`'s shadow test). ``differences``: a
+    :class:`FrameDifferences` of ``image`` and ``background`` to take the difference from
+    (:meth:`FrameDifferences.faint`, the same numbers), or None.
     """
-    x0, y0, x1, y1 = box
-    k = (blur_px, blur_px)
-    if not isinstance(background, Background):
-        background = Background(background)
-    window = cv2.blur(np.ascontiguousarray(image[y0:y1, x0:x1]), k)
     ratio = _SHADOW_RATIO if shadows else None
-    return difference(window, background.blurred(k)[y0:y1, x0:x1], ratio) > threshold
+    if differences is None:
+        differences = FrameDifferences(image, background)
+    elif not differences.of(image, background):
+        raise ValueError("differences is not a FrameDifferences of this image and background")
+    return differences.faint(box, blur_px, ratio) > threshold
 
 
 def foreground_fraction(

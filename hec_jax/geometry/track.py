@@ -1624,7 +1624,11 @@ class BoxTracker:
                     )
                 if kind == "faint":
                     return detect.faint_foreground_regions(
-                        image, background, min_threshold=cfg.faint_min_threshold, core=cfg.blob_core
+                        image,
+                        background,
+                        min_threshold=cfg.faint_min_threshold,
+                        core=cfg.blob_core,
+                        differences=diffs,
                     )
                 return detect.foreground_regions(
                     image, background, core=cfg.blob_core, shadows=False, differences=diffs
@@ -1713,6 +1717,7 @@ class BoxTracker:
                 min_threshold=cfg.faint_min_threshold,
                 core=cfg.blob_core,
                 shadows=False,
+                differences=diffs,
             )
             more = [r for r in self._large(more) if all(_iou(r[0], q[0]) < 0.7 for q in regions)]
             found = best_passed([window(r) for r in more])
@@ -1956,13 +1961,14 @@ class BoxTracker:
         if box is None:
             return None
         x0, y0, x1, y1 = box
-        diff = self._frame_differences(image, background)(box)
+        differences = self._frame_differences(image, background)
+        diff = differences(box)
         mask = cv2.blur(diff, (3, 3)) > cfg.foreground_threshold
         floor = cfg.faint_segment_min_threshold
         floor = cfg.faint_min_threshold if floor is None else floor
         faint = self._faint_level(image, background, floor)
         if faint is not None:
-            mask |= detect.faint_window(image, background, box, faint)
+            mask |= detect.faint_window(image, background, box, faint, differences=differences)
         contrast = None
         if cfg.lsd_contrast is not None and np.count_nonzero(mask) >= 16:
             contrast = detect._median_uint8(diff[mask])
