@@ -469,6 +469,11 @@ def test_frame_differences_are_each_window_s_difference_and_reuse_kept_windows(s
                 assert (not computed) == inside_kept, (box, computed)
     other = image.copy()
     diffs = FrameDifferences(image, background)
+    for bad in ((-1, 0, 10, 10), (0, 0, w + 1, 10), (5, 5, 5, 9), (0, 9, 10, 3)):
+        with pytest.raises(ValueError, match="inside the 160x120 image"):
+            diffs(bad)
+        with pytest.raises(ValueError, match="inside the 160x120 image"):
+            diffs.faint(bad)
     with pytest.raises(ValueError, match="FrameDifferences"):
         detect.foreground_mask(other, background, (0, 0, 50, 50), differences=diffs)
     got = detect.foreground_mask(image, background, (0, 0, 50, 50), differences=diffs)

@@ -345,6 +345,12 @@ class FrameDifferences:
         self._planes: dict = {}
         self._faint: dict = {}  # (box, blur_px, shadow_ratio) -> the faint window's difference
 
+    def _check(self, box) -> None:
+        h, w = self.image.shape[:2]
+        x0, y0, x1, y1 = box
+        if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
+            raise ValueError(f"window {tuple(box)} is not a non-empty box inside the {w}x{h} image")
+
     def _plane(self, key, box) -> tuple[np.ndarray, list, bool]:
         """(plane, its boxes, whether ``box`` lies in one of them) of ``key``."""
         x0, y0, x1, y1 = box
@@ -364,7 +370,11 @@ class FrameDifferences:
     def __call__(self, box, shadow_ratio=_SHADOW_RATIO) -> np.ndarray:
         """(y1 - y0, x1 - x0) uint8: the difference of the window ``box`` (integers, inside the
         image), computed or copied from a kept window that holds it.
+
+        Raises:
+            ValueError: ``box`` is empty or not inside the image.
         """
+        self._check(box)
         x0, y0, x1, y1 = box
         key = None if shadow_ratio is None else tuple(shadow_ratio)
         plane, boxes, known = self._plane(key, box)
@@ -386,7 +396,11 @@ class FrameDifferences:
         scratch asks for the whole frame's more than once) is copied from the kept one: the
         blur of a window inside another differs from it along its sides (and computing
         those sides apart costs more than a tracked box's window).
+
+        Raises:
+            ValueError: ``box`` is empty or not inside the image.
         """
+        self._check(box)
         key = (tuple(box), blur_px, None if shadow_ratio is None else tuple(shadow_ratio))
         with self._lock:
             kept = self._faint.get(key)
