@@ -476,6 +476,8 @@ def test_frame_differences_are_each_window_s_difference_and_reuse_kept_windows(s
             diffs.faint(bad)
     with pytest.raises(ValueError, match="FrameDifferences"):
         detect.foreground_mask(other, background, (0, 0, 50, 50), differences=diffs)
+    with pytest.raises(ValueError, match="FrameDifferences"):
+        detect.faint_window(other, background, (0, 0, 50, 50), 5.0, differences=diffs)
     got = detect.foreground_mask(image, background, (0, 0, 50, 50), differences=diffs)
     np.testing.assert_array_equal(
         got[0], detect.foreground_mask(image, background, (0, 0, 50, 50))[0]

@@ -351,22 +351,6 @@ class FrameDifferences:
         if not (0 <= x0 < x1 <= w and 0 <= y0 < y1 <= h):
             raise ValueError(f"window {tuple(box)} is not a non-empty box inside the {w}x{h} image")
 
-    def _plane(self, key, box) -> tuple[np.ndarray, list, bool]:
-        """(plane, its boxes, whether ``box`` lies in one of them) of ``key``."""
-        x0, y0, x1, y1 = box
-        with self._lock:
-            if key not in self._planes:
-                self._planes[key] = (np.empty(self.image.shape[:2], np.uint8), [])
-            plane, boxes = self._planes[key]
-            known = any(
-                b[0] <= x0 and b[1] <= y0 and x1 <= b[2] and y1 <= b[3] for b in tuple(boxes)
-            )
-        return plane, boxes, known
-
-    def _keep(self, boxes: list, box) -> None:
-        with self._lock:
-            boxes.append(tuple(box))  # after its pixels are written
-
     def __call__(self, box, shadow_ratio=_SHADOW_RATIO) -> np.ndarray:
         """(y1 - y0, x1 - x0) uint8: the difference of the window ``box`` (integers, inside the
         image), computed or copied from a kept window that holds it.
@@ -377,13 +361,20 @@ class FrameDifferences:
         self._check(box)
         x0, y0, x1, y1 = box
         key = None if shadow_ratio is None else tuple(shadow_ratio)
-        plane, boxes, known = self._plane(key, box)
+        with self._lock:
+            if key not in self._planes:
+                self._planes[key] = (np.empty(self.image.shape[:2], np.uint8), [])
+            plane, boxes = self._planes[key]
+            known = any(
+                b[0] <= x0 and b[1] <= y0 and x1 <= b[2] and y1 <= b[3] for b in tuple(boxes)
+            )
         if known:
             return plane[y0:y1, x0:x1].copy()
         window = (slice(y0, y1), slice(x0, x1))
         diff = difference(self.image[window], self.background[window], shadow_ratio)
         plane[window] = diff
-        self._keep(boxes, box)
+        with self._lock:
+            boxes.append((x0, y0, x1, y1))  # after its pixels are written
         return diff
 
     def faint(self, box, blur_px: int = 5, shadow_ratio=_SHADOW_RATIO) -> np.ndarray:
@@ -422,6 +413,17 @@ class FrameDifferences:
         return image is self.image and background is self.background
 
 
+def _differences_of(image, background, differences) -> FrameDifferences:
+    """``differences``, checked to be a :class:`FrameDifferences` of ``image`` and
+    ``background``, or a new one where it is None.
+    """
+    if differences is None:
+        return FrameDifferences(image, background)
+    if not differences.of(image, background):
+        raise ValueError("differences is not a FrameDifferences of this image and background")
+    return differences
+
+
 def _window_difference(image, background, box, shadow_ratio, differences) -> np.ndarray:
     """``difference`` of the window ``box`` = (x0, y0, x1, y1), from ``differences`` (a
     :class:`FrameDifferences` of ``image`` and ``background``) where given.
@@ -429,9 +431,7 @@ def _window_difference(image, background, box, shadow_ratio, differences) -> np.
     if differences is None:
         x0, y0, x1, y1 = box
         return difference(image[y0:y1, x0:x1], background[y0:y1, x0:x1], shadow_ratio)
-    if not differences.of(image, background):
-        raise ValueError("differences is not a FrameDifferences of this image and background")
-    return differences(box, shadow_ratio)
+    return _differences_of(image, background, differences)(box, shadow_ratio)
 
 
 def _shadow(image: np.ndarray, floors: list, shadow_ratio, shadow_tol: float) -> np.ndarray:
@@ -497,10 +497,7 @@ def faint_foreground_regions(
     without the shadow test (a box of the background's hue, darker, passes that test as a
     shadow). ``differences``: as :func:`faint_window`'s (the whole frame's kept).
     """
-    if differences is None:
-        differences = FrameDifferences(image, background)
-    elif not differences.of(image, background):
-        raise ValueError("differences is not a FrameDifferences of this image and background")
+    differences = _differences_of(image, background, differences)
     frame = (0, 0, image.shape[1], image.shape[0])
     diff = differences.faint(frame, blur_px)
     threshold = max(min_threshold, noise_factor * _median_uint8(diff))
@@ -785,11 +782,7 @@ def faint_window(
     (:meth:`FrameDifferences.faint`, the same numbers), or None.
     """
     ratio = _SHADOW_RATIO if shadows else None
-    if differences is None:
-        differences = FrameDifferences(image, background)
-    elif not differences.of(image, background):
-        raise ValueError("differences is not a FrameDifferences of this image and background")
-    return differences.faint(box, blur_px, ratio) > threshold
+    return _differences_of(image, background, differences).faint(box, blur_px, ratio) > threshold
 
 
 def foreground_fraction(
