@@ -618,8 +618,10 @@ def test_shadow_faces_count_a_dark_face_but_not_a_shadow():
         assert 0.2 < lit < 0.5 if name == "third" else 0.1 < lit < 0.2, (name, lit)
     frames["shadow"], _ = _silhouette_frame(background, corners, lambda r, c, bg: 0.5 * bg)
     results = {}
+    # the shadow rule alone: a box lit above a horizontal line and shaded below it has faces
+    # whose halves differ, which ``max_face_split`` (a fit spanning two faces) refuses as well
     for option in (0.1, 0.25, None):
-        cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, shadow_faces=option)
+        cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, shadow_faces=option, max_face_split=None)
         for name, frame in frames.items():
             tracker = BoxTracker(k, 0.1, FPS, cfg, background)
             tracker._frame_rgb = frame  # as update() sets it for the frame being checked

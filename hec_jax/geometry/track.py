@@ -45,6 +45,7 @@ from hec_jax.geometry.box_model import (
     EDGE_FACES,
     EDGE_FAMILY,
     EDGES,
+    FACES,
     Pose,
     edge_visibility,
     face_visibility,
@@ -63,7 +64,7 @@ from hec_jax.geometry.refine import (
     so3_log,
 )
 from hec_jax.geometry.smooth import SmootherConfig, smooth_track
-from hec_jax.geometry.synthetic import random_rotation
+from hec_jax.geometry.synthetic import CUBE_CORNERS_UNIT, random_rotation
 
 
 @dataclass(frozen=True)
@@ -321,6 +322,18 @@ class TrackConfig:
             at 3x the blob"). The fits have to pass the same checks. Each multiple costs one
             search per blob (about 40 ms) on the frames where all else fails. (): off (as
             before).
+        max_face_split, face_split_px: a fit counts only if each visible face at least
+            ``face_split_px`` thick in the image looks like one face: the median colours of its
+            halves differ by at most this along both of its edge directions
+            (:func:`face_split`, grey levels; RGB distance with a colour frame). On wood the
+            grain lines are parallel to the box's edges, and a fit turned about the edge
+            between two faces could set that edge on a grain line: development seed 44 (camera
+            level with the top face) was tracked 40 deg turned and 4-19 cm deep over most of
+            its frames (splits 124-166). 115 lies above every true pose's split over the
+            development frames (10731 frames of seeds 0-239: largest 102, one face blurred by
+            fast motion; the next 46; 99.9th percentile 42); any value from 110 to 120 rejects
+            the same fits of the tracker there (docs/eye_randomized.md, "A face must look
+            like one face"). None: off (as before).
         keep_labelling: every accepted fit is relabelled to the one of the cube's 24 labellings
             of its axes nearest the last rotation (``snap_to_symmetry``): the same box, one
             naming of its axes over the track. Before 2026-11-27 only a re-acquisition was
@@ -435,6 +448,8 @@ class TrackConfig:
     search_texture: float | None = None
     lsd_contrast: float | None = None
     blob_scales: tuple[float, ...] = ()
+    max_face_split: float | None = None
+    face_split_px: float = 12.0
     threads: int = 1
     cpu_small_kernels: bool = False
 
@@ -480,7 +495,10 @@ UNSEEN_SCENES = TrackConfig(
 # worse. Not ``blob_scales`` (session 40): chosen at (3,) on the same development seeds (3 more
 # sequences acquired in time, 121 -> 114 gross frames), on the held-out seeds it acquired one
 # more sequence in time but gave 11 more gross frames and took about 20% more time against the
-# baseline (docs/eye_randomized.md, "A last search round at 3x the blob")
+# baseline (docs/eye_randomized.md, "A last search round at 3x the blob"). Session 43:
+# ``max_face_split`` 115 (above every true pose's split on the development frames), before the
+# held-out run: on the development seeds it changed only seed 44 (17 gross frames -> none, and
+# its 22 valid ones, all turned 40 deg, with them)
 RANDOMIZED_BENCHMARK = dataclasses.replace(
     UNSEEN_SCENES,
     min_region_fraction=0.25,
@@ -504,6 +522,7 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
     faint_unshadowed=True,
     threads=2,
     cpu_small_kernels=True,
+    max_face_split=115.0,
 )
 
 
@@ -940,6 +959,56 @@ def _inner_support(rotation, translation, size, edges_px, usable, ids, cfg: Trac
     expected = np.maximum(length - 6.0, 0.0) / cfg.edge_spacing_px
     found = np.bincount(ids, minlength=12)
     return float(np.sum(np.minimum(found, expected)[inner]) / max(np.sum(expected[inner]), 1.0))
+
+
+# face_split's samples: a 12 x 12 grid over the face's inner 70% (u, v in [0.15, 0.85] along its
+# two edge directions), the halves on either side of each axis' middle band (0.45-0.55)
+_FACE_GRID = np.linspace(0.15, 0.85, 12)
+_FACE_U, _FACE_V = (g.ravel() for g in np.meshgrid(_FACE_GRID, _FACE_GRID, indexing="ij"))
+_FACE_HALVES = ((_FACE_U < 0.45, _FACE_U > 0.55), (_FACE_V < 0.45, _FACE_V > 0.55))
+
+
+def face_split(image, rotation, translation, size, intrinsics, min_thickness_px: float) -> float:
+    """How much a fitted box's visible faces look like two things each: the largest, over the
+    faces turned to the camera at least ``min_thickness_px`` thick in the image (area over
+    longest side) and over each face's two edge directions, of the distance between the median
+    colours [grey levels; RGB: Euclidean over the channels] of the face's two halves (samples on
+    the face plane, projected: perspective-exact). 0 where no face is thick enough.
+
+    A box face under one light is one colour, up to texture, which the medians of 60 samples a
+    half average out. A fit turned about the box's edge between two faces (its inner edge on a
+    texture line parallel to it: a wood grain) has a face spanning both real faces: its halves
+    differ by the faces' contrast where each half lies mostly on one real face (turns of 30
+    deg or more on ``tests/test_eye_face_split.py``'s cubes; at 10-25 deg, depending on the
+    view, the other face holds under half of either half and the medians do not see it).
+    Medians keep a thin occluder (the rod) out; a shadow cast across a face (a gripper's) or a
+    face under a spotlight's rim splits it as a wrong fit does (``tests/test_eye_randomized.py``,
+    the shadow rule's box lit above a line). NumPy; ``image`` (H, W) or (H, W, C), pixel k
+    covering [k, k + 1) (the intrinsics' convention).
+    """
+    r, t, k = np.asarray(rotation), np.asarray(translation), np.asarray(intrinsics)
+    corners = (CUBE_CORNERS_UNIT * size) @ r.T + t  # camera frame [m]
+    visible = face_visibility_np(r, t, size)
+    h, w = image.shape[:2]
+    worst = 0.0
+    for f in np.flatnonzero(visible):
+        q = corners[FACES[f]]  # (4, 3), in turn around the face
+        if np.any(q[:, 2] <= 0):
+            continue
+        px = q[:, :2] / q[:, 2:3] @ k[:2, :2].T + k[:2, 2]
+        nxt = np.roll(px, -1, 0)
+        area = 0.5 * abs(np.sum(px[:, 0] * nxt[:, 1] - px[:, 1] * nxt[:, 0]))
+        if area < min_thickness_px * np.max(np.linalg.norm(nxt - px, axis=1)):
+            continue
+        pts = q[0] + _FACE_U[:, None] * (q[1] - q[0]) + _FACE_V[:, None] * (q[3] - q[0])
+        uv = pts[:, :2] / pts[:, 2:3] @ k[:2, :2].T + k[:2, 2]
+        x = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 1)
+        y = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 1)
+        colour = image[y, x].reshape(len(x), -1).astype(float)
+        for lo, hi in _FACE_HALVES:
+            gap = np.median(colour[lo], axis=0) - np.median(colour[hi], axis=0)
+            worst = max(worst, float(np.linalg.norm(gap)))
+    return worst
 
 
 def _make_local_search(cfg: TrackConfig):
@@ -1402,6 +1471,13 @@ class BoxTracker:
             )
         if config.lsd_contrast is not None and not config.lsd_contrast > 0:
             raise ValueError(f"TrackConfig.lsd_contrast must be > 0, got {config.lsd_contrast!r}")
+        split = config.max_face_split
+        if split is not None and not (isinstance(split, int | float) and split >= 0):
+            raise ValueError(f"TrackConfig.max_face_split must be >= 0 or None, got {split!r}")
+        if not (isinstance(config.face_split_px, int | float) and config.face_split_px >= 0):
+            raise ValueError(
+                f"TrackConfig.face_split_px must be >= 0, got {config.face_split_px!r}"
+            )
         scales = config.blob_scales
         if not (
             isinstance(scales, tuple)
@@ -2033,14 +2109,22 @@ class BoxTracker:
     def _confirmed(
         self, gray, rotation, translation, acquire: bool = False, tracked: bool = False
     ) -> bool:
-        """The fit's projected silhouette differs from the background (``min_foreground``), the
-        ring outside it does not (``max_outside_foreground``) and, for a box found from scratch
-        (``acquire``), it covers the moving blob (``min_iou_acquire``); the foreground with the
-        faint one where ``faint_masks``, and with the shadow test's pixels in the silhouette
-        checks where ``shadow_faces`` allows. True where a check is off or impossible (no
-        background yet).
+        """Each visible face looks like one face (``max_face_split``), the fit's projected
+        silhouette differs from the background (``min_foreground``), the ring outside it does
+        not (``max_outside_foreground``) and, for a box found from scratch (``acquire``), it
+        covers the moving blob (``min_iou_acquire``); the foreground with the faint one where
+        ``faint_masks``, and with the shadow test's pixels in the silhouette checks where
+        ``shadow_faces`` allows. True where a check is off or impossible (no background yet:
+        the silhouette checks).
         """
         cfg = self.config
+        if cfg.max_face_split is not None:
+            colour = gray if self._frame_rgb is None else self._frame_rgb
+            split = face_split(
+                colour, rotation, translation, self.size, self.intrinsics, cfg.face_split_px
+            )
+            if split > cfg.max_face_split:
+                return False
         iou = acquire and cfg.min_iou_acquire > 0
         ring = cfg.max_outside_foreground is not None
         least = cfg.min_foreground

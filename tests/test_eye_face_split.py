@@ -1,0 +1,149 @@
+"""``face_split``: a fitted box's faces must each look like one face (``max_face_split``).
+
+Independent truth: a cube drawn with OpenCV, each face one flat colour, at a known pose. On the
+true pose every sampled point lies inside its own face (split 0 exactly); a fit turned about the
+box's vertical axis has faces that span two drawn faces (split of the order of their contrast).
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from hec_jax.geometry import BoxTracker, TrackConfig
+from hec_jax.geometry.box_model import FACES, face_visibility_np, project_corners_np
+from hec_jax.geometry.synthetic import rotation_from_axis_angle
+from hec_jax.geometry.track import face_split
+
+K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+SIZE = 0.08  # [m]
+GREY = (128, 128, 128)
+# one flat colour per face (RGB), far apart: the least distance between two is about 170
+COLOURS = [
+    (220, 30, 30),
+    (30, 220, 30),
+    (30, 30, 220),
+    (220, 220, 30),
+    (220, 30, 220),
+    (30, 220, 220),
+]
+
+
+def _draw(rotation, translation, colours=COLOURS, halves_on=None):
+    """(480, 640, 3) uint8: the cube's visible faces filled with their colours on grey;
+    ``halves_on``: a face index drawn as two halves (the first colour and black)."""
+    image = np.full((480, 640, 3), GREY, np.uint8)
+    px = project_corners_np(rotation, translation, SIZE, K) - 0.5  # OpenCV pixel centres
+    shift = 8  # sub-pixel corners: 1/256 px
+    for f in np.flatnonzero(face_visibility_np(rotation, translation, SIZE)):
+        quad = px[FACES[f]]
+        polys = [(quad, colours[f])]
+        if f == halves_on:
+            mid_a, mid_b = 0.5 * (quad[0] + quad[1]), 0.5 * (quad[3] + quad[2])
+            polys = [
+                (np.array([quad[0], mid_a, mid_b, quad[3]]), colours[f]),
+                (np.array([mid_a, quad[1], quad[2], mid_b]), (0, 0, 0)),
+            ]
+        for poly, colour in polys:
+            pts = np.round(poly * (1 << shift)).astype(np.int32)
+            cv2.fillConvexPoly(image, pts, colour, cv2.LINE_8, shift)
+    return image
+
+
+def _pose(yaw_deg, tilt_deg, t):
+    """The box turned ``yaw_deg`` about the camera's vertical, then tilted ``tilt_deg`` toward
+    the camera about its horizontal: two side faces and the top face in view."""
+    yaw = rotation_from_axis_angle(np.array([0.0, 1.0, 0.0]), np.deg2rad(yaw_deg))
+    tilt = rotation_from_axis_angle(np.array([1.0, 0.0, 0.0]), np.deg2rad(-tilt_deg))
+    rot, t = tilt @ yaw, np.asarray(t, float)
+    assert face_visibility_np(rot, t, SIZE).sum() == 3 and _thicknesses(rot, t).min() > 20.0
+    return rot, t
+
+
+def _turned(rot, angle_deg):
+    """``rot`` turned about the box's own axis nearest the image's vertical (the edge between
+    the two side faces): the fit that sets that edge on a line inside a face."""
+    axis = rot @ np.eye(3)[np.argmax(np.abs(rot.T @ np.array([0.0, 1.0, 0.0])))]
+    return rotation_from_axis_angle(axis, np.deg2rad(angle_deg)) @ rot
+
+
+def _thicknesses(rot, t):
+    px = project_corners_np(rot, t, SIZE, K)
+    out = []
+    for f in np.flatnonzero(face_visibility_np(rot, t, SIZE)):
+        q = px[FACES[f]]
+        nxt = np.roll(q, -1, 0)
+        area = 0.5 * abs(np.sum(q[:, 0] * nxt[:, 1] - q[:, 1] * nxt[:, 0]))
+        out.append(area / np.max(np.linalg.norm(nxt - q, axis=1)))
+    return np.array(out)
+
+
+POSES = [
+    (45.0, 25.0, (0.02, -0.01, 0.7)),
+    (30.0, 35.0, (-0.04, 0.03, 0.8)),
+    (60.0, 20.0, (0.0, 0.0, 0.6)),
+]
+
+
+@pytest.mark.parametrize(("yaw", "tilt", "t"), POSES)
+def test_the_true_pose_s_faces_are_one_colour_and_a_turned_fit_s_are_not(yaw, tilt, t):
+    rot, t = _pose(yaw, tilt, t)
+    image = _draw(rot, t)
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    assert face_split(image, rot, t, SIZE, K, 12.0) == 0.0
+    assert face_split(gray, rot, t, SIZE, K, 12.0) == 0.0
+    # turned 30-40 deg about that edge: a side face of the fit spans both drawn side faces,
+    # each of its halves mostly on one
+    least_contrast = min(
+        np.linalg.norm(np.subtract(a, b)) for i, a in enumerate(COLOURS) for b in COLOURS[i + 1 :]
+    )
+    for angle in (-40.0, -30.0, 30.0, 40.0):
+        assert face_split(image, _turned(rot, angle), t, SIZE, K, 12.0) > 0.5 * least_contrast
+    # the medians' price (they keep a thin occluder out): turned 10 deg, less than half of
+    # either half lies on the other face, and the fit is not told apart
+    for angle in (-10.0, 10.0):
+        assert face_split(image, _turned(rot, angle), t, SIZE, K, 12.0) == 0.0
+
+
+def test_a_face_thinner_than_the_floor_is_not_sampled():
+    # a face seen almost edge-on, drawn in two halves: counted only below its thickness
+    rng = np.random.default_rng(7)
+    for _ in range(2000):
+        axis = rng.normal(size=3)
+        rot = rotation_from_axis_angle(axis / np.linalg.norm(axis), rng.uniform(0.3, 2.8))
+        t = np.array([0.0, 0.0, 0.7])
+        vis = np.flatnonzero(face_visibility_np(rot, t, SIZE))
+        thick = _thicknesses(rot, t)
+        if len(vis) == 3 and 4.0 < thick.min() < 8.0 and np.sort(thick)[1] > 20.0:
+            break
+    else:
+        raise AssertionError("no pose with one thin face")
+    thin = vis[np.argmin(thick)]
+    image = _draw(rot, t, halves_on=thin)
+    assert face_split(image, rot, t, SIZE, K, 12.0) == 0.0  # the thin face is skipped
+    assert face_split(image, rot, t, SIZE, K, 1.0) > 100.0  # taken, its halves differ
+
+
+def test_the_tracker_s_checks_reject_a_turned_fit_only_with_max_face_split():
+    rot, t = _pose(*POSES[0])
+    image = _draw(rot, t)
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    turned = _turned(rot, 25.0)
+    for limit, turned_passes in ((None, True), (115.0, False)):
+        tracker = BoxTracker(K, SIZE, 30.0, TrackConfig(max_face_split=limit))
+        tracker._frame_rgb = image  # the frame being processed (as in update)
+        assert tracker._confirmed(gray, rot, t)
+        assert tracker._confirmed(gray, turned, t) == turned_passes
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"max_face_split": -1.0}, "max_face_split must be >= 0 or None"),
+        ({"max_face_split": float("nan")}, "max_face_split must be >= 0 or None"),
+        ({"max_face_split": "100"}, "max_face_split must be >= 0 or None"),
+        ({"face_split_px": -2.0}, "face_split_px must be >= 0"),
+    ],
+)
+def test_bad_face_split_settings_are_refused(changes, message):
+    with pytest.raises(ValueError, match=message):
+        BoxTracker(K, SIZE, 30.0, TrackConfig(**changes))
