@@ -323,17 +323,13 @@ class TrackConfig:
             search per blob (about 40 ms) on the frames where all else fails. (): off (as
             before).
         max_face_split, face_split_px: a fit counts only if each visible face at least
-            ``face_split_px`` thick in the image looks like one face: the median colours of its
-            halves differ by at most this along both of its edge directions
-            (:func:`face_split`, grey levels; RGB distance with a colour frame). On wood the
-            grain lines are parallel to the box's edges, and a fit turned about the edge
-            between two faces could set that edge on a grain line: development seed 44 (camera
-            level with the top face) was tracked 40 deg turned and 4-19 cm deep over most of
-            its frames (splits 124-166). 115 lies above every true pose's split over the
-            development frames (10731 frames of seeds 0-239: largest 102, one face blurred by
-            fast motion; the next 46; 99.9th percentile 42); any value from 110 to 120 rejects
-            the same fits of the tracker there (docs/eye_randomized.md, "A face must look
-            like one face"). None: off (as before).
+            ``face_split_px`` thick in the image [px] looks like one face: the median colours
+            of its halves along each of its edge directions differ by at most this
+            (:func:`face_split`; grey levels, RGB distance with a colour frame). It refuses a
+            fit turned about the edge between two faces that sits on a texture line parallel
+            to that edge (a wood grain); a shadow cast across a face fails it too. The
+            randomized preset's 115 and how it was chosen: docs/eye_randomized.md, "A face
+            must look like one face". None: off (as before).
         keep_labelling: every accepted fit is relabelled to the one of the cube's 24 labellings
             of its axes nearest the last rotation (``snap_to_symmetry``): the same box, one
             naming of its axes over the track. Before 2026-11-27 only a re-acquisition was
@@ -988,26 +984,30 @@ def face_split(image, rotation, translation, size, intrinsics, min_thickness_px:
     """
     r, t, k = np.asarray(rotation), np.asarray(translation), np.asarray(intrinsics)
     corners = (CUBE_CORNERS_UNIT * size) @ r.T + t  # camera frame [m]
-    visible = face_visibility_np(r, t, size)
+    quads = corners[FACES[face_visibility_np(r, t, size)]]  # (F, 4, 3), in turn around each
+    quads = quads[np.all(quads[:, :, 2] > 0, axis=1)]
+    px = quads[..., :2] / quads[..., 2:3] @ k[:2, :2].T + k[:2, 2]  # (F, 4, 2)
+    nxt = np.roll(px, -1, axis=1)
+    area = 0.5 * np.abs(np.sum(px[..., 0] * nxt[..., 1] - px[..., 1] * nxt[..., 0], axis=1))
+    thick = area >= min_thickness_px * np.max(np.linalg.norm(nxt - px, axis=-1), axis=1)
+    quads = quads[thick]
+    if not len(quads):
+        return 0.0
+    q0 = quads[:, None, 0]
+    pts = (
+        q0
+        + _FACE_U[:, None] * (quads[:, None, 1] - q0)
+        + _FACE_V[:, None] * (quads[:, None, 3] - q0)
+    )
+    uv = pts[..., :2] / pts[..., 2:3] @ k[:2, :2].T + k[:2, 2]  # (F, 144, 2)
     h, w = image.shape[:2]
+    x = np.clip(np.floor(uv[..., 0]).astype(int), 0, w - 1)
+    y = np.clip(np.floor(uv[..., 1]).astype(int), 0, h - 1)
+    colour = image[y, x].reshape(*x.shape, -1).astype(float)  # (F, 144, C)
     worst = 0.0
-    for f in np.flatnonzero(visible):
-        q = corners[FACES[f]]  # (4, 3), in turn around the face
-        if np.any(q[:, 2] <= 0):
-            continue
-        px = q[:, :2] / q[:, 2:3] @ k[:2, :2].T + k[:2, 2]
-        nxt = np.roll(px, -1, 0)
-        area = 0.5 * abs(np.sum(px[:, 0] * nxt[:, 1] - px[:, 1] * nxt[:, 0]))
-        if area < min_thickness_px * np.max(np.linalg.norm(nxt - px, axis=1)):
-            continue
-        pts = q[0] + _FACE_U[:, None] * (q[1] - q[0]) + _FACE_V[:, None] * (q[3] - q[0])
-        uv = pts[:, :2] / pts[:, 2:3] @ k[:2, :2].T + k[:2, 2]
-        x = np.clip(np.floor(uv[:, 0]).astype(int), 0, w - 1)
-        y = np.clip(np.floor(uv[:, 1]).astype(int), 0, h - 1)
-        colour = image[y, x].reshape(len(x), -1).astype(float)
-        for lo, hi in _FACE_HALVES:
-            gap = np.median(colour[lo], axis=0) - np.median(colour[hi], axis=0)
-            worst = max(worst, float(np.linalg.norm(gap)))
+    for lo, hi in _FACE_HALVES:
+        gap = np.median(colour[:, lo], axis=1) - np.median(colour[:, hi], axis=1)  # (F, C)
+        worst = max(worst, float(np.max(np.linalg.norm(gap, axis=-1))))
     return worst
 
 
