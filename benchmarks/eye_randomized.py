@@ -85,6 +85,9 @@ class EyeRandomized:
     # TrackConfig.blob_scales of the tracker (the preset's, off; 3: the value chosen on the
     # development seeds, docs/eye_randomized.md "A last search round at 3x the blob")
     blob_scales: tuple[float, ...] = TRACK.blob_scales
+    # TrackConfig.max_face_split of the tracker (the preset's, 115; None: off, as before session
+    # 43, for the ablation; docs/eye_randomized.md "A face must look like one face")
+    max_face_split: float | None = TRACK.max_face_split
     # TrackConfig.threads of the tracker (its host threads; the same outputs for any number; the
     # baselines run on one)
     threads: int = TRACK.threads
@@ -103,6 +106,8 @@ class EyeRandomized:
             require(self, "non_negative", "search_texture")
         if self.lsd_contrast is not None:
             require(self, "positive", "lsd_contrast")
+        if self.max_face_split is not None:
+            require(self, "non_negative", "max_face_split")
 
 
 def tracker_config(a: EyeRandomized):
@@ -113,6 +118,7 @@ def tracker_config(a: EyeRandomized):
         lsd_contrast=a.lsd_contrast,
         faint_unshadowed=a.faint_unshadowed,
         blob_scales=a.blob_scales,
+        max_face_split=a.max_face_split,
         threads=a.threads,
         cpu_small_kernels=a.cpu_small_kernels,
     )
