@@ -493,8 +493,8 @@ UNSEEN_SCENES = TrackConfig(
 # more sequence in time but gave 11 more gross frames and took about 20% more time against the
 # baseline (docs/eye_randomized.md, "A last search round at 3x the blob"). Session 43:
 # ``max_face_split`` 115 (above every true pose's split on the development frames), before the
-# held-out run: on the development seeds it changed only seed 44 (17 gross frames -> none, and
-# its 22 valid ones, all turned 40 deg, with them)
+# held-out run: on the development seeds it changed only seed 44 (its 22 valid frames, 18 of
+# them turned 26-47 deg and 17 gross, -> none)
 RANDOMIZED_BENCHMARK = dataclasses.replace(
     UNSEEN_SCENES,
     min_region_fraction=0.25,
