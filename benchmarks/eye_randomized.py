@@ -85,9 +85,13 @@ class EyeRandomized:
     # TrackConfig.blob_scales of the tracker (the preset's, off; 3: the value chosen on the
     # development seeds, docs/eye_randomized.md "A last search round at 3x the blob")
     blob_scales: tuple[float, ...] = TRACK.blob_scales
-    # TrackConfig.max_face_split of the tracker (the preset's, 115; None: off, as before session
-    # 43, for the ablation; docs/eye_randomized.md "A face must look like one face")
+    # TrackConfig.max_face_split of the tracker (the preset's; None: off, as before session 43,
+    # for the ablation; docs/eye_randomized.md "A face must look like one face")
     max_face_split: float | None = TRACK.max_face_split
+    # TrackConfig.face_seam_step of the tracker (the preset's; None: a split face refuses a fit
+    # whatever its inner edges show, as in session 43; docs/eye_randomized.md "A seam inside
+    # one face")
+    face_seam_step: float | None = TRACK.face_seam_step
     # TrackConfig.threads of the tracker (its host threads; the same outputs for any number; the
     # baselines run on one)
     threads: int = TRACK.threads
@@ -108,6 +112,8 @@ class EyeRandomized:
             require(self, "positive", "lsd_contrast")
         if self.max_face_split is not None:
             require(self, "non_negative", "max_face_split")
+        if self.face_seam_step is not None:
+            require(self, "non_negative", "face_seam_step")
 
 
 def tracker_config(a: EyeRandomized):
@@ -119,6 +125,7 @@ def tracker_config(a: EyeRandomized):
         faint_unshadowed=a.faint_unshadowed,
         blob_scales=a.blob_scales,
         max_face_split=a.max_face_split,
+        face_seam_step=a.face_seam_step,
         threads=a.threads,
         cpu_small_kernels=a.cpu_small_kernels,
     )

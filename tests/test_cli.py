@@ -124,6 +124,7 @@ BAD = {
         (["--search-texture", "-1"], "--search-texture: must be finite and >= 0"),
         (["--lsd-contrast", "0"], "--lsd-contrast: must be finite and > 0"),
         (["--max-face-split", "-1"], "--max-face-split: must be finite and >= 0"),
+        (["--face-seam-step", "-1"], "--face-seam-step: must be finite and >= 0"),
         (["--threads", "0"], "--threads: must be an integer >= 1"),
         (["--out", USED], "exists and is not empty"),
     ],
@@ -201,10 +202,10 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     default = bench.tracker_config(parse(bench.EyeRandomized(), []))
     assert default == RANDOMIZED_BENCHMARK and default.faint_unshadowed
     assert default.blob_scales == () and default.cpu_small_kernels
-    assert default.max_face_split == 115.0
+    assert default.max_face_split == 40.0 and default.face_seam_step == 5.0
     argv = ["--no-faint-unshadowed", "--lsd-contrast", "20", "--search-texture", "0.25"]
     argv += ["--threads", "1", "--blob-scales", "3", "--no-cpu-small-kernels"]
-    argv += ["--max-face-split", "None"]
+    argv += ["--max-face-split", "None", "--face-seam-step", "None"]
     changed = bench.tracker_config(parse(bench.EyeRandomized(), argv))
     assert changed == dataclasses.replace(
         RANDOMIZED_BENCHMARK,
@@ -215,6 +216,7 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
         threads=1,
         cpu_small_kernels=False,
         max_face_split=None,
+        face_seam_step=None,
     )
     two = bench.tracker_config(parse(bench.EyeRandomized(), ["--blob-scales", "2", "3"]))
     assert two.blob_scales == (2.0, 3.0)

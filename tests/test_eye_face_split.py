@@ -1,8 +1,12 @@
-"""``face_split``: a fitted box's faces must each look like one face (``max_face_split``).
+"""``face_split``: a fitted box's faces must each look like one face (``max_face_split``), and
+``seam_step``: its inner edges must show a step (``face_seam_step``).
 
 Independent truth: a cube drawn with OpenCV, each face one flat colour, at a known pose. On the
-true pose every sampled point lies inside its own face (split 0 exactly); a fit turned about the
-box's vertical axis has faces that span two drawn faces (split of the order of their contrast).
+true pose every sampled point lies inside its own face (split 0 exactly, the step at each inner
+edge the two faces' colour distance exactly); a fit turned about the box's vertical axis has
+faces that span two drawn faces (split of the order of their contrast) and an inner edge inside
+one drawn face (no step), as does the outline's Necker twin (the box reflected through the plane
+across the line of sight: the same outline, its inner edges along the drawn faces' diagonals).
 """
 
 import cv2
@@ -10,9 +14,14 @@ import numpy as np
 import pytest
 
 from hec_jax.geometry import BoxTracker, TrackConfig
-from hec_jax.geometry.box_model import FACES, face_visibility_np, project_corners_np
+from hec_jax.geometry.box_model import (
+    FACE_NORMALS,
+    FACES,
+    face_visibility_np,
+    project_corners_np,
+)
 from hec_jax.geometry.synthetic import rotation_from_axis_angle
-from hec_jax.geometry.track import face_split
+from hec_jax.geometry.track import face_split, seam_step
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 SIZE = 0.08  # [m]
@@ -28,9 +37,9 @@ COLOURS = [
 ]
 
 
-def _draw(rotation, translation, colours=COLOURS, halves_on=None):
+def _draw(rotation, translation, colours=COLOURS, halves_on=None, second=(0, 0, 0)):
     """(480, 640, 3) uint8: the cube's visible faces filled with their colours on grey;
-    ``halves_on``: a face index drawn as two halves (the first colour and black)."""
+    ``halves_on``: a face index drawn as two halves (its colour and ``second``)."""
     image = np.full((480, 640, 3), GREY, np.uint8)
     px = project_corners_np(rotation, translation, SIZE, K) - 0.5  # OpenCV pixel centres
     shift = 8  # sub-pixel corners: 1/256 px
@@ -41,7 +50,7 @@ def _draw(rotation, translation, colours=COLOURS, halves_on=None):
             mid_a, mid_b = 0.5 * (quad[0] + quad[1]), 0.5 * (quad[3] + quad[2])
             polys = [
                 (np.array([quad[0], mid_a, mid_b, quad[3]]), colours[f]),
-                (np.array([mid_a, quad[1], quad[2], mid_b]), (0, 0, 0)),
+                (np.array([mid_a, quad[1], quad[2], mid_b]), second),
             ]
         for poly, colour in polys:
             pts = np.round(poly * (1 << shift)).astype(np.int32)
@@ -64,6 +73,13 @@ def _turned(rot, angle_deg):
     the two side faces): the fit that sets that edge on a line inside a face."""
     axis = rot @ np.eye(3)[np.argmax(np.abs(rot.T @ np.array([0.0, 1.0, 0.0])))]
     return rotation_from_axis_angle(axis, np.deg2rad(angle_deg)) @ rot
+
+
+def _twin(rot, t):
+    """The Necker twin of the box at ``t``: its corners reflected through the plane across the
+    line of sight at its centre (a proper rotation, as the cube is its own mirror image)."""
+    v = np.asarray(t, float) / np.linalg.norm(t)
+    return (np.eye(3) - 2.0 * np.outer(v, v)) @ rot @ np.diag([1.0, 1.0, -1.0])
 
 
 def _thicknesses(rot, t):
@@ -135,9 +151,63 @@ def test_the_tracker_s_checks_reject_a_turned_fit_only_with_max_face_split():
         assert tracker._confirmed(gray, turned, t) == turned_passes
 
 
+def _least_inner_contrast(rot, t):
+    """The least colour distance between two drawn faces in view that share an edge."""
+    vis = np.flatnonzero(face_visibility_np(rot, t, SIZE))
+    return min(
+        np.linalg.norm(np.subtract(COLOURS[f], COLOURS[g]))
+        for i, f in enumerate(vis)
+        for g in vis[i + 1 :]
+        if len(set(FACES[f]) & set(FACES[g])) == 2
+    )
+
+
+@pytest.mark.parametrize(("yaw", "tilt", "t"), POSES)
+def test_the_true_pose_s_inner_edges_step_and_its_twin_s_do_not(yaw, tilt, t):
+    rot, t = _pose(yaw, tilt, t)
+    image = _draw(rot, t)
+    # each strip lies inside its own drawn face: the faces' colour distance, exactly
+    assert seam_step(image, rot, t, SIZE, K, 12.0) == pytest.approx(_least_inner_contrast(rot, t))
+    # the twin: its faces span the drawn ones, its inner edges lie inside drawn faces
+    twin = _twin(rot, t)
+    assert face_visibility_np(twin, t, SIZE).sum() == 3 and _thicknesses(twin, t).min() > 20.0
+    assert face_split(image, twin, t, SIZE, K, 12.0) > 100.0
+    assert seam_step(image, twin, t, SIZE, K, 12.0) == 0.0
+
+
+def test_a_seam_needs_two_thick_faces():
+    rot, t = np.eye(3), np.array([0.0, 0.0, 0.7])  # face-on: one face in view
+    assert np.isnan(seam_step(_draw(rot, t), rot, t, SIZE, K, 12.0))
+    rot, t = _pose(*POSES[0])
+    assert np.isnan(seam_step(_draw(rot, t), rot, t, SIZE, K, 1e3))  # none thick enough
+
+
+def test_face_seam_step_passes_a_shadowed_true_pose_and_refuses_the_twin():
+    # the true pose with a dark band over half of one side face (a shadow cast across it: the
+    # face's own colour darkened): its split is large, but its inner edges keep their steps
+    rot, t = _pose(*POSES[0])
+    vis = np.flatnonzero(face_visibility_np(rot, t, SIZE))
+    side = next(f for f in vis if abs((rot @ FACE_NORMALS[f])[1]) < 0.5)  # not the top face
+    dark = tuple(int(0.35 * c) for c in COLOURS[side])
+    image = _draw(rot, t, halves_on=side, second=dark)
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    twin = _twin(rot, t)
+    assert face_split(image, rot, t, SIZE, K, 12.0) > 40.0
+    assert seam_step(image, rot, t, SIZE, K, 12.0) > 5.0
+    assert face_split(image, twin, t, SIZE, K, 12.0) > 40.0
+    assert seam_step(image, twin, t, SIZE, K, 12.0) <= 5.0
+    for seam, true_passes in ((None, False), (5.0, True)):
+        tracker = BoxTracker(K, SIZE, 30.0, TrackConfig(max_face_split=40.0, face_seam_step=seam))
+        tracker._frame_rgb = image  # the frame being processed (as in update)
+        assert tracker._confirmed(gray, rot, t) == true_passes
+        assert not tracker._confirmed(gray, twin, t)
+
+
 @pytest.mark.parametrize(
     ("changes", "message"),
     [
+        ({"face_seam_step": -1.0}, "face_seam_step must be >= 0 or None"),
+        ({"face_seam_step": "5"}, "face_seam_step must be >= 0 or None"),
         ({"max_face_split": -1.0}, "max_face_split must be >= 0 or None"),
         ({"max_face_split": float("nan")}, "max_face_split must be >= 0 or None"),
         ({"max_face_split": "100"}, "max_face_split must be >= 0 or None"),

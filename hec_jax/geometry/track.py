@@ -328,8 +328,15 @@ class TrackConfig:
             (:func:`face_split`; grey levels, RGB distance with a colour frame). It refuses a
             fit turned about the edge between two faces that sits on a texture line parallel
             to that edge (a wood grain); a shadow cast across a face fails it too. The
-            randomized preset's 115 and how it was chosen: docs/eye_randomized.md, "A face
-            must look like one face". None: off (as before).
+            randomized preset's bar and how it was chosen: docs/eye_randomized.md, "A face
+            must look like one face" and "A seam inside one face". None: off (as before).
+        face_seam_step: with ``max_face_split``, a fit whose split exceeds it is refused only
+            where one of its inner edges between two faces ``face_split`` samples shows a
+            colour step of at most this (:func:`seam_step`, grey levels or RGB distance; no
+            such edge: not refused): its edge runs inside one real face, as a fit turned about
+            an edge does, while a true fit with a shadow across a face keeps the steps at its
+            inner edges (development seed 287: the rod's shadow on the top face split the true
+            pose by up to 171). None: refused on the split alone (as before).
         keep_labelling: every accepted fit is relabelled to the one of the cube's 24 labellings
             of its axes nearest the last rotation (``snap_to_symmetry``): the same box, one
             naming of its axes over the track. Before 2026-11-27 only a re-acquisition was
@@ -446,6 +453,7 @@ class TrackConfig:
     blob_scales: tuple[float, ...] = ()
     max_face_split: float | None = None
     face_split_px: float = 12.0
+    face_seam_step: float | None = None
     threads: int = 1
     cpu_small_kernels: bool = False
 
@@ -494,7 +502,13 @@ UNSEEN_SCENES = TrackConfig(
 # baseline (docs/eye_randomized.md, "A last search round at 3x the blob"). Session 43:
 # ``max_face_split`` 115 (above every true pose's split on the development frames), before the
 # held-out run: on the development seeds it changed only seed 44 (its 22 valid frames, 18 of
-# them turned 26-47 deg and 17 gross, -> none)
+# them turned 26-47 deg and 17 gross, -> none). Session 44: on new development seeds the rod's
+# shadow across a true top face split it by up to 171 (seed 287: 12 true frames refused), so a
+# split face refuses a fit only where one of its inner edges shows no colour step (a seam inside
+# one real face: ``face_seam_step`` 5), and the bar is lowered to 40; chosen (40, 5) on the
+# development seeds' true poses (none of 17927 refused) and fits, before the runs: over
+# development seeds 0-399 and 120 new validation seeds, 1 late sequence fewer, 36 valid frames
+# more, 1 gross frame fewer (causal)
 RANDOMIZED_BENCHMARK = dataclasses.replace(
     UNSEEN_SCENES,
     min_region_fraction=0.25,
@@ -518,7 +532,8 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
     faint_unshadowed=True,
     threads=2,
     cpu_small_kernels=True,
-    max_face_split=115.0,
+    max_face_split=40.0,
+    face_seam_step=5.0,
 )
 
 
@@ -979,18 +994,11 @@ def face_split(image, rotation, translation, size, intrinsics, min_thickness_px:
     view, the other face holds under half of either half and the medians do not see it).
     Medians keep a thin occluder (the rod) out; a shadow cast across a face (a gripper's) or a
     face under a spotlight's rim splits it as a wrong fit does (``tests/test_eye_randomized.py``,
-    the shadow rule's box lit above a line). NumPy; ``image`` (H, W) or (H, W, C), pixel k
-    covering [k, k + 1) (the intrinsics' convention).
+    the shadow rule's box lit above a line), which :func:`seam_step` tells apart where the
+    fit's inner edges are seen. NumPy; ``image`` (H, W) or (H, W, C), pixel k covering
+    [k, k + 1) (the intrinsics' convention).
     """
-    r, t, k = np.asarray(rotation), np.asarray(translation), np.asarray(intrinsics)
-    corners = (CUBE_CORNERS_UNIT * size) @ r.T + t  # camera frame [m]
-    quads = corners[FACES[face_visibility_np(r, t, size)]]  # (F, 4, 3), in turn around each
-    quads = quads[np.all(quads[:, :, 2] > 0, axis=1)]
-    px = quads[..., :2] / quads[..., 2:3] @ k[:2, :2].T + k[:2, 2]  # (F, 4, 2)
-    nxt = np.roll(px, -1, axis=1)
-    area = 0.5 * np.abs(np.sum(px[..., 0] * nxt[..., 1] - px[..., 1] * nxt[..., 0], axis=1))
-    thick = area >= min_thickness_px * np.max(np.linalg.norm(nxt - px, axis=-1), axis=1)
-    quads = quads[thick]
+    quads, _ = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
     if not len(quads):
         return 0.0
     q0 = quads[:, None, 0]
@@ -999,16 +1007,81 @@ def face_split(image, rotation, translation, size, intrinsics, min_thickness_px:
         + _FACE_U[:, None] * (quads[:, None, 1] - q0)
         + _FACE_V[:, None] * (quads[:, None, 3] - q0)
     )
-    uv = pts[..., :2] / pts[..., 2:3] @ k[:2, :2].T + k[:2, 2]  # (F, 144, 2)
-    h, w = image.shape[:2]
-    x = np.clip(np.floor(uv[..., 0]).astype(int), 0, w - 1)
-    y = np.clip(np.floor(uv[..., 1]).astype(int), 0, h - 1)
-    colour = image[y, x].reshape(*x.shape, -1).astype(float)  # (F, 144, C)
+    colour = _colours_at(image, pts, intrinsics)  # (F, 144, C)
     worst = 0.0
     for lo, hi in _FACE_HALVES:
         gap = np.median(colour[:, lo], axis=1) - np.median(colour[:, hi], axis=1)  # (F, C)
         worst = max(worst, float(np.max(np.linalg.norm(gap, axis=-1))))
     return worst
+
+
+def _thick_faces(rotation, translation, size, intrinsics, min_thickness_px: float):
+    """((F, 4, 3) camera-frame corners [m], in turn around each face; (F,) their face ids) of
+    the faces turned to the camera, in front of it, and at least ``min_thickness_px`` thick in
+    the image (area over longest side).
+    """
+    r, t, k = np.asarray(rotation), np.asarray(translation), np.asarray(intrinsics)
+    corners = (CUBE_CORNERS_UNIT * size) @ r.T + t  # camera frame [m]
+    ids = np.flatnonzero(face_visibility_np(r, t, size))
+    quads = corners[FACES[ids]]  # (F, 4, 3)
+    front = np.all(quads[:, :, 2] > 0, axis=1)
+    quads, ids = quads[front], ids[front]
+    px = quads[..., :2] / quads[..., 2:3] @ k[:2, :2].T + k[:2, 2]  # (F, 4, 2)
+    nxt = np.roll(px, -1, axis=1)
+    area = 0.5 * np.abs(np.sum(px[..., 0] * nxt[..., 1] - px[..., 1] * nxt[..., 0], axis=1))
+    thick = area >= min_thickness_px * np.max(np.linalg.norm(nxt - px, axis=-1), axis=1)
+    return quads[thick], ids[thick]
+
+
+def _colours_at(image, points, intrinsics) -> np.ndarray:
+    """(..., C) float colours of ``image`` at the pixels of camera-frame ``points`` (..., 3) [m]
+    (clipped to the image).
+    """
+    k = np.asarray(intrinsics)
+    uv = points[..., :2] / points[..., 2:3] @ k[:2, :2].T + k[:2, 2]
+    h, w = image.shape[:2]
+    x = np.clip(np.floor(uv[..., 0]).astype(int), 0, w - 1)
+    y = np.clip(np.floor(uv[..., 1]).astype(int), 0, h - 1)
+    return image[y, x].reshape(*x.shape, -1).astype(float)
+
+
+# seam_step's samples on each face of an inner edge: 10 along the edge (0.15-0.85 of it) x 4
+# into the face (0.06-0.3 of the face across it)
+_SEAM_ALONG, _SEAM_IN = (
+    g.ravel() for g in np.meshgrid(np.linspace(0.15, 0.85, 10), np.linspace(0.06, 0.3, 4))
+)
+
+
+def seam_step(image, rotation, translation, size, intrinsics, min_thickness_px: float) -> float:
+    """The smallest colour step across a fitted box's inner edges: over the edges between two
+    faces that :func:`face_split` samples (turned to the camera, at least ``min_thickness_px``
+    thick), the distance between the median colours [grey levels; RGB: Euclidean over the
+    channels] of a strip of each face along the edge (40 samples on the face plane, 6-30% of
+    the face into it). NaN where there is no such edge.
+
+    Two faces of a box meet at an edge across which the shading changes (unless both are lit
+    alike). A fit turned about an edge between two faces puts one of its inner edges inside a
+    real face (its seam): there the two strips are one face, and the step is texture and noise.
+    With :func:`face_split` it tells that fit from a true one with a shadow across a face,
+    whose inner edges keep their steps. NumPy; ``image`` as :func:`face_split`.
+    """
+    quads, ids = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
+    corner_ids = FACES[ids]  # (F, 4) cube corner numbers, in turn around each face
+    steps = []
+    for i in range(len(ids)):
+        for j in range(i + 1, len(ids)):
+            shared = set(corner_ids[i]) & set(corner_ids[j])
+            if len(shared) != 2:
+                continue
+            strips = []
+            for f in (i, j):
+                ring = list(corner_ids[f])
+                s = next(s for s in range(4) if {ring[s], ring[(s + 1) % 4]} == shared)
+                a, b, c = quads[f, s], quads[f, (s + 1) % 4], quads[f, (s - 1) % 4]
+                pts = a + _SEAM_ALONG[:, None] * (b - a) + _SEAM_IN[:, None] * (c - a)
+                strips.append(np.median(_colours_at(image, pts, intrinsics), axis=0))
+            steps.append(float(np.linalg.norm(strips[0] - strips[1])))
+    return min(steps) if steps else float("nan")
 
 
 def _make_local_search(cfg: TrackConfig):
@@ -1478,6 +1551,9 @@ class BoxTracker:
             raise ValueError(
                 f"TrackConfig.face_split_px must be >= 0, got {config.face_split_px!r}"
             )
+        seam = config.face_seam_step
+        if seam is not None and not (isinstance(seam, int | float) and seam >= 0):
+            raise ValueError(f"TrackConfig.face_seam_step must be >= 0 or None, got {seam!r}")
         scales = config.blob_scales
         if not (
             isinstance(scales, tuple)
@@ -2109,7 +2185,8 @@ class BoxTracker:
     def _confirmed(
         self, gray, rotation, translation, acquire: bool = False, tracked: bool = False
     ) -> bool:
-        """Each visible face looks like one face (``max_face_split``), the fit's projected
+        """Each visible face looks like one face (``max_face_split``; with ``face_seam_step``,
+        a split face refuses the fit only where an inner edge has no step), the fit's projected
         silhouette differs from the background (``min_foreground``), the ring outside it does
         not (``max_outside_foreground``) and, for a box found from scratch (``acquire``), it
         covers the moving blob (``min_iou_acquire``); the foreground with the faint one where
@@ -2120,10 +2197,10 @@ class BoxTracker:
         cfg = self.config
         if cfg.max_face_split is not None:
             colour = gray if self._frame_rgb is None else self._frame_rgb
-            split = face_split(
-                colour, rotation, translation, self.size, self.intrinsics, cfg.face_split_px
-            )
-            if split > cfg.max_face_split:
+            args = (colour, rotation, translation, self.size, self.intrinsics, cfg.face_split_px)
+            if face_split(*args) > cfg.max_face_split and (
+                cfg.face_seam_step is None or seam_step(*args) <= cfg.face_seam_step
+            ):
                 return False
         iou = acquire and cfg.min_iou_acquire > 0
         ring = cfg.max_outside_foreground is not None
