@@ -335,8 +335,8 @@ class TrackConfig:
             colour step of at most this (:func:`seam_step`, grey levels or RGB distance; no
             such edge: not refused): its edge runs inside one real face, as a fit turned about
             an edge does, while a true fit with a shadow across a face keeps the steps at its
-            inner edges (development seed 287: the rod's shadow on the top face split the true
-            pose by up to 171). None: refused on the split alone (as before).
+            inner edges (docs/eye_randomized.md, "A seam inside one face"). None: refused on
+            the split alone (as before).
         keep_labelling: every accepted fit is relabelled to the one of the cube's 24 labellings
             of its axes nearest the last rotation (``snap_to_symmetry``): the same box, one
             naming of its axes over the track. Before 2026-11-27 only a re-acquisition was
