@@ -173,6 +173,10 @@ def test_the_true_pose_s_inner_edges_step_and_its_twin_s_do_not(yaw, tilt, t):
     assert face_visibility_np(twin, t, SIZE).sum() == 3 and _thicknesses(twin, t).min() > 20.0
     assert face_split(image, twin, t, SIZE, K, 12.0) > 100.0
     assert seam_step(image, twin, t, SIZE, K, 12.0) == 0.0
+    # the same in grey levels (a grey frame)
+    gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    assert seam_step(gray, twin, t, SIZE, K, 12.0) == 0.0
+    assert seam_step(gray, rot, t, SIZE, K, 12.0) > 5.0
 
 
 def test_a_seam_needs_two_thick_faces():
