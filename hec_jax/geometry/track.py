@@ -1020,17 +1020,15 @@ def _thick_faces(rotation, translation, size, intrinsics, min_thickness_px: floa
     the faces turned to the camera, in front of it, and at least ``min_thickness_px`` thick in
     the image (area over longest side).
     """
-    r, t, k = np.asarray(rotation), np.asarray(translation), np.asarray(intrinsics)
+    r, t = np.asarray(rotation), np.asarray(translation)
     corners = (CUBE_CORNERS_UNIT * size) @ r.T + t  # camera frame [m]
+    pixels = project_corners_np(r, t, size, intrinsics)  # (8, 2)
     ids = np.flatnonzero(face_visibility_np(r, t, size))
-    quads = corners[FACES[ids]]  # (F, 4, 3)
-    front = np.all(quads[:, :, 2] > 0, axis=1)
-    quads, ids = quads[front], ids[front]
-    px = quads[..., :2] / quads[..., 2:3] @ k[:2, :2].T + k[:2, 2]  # (F, 4, 2)
-    nxt = np.roll(px, -1, axis=1)
-    area = 0.5 * np.abs(np.sum(px[..., 0] * nxt[..., 1] - px[..., 1] * nxt[..., 0], axis=1))
-    thick = area >= min_thickness_px * np.max(np.linalg.norm(nxt - px, axis=-1), axis=1)
-    return quads[thick], ids[thick]
+    ids = ids[np.all(corners[FACES[ids], 2] > 0, axis=1)]
+    px = pixels[FACES[ids]]  # (F, 4, 2)
+    side = np.max(np.linalg.norm(np.roll(px, -1, axis=1) - px, axis=-1), axis=1)
+    ids = ids[image_face_area_np(pixels)[ids] >= min_thickness_px * side]
+    return corners[FACES[ids]], ids
 
 
 def _colours_at(image, points, intrinsics) -> np.ndarray:
