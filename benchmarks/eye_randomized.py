@@ -32,8 +32,8 @@ Methods, on the same frames:
 
 Seed ranges: ``--split dev`` uses seeds 0, 1, ... (tuning); ``--split heldout`` uses seeds
 1_000_000, ... (only for reported numbers). Writes config.json, metrics.json (the target table
-per method; the warm-up, i.e. compilation, time apart), sequences.json (per-sequence summaries)
-and table.md to --out.
+per method; the warm-up, i.e. compilation, time apart; the tracker's time by kind of frame,
+``accuracy.time_by_kind``), sequences.json (per-sequence summaries) and table.md to --out.
 """
 
 from __future__ import annotations
@@ -194,7 +194,18 @@ def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:
             "time_ms": r["time_ms"],
         }
     summary["tracker"]["search_skipped"] = int(tr.search_skipped.sum())
+    kinds = accuracy.frame_kinds(tr.valid, tr.fit_source, tr.initialised, tr.search_skipped)
+    summary["tracker"]["time_by_kind"] = accuracy.time_by_kind(kinds, tr.frame_ms)
+    res["tracker"] |= {"frame_kinds": kinds, "frame_ms": tr.frame_ms}
     return res, summary
+
+
+def time_lines(by_kind: dict) -> list[str]:
+    """The Markdown table of where the tracker's time goes (:func:`accuracy.time_by_kind`)."""
+    rows = ["| tracker's frames | frames | mean ms | share of the time |", "|---|---|---|---|"]
+    for kind, m in by_kind.items():
+        rows.append(f"| {kind} | {m['frames']} | {m['mean_ms']:.1f} | {m['share']:.3f} |")
+    return rows
 
 
 def table_lines(metrics: dict) -> list[str]:
@@ -254,10 +265,14 @@ def main(argv=None) -> dict:
                 bar.update(1)
             run_s = time.perf_counter() - t_start
         metrics = {name: accuracy.target_table(per[name]) for name in METHODS}
+        metrics["tracker"]["time_by_kind"] = accuracy.time_by_kind(
+            np.concatenate([r["frame_kinds"] for r in per["tracker"]]),
+            np.concatenate([r["frame_ms"] for r in per["tracker"]]),
+        )
         metrics |= {"split": a.split, "warmup_s": warmup_s, "run_s": run_s}
         write_json(folder / "metrics.json", metrics)
         write_json(folder / "sequences.json", summaries)
-        lines = table_lines(metrics)
+        lines = table_lines(metrics) + [""] + time_lines(metrics["tracker"]["time_by_kind"])
         write_text(folder / "table.md", "\n".join(lines) + "\n")
         print("\n".join(lines))
         return metrics

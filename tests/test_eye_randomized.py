@@ -85,6 +85,46 @@ def test_tracker_acquires_and_tracks_a_new_scene(rendered, tracker):
     assert np.median(err / dist) < 3e-3
     rot = accuracy.symmetric_rotation_error_deg(tr.pose_rotation, seq.rotation)[tr.valid]
     assert np.median(rot) < 1.0
+    # the per-frame record: frame 0 found by the search, the valid frames after it tracked, the
+    # times those whose mean is the reported time
+    assert tr.fit_source[0] == "search" and np.all((tr.fit_source != "") == tr.valid)
+    np.testing.assert_allclose(tr.frame_ms.mean(), tr.timing_ms["total_ms"], rtol=1e-9)
+    kinds = accuracy.frame_kinds(tr.valid, tr.fit_source, tr.initialised, tr.search_skipped)
+    assert kinds[0] == "found by search"
+    assert np.all(kinds[tr.fit_source == "tracked"] == "tracked")
+    by_kind = accuracy.time_by_kind(kinds, tr.frame_ms)
+    assert sum(m["frames"] for m in by_kind.values()) == len(seq.frames)
+    assert np.isclose(sum(m["share"] for m in by_kind.values()), 1.0)
+
+
+def test_frame_kinds_and_time_by_kind():
+    """Each frame's kind from the tracker's flags (valid, fit source, filter running, search
+    skipped), and the time per kind, against hand-made frames."""
+    valid = np.array([0, 0, 1, 1, 0, 0, 0, 1, 0], bool)
+    source = np.array(["", "", "search", "tracked", "", "", "", "local", ""])
+    initialised = np.array([0, 0, 1, 1, 1, 0, 0, 1, 1], bool)
+    skipped = np.array([0, 0, 0, 0, 0, 0, 1, 0, 0], bool)
+    kinds = accuracy.frame_kinds(valid, source, initialised, skipped)
+    want = ["failed with no track"] * 2 + ["found by search", "tracked", "failed while tracking"]
+    want += ["failed with no track", "search skipped", "tracked", "failed while tracking"]
+    assert kinds.tolist() == want
+    ms = np.array([1.0, 3.0, 60.0, 10.0, 80.0, 2.0, 0.5, 12.0, 40.0])
+    by_kind = accuracy.time_by_kind(kinds, ms)
+    assert list(by_kind) == [k for k in accuracy.FRAME_KINDS]  # every kind, in table order
+    assert by_kind["tracked"] == {"frames": 2, "mean_ms": 11.0, "share": 22.0 / 208.5}
+    assert by_kind["failed while tracking"]["mean_ms"] == 60.0
+    assert by_kind["failed with no track"]["frames"] == 3
+    assert by_kind["search skipped"]["share"] == 0.5 / 208.5
+    with pytest.raises(ValueError, match="no fit_source"):
+        accuracy.frame_kinds(valid, np.where(valid, "", source), initialised, skipped)
+    with pytest.raises(ValueError, match="one length"):
+        accuracy.frame_kinds(valid[:-1], source, initialised, skipped)
+    with pytest.raises(ValueError, match="unknown frame kinds"):
+        accuracy.time_by_kind(np.array(["tracked", "lost"]), np.ones(2))
+    with pytest.raises(ValueError, match="finite"):
+        accuracy.time_by_kind(kinds, np.where(valid, np.nan, ms))
+    with pytest.raises(ValueError, match="alike"):
+        accuracy.time_by_kind(kinds, ms[:-1])
 
 
 @functools.cache

@@ -242,3 +242,74 @@ def target_table(per_sequence: list[dict]) -> dict:
         meets[key] = bool(np.isfinite(x) and (x >= bound if op == ">=" else x <= bound))
     out["meets"] = meets
     return out
+
+
+# kinds of frame by what the tracker did on it (:func:`frame_kinds`), in table order
+FRAME_KINDS = (
+    "tracked",
+    "found by search",
+    "failed while tracking",
+    "failed with no track",
+    "search skipped",
+)
+
+
+def frame_kinds(valid, fit_source, initialised, search_skipped) -> np.ndarray:
+    """(T,) str, what the tracker did on each frame (:data:`FRAME_KINDS`), from a ``BoxTrack``'s
+    fields of the same names: a valid fit from the search from scratch (``fit_source``
+    "search") is "found by search", any other valid fit "tracked"; an invalid frame whose
+    search was skipped (``TrackConfig.lost_search_every``) "search skipped", one after which the
+    causal filter still runs (``initialised``: the fits and searches near the prediction
+    failed) "failed while tracking", else "failed with no track" (before the first
+    acquisition or after a loss: the search from scratch ran and failed, or found no blob).
+
+    Raises:
+        ValueError: the four arrays not of one length, or a valid frame with no ``fit_source``.
+    """
+    valid = np.asarray(valid, bool)
+    source = np.asarray(fit_source, str)
+    initialised = np.asarray(initialised, bool)
+    skipped = np.asarray(search_skipped, bool)
+    if not (valid.shape == source.shape == initialised.shape == skipped.shape) or valid.ndim != 1:
+        raise ValueError(
+            "valid, fit_source, initialised and search_skipped must be (T,) arrays of one "
+            f"length, got {valid.shape}, {source.shape}, {initialised.shape}, {skipped.shape}"
+        )
+    if np.any(valid & (source == "")):
+        raise ValueError("a valid frame has no fit_source")
+    kind = np.where(initialised, "failed while tracking", "failed with no track").astype(object)
+    kind[skipped] = "search skipped"
+    kind[valid] = "tracked"
+    kind[valid & (source == "search")] = "found by search"
+    return kind.astype(str)
+
+
+def time_by_kind(kinds, frame_ms) -> dict[str, dict[str, float]]:
+    """Where a tracker's time goes: per :data:`FRAME_KINDS` kind present, ``frames`` (count),
+    ``mean_ms`` (mean time of those frames [ms]) and ``share`` (their part of the summed time
+    of all frames). ``kinds`` and ``frame_ms``: (N,) arrays over any frames (e.g. every
+    sequence's, concatenated).
+
+    Raises:
+        ValueError: arrays of different lengths, an unknown kind, or a time not finite or < 0.
+    """
+    kinds = np.asarray(kinds, str)
+    ms = np.asarray(frame_ms, float)
+    if kinds.shape != ms.shape or kinds.ndim != 1:
+        raise ValueError(f"kinds {kinds.shape} and frame_ms {ms.shape} must be (N,) alike")
+    unknown = set(kinds.tolist()) - set(FRAME_KINDS)
+    if unknown:
+        raise ValueError(f"unknown frame kinds {sorted(unknown)}; known: {FRAME_KINDS}")
+    if not np.all(np.isfinite(ms) & (ms >= 0)):
+        raise ValueError("frame_ms must be finite and >= 0")
+    total = float(ms.sum())
+    out = {}
+    for kind in FRAME_KINDS:
+        sel = kinds == kind
+        if sel.any():
+            out[kind] = {
+                "frames": int(sel.sum()),
+                "mean_ms": float(ms[sel].mean()),
+                "share": float(ms[sel].sum() / total) if total > 0 else float("nan"),
+            }
+    return out

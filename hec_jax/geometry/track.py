@@ -1233,6 +1233,11 @@ class BoxTrack(NamedTuple):
             ``SmootherConfig.split_at_restarts``).
         search_skipped: (T,) bool, the lost frames whose search from scratch was skipped
             (``TrackStep.search_skipped``, ``TrackConfig.lost_search_every``).
+        frame_ms: (T,) each frame's time in :meth:`BoxTracker.update` [ms] (detection +
+            estimation; ``timing_ms["total_ms"]`` is its mean).
+        fit_source: (T,) str, ``TrackStep.fit_source`` ("" where not valid).
+        initialised: (T,) bool, ``TrackStep.initialised``: the causal filter holds a state
+            after the frame (an invalid frame with it set failed while the track ran).
     """
 
     position: np.ndarray
@@ -1257,6 +1262,9 @@ class BoxTrack(NamedTuple):
     causal_pose_rotation: np.ndarray
     restarted: np.ndarray
     search_skipped: np.ndarray
+    frame_ms: np.ndarray
+    fit_source: np.ndarray
+    initialised: np.ndarray
 
 
 def cube_symmetries() -> np.ndarray:
@@ -2630,6 +2638,9 @@ def track_box(
         "edge_ids": stack("edge_ids"),
         "restarted": np.array([s.restarted for s in steps], bool),
         "search_skipped": np.array([s.search_skipped for s in steps], bool),
+        "frame_ms": np.array([s.timing_ms["total_ms"] for s in steps], float),
+        "fit_source": np.array([s.fit_source for s in steps], str),
+        "initialised": np.array([s.initialised for s in steps], bool),
     }
     causal_pose_rotation = stack("pose_rotation")
     if valid.any():
