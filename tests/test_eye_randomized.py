@@ -85,8 +85,8 @@ def test_tracker_acquires_and_tracks_a_new_scene(rendered, tracker):
     assert np.median(err / dist) < 3e-3
     rot = accuracy.symmetric_rotation_error_deg(tr.pose_rotation, seq.rotation)[tr.valid]
     assert np.median(rot) < 1.0
-    # the per-frame record: frame 0 found by the search, the valid frames after it tracked, the
-    # times those whose mean is the reported time
+    # the per-frame record: frame 0 found by the search, the tracked fits after it, and the
+    # frame times whose mean is the reported time
     assert tr.fit_source[0] == "search" and np.all((tr.fit_source != "") == tr.valid)
     np.testing.assert_allclose(tr.frame_ms.mean(), tr.timing_ms["total_ms"], rtol=1e-9)
     kinds = accuracy.frame_kinds(tr.valid, tr.fit_source, tr.initialised, tr.search_skipped)
@@ -110,7 +110,7 @@ def test_frame_kinds_and_time_by_kind():
     assert kinds.tolist() == want
     ms = np.array([1.0, 3.0, 60.0, 10.0, 80.0, 2.0, 0.5, 12.0, 40.0])
     by_kind = accuracy.time_by_kind(kinds, ms)
-    assert list(by_kind) == [k for k in accuracy.FRAME_KINDS]  # every kind, in table order
+    assert list(by_kind) == list(accuracy.FRAME_KINDS)  # every kind, in table order
     assert by_kind["tracked"] == {"frames": 2, "mean_ms": 11.0, "share": 22.0 / 208.5}
     assert by_kind["failed while tracking"]["mean_ms"] == 60.0
     assert by_kind["failed with no track"]["frames"] == 3
