@@ -56,6 +56,7 @@ BAD = {
         (["--eye", "paper", "--realtime"], "--realtime runs --eye truth or camera"),
         (["--noise-grey", "-1"], "--noise-grey: must be finite and >= 0, got -1.0"),
         (["--jitter-s", "0.02"], "--jitter-s: must be below half the frame period"),
+        (["--plane-grid-m", "-0.1"], "--plane-grid-m: must be None or a number > 0 [m]"),
         (["--realtime", "--focal-error", "0.01"], "camera defects (--noise-grey, --blur-ren"),
         (["--realtime", "--camera-model", "industrial"], "camera defects (--noise-grey, --blur"),
         (["--no-such-flag"], "unrecognized arguments: --no-such-flag"),
@@ -67,6 +68,7 @@ BAD = {
         (["--eye-defer-search", "-1"], "eye_defer_search must be an integer in 0..100"),
         (["--eye-local-merge", "-1"], "eye_local_merge must be a number in 0..10"),
         (["--eye-save-failed", "-1"], "eye_save_failed must be an integer in 0..1000"),
+        (["--camera-plane-grid-m", "0"], "camera_plane_grid_m must be None or a number > 0"),
         (["--camera-model", "industrial"], "camera defects (--noise-grey, --blur-ren"),
     ],
     "experiments/hitting.py": [

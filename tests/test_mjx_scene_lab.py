@@ -14,7 +14,7 @@ from hec_jax.loop.cli import TaskRun, task_default
 from hec_jax.mjx_scene import CUBE_EDGE, load_mj_model
 from hec_jax.mjx_scene.camera import project
 from hec_jax.mjx_scene.lab import lab_model, scene_model
-from hec_jax.mjx_scene.render import SceneCamera, render_model_like
+from hec_jax.mjx_scene.render import SceneCamera, render_model_like, with_plane_grid
 
 W, H = 160, 120
 OBJ = mujoco.mjtObj
@@ -35,6 +35,19 @@ def _release(m, hinge_x=0.55, angle=-0.5):
     q = m.qpos0.copy()
     q[m.jnt_qposadr[mujoco.mj_name2id(m, OBJ.mjOBJ_JOINT, "hinge")]] = angle
     return q
+
+
+def _controlled_swing(m) -> np.ndarray:
+    """(400, nq) qpos of 400 steps of the C model ``m`` (changed in place: the hinge moved)
+    from the release, a constant torque driving the hand into the cube's path."""
+    d = mujoco.MjData(m)
+    d.qpos[:] = _release(m)
+    d.ctrl[:] = (20.0, -8.0, 1.0)  # [N m]
+    out = []
+    for _ in range(400):
+        mujoco.mj_step(m, d)
+        out.append(d.qpos.copy())
+    return np.array(out)
 
 
 def test_lab_is_scene_xml_first_then_visual_only_geoms(models):
@@ -66,17 +79,7 @@ def test_lab_is_scene_xml_first_then_visual_only_geoms(models):
 def test_lab_physics_is_bit_identical(models):
     """The same controlled swing (a few hundred 1 ms steps, hand-cube contact included) in the
     void and the lab C models: the same qpos, bit for bit."""
-    trajs = []
-    for m0 in models:
-        m = m0.__copy__()
-        d = mujoco.MjData(m)
-        d.qpos[:] = _release(m)
-        d.ctrl[:] = (20.0, -8.0, 1.0)  # [N m] drives the hand into the cube's path
-        out = []
-        for _ in range(400):
-            mujoco.mj_step(m, d)
-            out.append(d.qpos.copy())
-        trajs.append(np.array(out))
+    trajs = [_controlled_swing(m0.__copy__()) for m0 in models]
     np.testing.assert_array_equal(trajs[0], trajs[1])
     assert np.ptp(trajs[0], axis=0).min() > 1e-3  # everything moved
 
@@ -194,3 +197,51 @@ def test_industrial_camera_is_the_default_and_perfect_one_flag():
     assert run.experiment.camera.applied_defects == want
     with pytest.raises(SystemExit):  # the real-time loop has no defects
         parse(TaskRun(experiment=tl.catching()), ["--camera-model", "industrial", "--realtime"])
+
+
+def test_plane_grid_is_rendering_only(models):
+    """``with_plane_grid``: a copy whose planes alone get the new grid spacing; the physics is
+    the scene's (the controlled swing of ``test_lab_physics_is_bit_identical``, bit for bit);
+    None gives the model itself; a spacing that is not finite and > 0 is refused."""
+    void, lab = models
+    for m0 in models:
+        before = m0.geom_size.copy()
+        out = with_plane_grid(m0, 0.05)
+        assert out is not m0 and with_plane_grid(m0, None) is m0
+        planes = m0.geom_type == int(mujoco.mjtGeom.mjGEOM_PLANE)
+        assert planes.any()
+        np.testing.assert_array_equal(out.geom_size[planes, 2], 0.05)
+        np.testing.assert_array_equal(out.geom_size[planes, :2], m0.geom_size[planes, :2])
+        np.testing.assert_array_equal(out.geom_size[~planes], m0.geom_size[~planes])
+        np.testing.assert_array_equal(m0.geom_size, before)  # the original is untouched
+    trajs = [_controlled_swing(m) for m in (void.__copy__(), with_plane_grid(void, 0.5))]
+    np.testing.assert_array_equal(trajs[0], trajs[1])
+    for bad in (0.0, -0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="plane grid spacing"):
+            with_plane_grid(void, bad)
+
+
+def test_plane_grid_changes_only_the_floors_shading(models):
+    """At 640x480 without multisampling (the real-time camera's frames), scene.xml's floor
+    drawn at a 0.05 m grid instead of 0.01: every pixel that changes is one of the floor's
+    (the pixels the floor changes against a render without it), the cube, the rod and the arm
+    are bit for bit the same, and the floor's pixels change by at most a grey level at the
+    median."""
+    void = models[0].__copy__()
+    void.vis.quality.offsamples = 0
+    q = _release(void)
+    frames = {}
+    for name, m, hidden in (
+        ("scene", void, ()),
+        ("coarse", with_plane_grid(void, 0.05), ()),
+        ("no floor", void, ("floor",)),
+    ):
+        with SceneCamera(m, "eye", 640, 480, True, hidden) as cam:
+            frames[name] = cam.render(q).astype(int)
+    floor = np.abs(frames["scene"] - frames["no floor"]).max(axis=2) > 0
+    change = np.abs(frames["coarse"] - frames["scene"]).max(axis=2)
+    assert floor.mean() > 0.1 and change.any()  # the floor is in view, and the grid shows
+    # a changed pixel outside the floor's image would be an object drawn differently
+    outside = (change > 0) & ~floor
+    assert not outside.any(), f"{int(outside.sum())} pixels off the floor changed"
+    assert np.median(change[change > 0]) <= 1

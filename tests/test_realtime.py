@@ -369,6 +369,13 @@ def test_realtime_experiment_sets_the_eyes_tracker():
     # the camera's multisampling: the scene's unless given, then the twin renders alike
     assert kept.camera.msaa is exp.camera.msaa is None
     assert RT.runner.realtime_experiment(exp, RT.RealtimeConfig(camera_msaa=0)).camera.msaa == 0
+    # the planes' render grid and the eye's compiler options likewise
+    assert kept.camera.plane_grid_m is None and not kept.camera.tracker.cpu_small_kernels
+    fast = RT.runner.realtime_experiment(
+        exp, RT.RealtimeConfig(camera_plane_grid_m=0.05, eye_small_kernels=True)
+    )
+    assert fast.camera.plane_grid_m == 0.05 and fast.camera.tracker.cpu_small_kernels
+    assert fast.camera.tracker == L.replace(track, cpu_small_kernels=True)
 
 
 def test_realtime_refused_says_why_and_leaves_the_scheduling(monkeypatch):
@@ -503,6 +510,12 @@ def test_the_real_time_camera_renders_the_simulated_loops_scene():
     lab_flat, shadows = camera_model(task, L.CameraConfig.void_perfect(scene="lab"), False)
     assert shadows is False and lab_flat.ngeom == lab.ngeom
     assert camera_model(task, L.CameraConfig.void_perfect(), True)[1] is True
+    # the planes' render grid (CameraConfig.plane_grid_m), as the simulated loop draws them
+    grid, _ = camera_model(task, L.CameraConfig.void_perfect(plane_grid_m=0.05))
+    planes = grid.geom_type == int(mujoco.mjtGeom.mjGEOM_PLANE)
+    np.testing.assert_array_equal(grid.geom_size[planes, 2], 0.05)
+    np.testing.assert_array_equal(grid.geom_size[~planes], void.geom_size[~planes])
+    assert np.all(void.geom_size[planes, 2] == plant.geom_size[planes, 2])
     # the plant's world (moved hinge, rod) sits on scene.xml's rows, the room after them
     np.testing.assert_array_equal(lab.body_pos[: plant.nbody], plant.body_pos)
     np.testing.assert_array_equal(lab.geom_size[: plant.ngeom], plant.geom_size)

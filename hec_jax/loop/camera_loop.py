@@ -52,7 +52,7 @@ from hec_jax.loop.object_state import EyeInput
 from hec_jax.loop.policy import Loop, PolicyState, Switches, switches
 from hec_jax.mjx_scene import CUBE_EDGE, PendulumConditions, rollout
 from hec_jax.mjx_scene.lab import scene_model
-from hec_jax.mjx_scene.render import SceneCamera, render_model_like, sensor
+from hec_jax.mjx_scene.render import SceneCamera, render_model_like, sensor, with_plane_grid
 from hec_jax.progress import ProgressBar
 
 _AX = np.array([0, 2])  # task axes (x, z) of the world frame
@@ -427,7 +427,7 @@ def run_camera(
     memory = guard + cam.latency_s + cam.max_coast_frames * period * dt  # [s]
     n_seeds = keys.shape[0]
     m_c = scene_model(cam.scene)  # what the camera sees (the simulated model: ``loop``'s)
-    m_render = render_model_like(m_c, loop.model_for(conditions))
+    m_render = with_plane_grid(render_model_like(m_c, loop.model_for(conditions)), cam.plane_grid_m)
     if cam.msaa is not None:
         m_render.vis.quality.offsamples = cam.msaa
     shadows = cam.scene == "lab"  # the lab's lights cast shadows, also with fast_render

@@ -68,6 +68,7 @@ from hec_jax.mjx_scene.render import (
     render_model_like,
     render_rollout,
     render_swing,
+    with_plane_grid,
 )
 from hec_jax.mjx_scene.sim import (
     CQuantities,
@@ -129,6 +130,7 @@ __all__ = [
     "X_HOME",
     "project",
     "render_model_like",
+    "with_plane_grid",
     "render_rollout",
     "render_swing",
     "rollout",

@@ -87,6 +87,10 @@ class RealtimeConfig:
     # time (but for the runaway in depth, since recovered by ``depth_gate``). 0: every failed
     # frame searched (before 2026-11-27; the ablation). docs/realtime.md, "Deferring the search"
     eye_defer_search: int = 1
+    # the eye's jitted fits and searches compiled with the tracker's small-kernel options
+    # (``TrackConfig.cpu_small_kernels``: no YNNPACK fusions, single-threaded Eigen), for the run
+    # and its twin alike; the same arithmetic to round-off. False: XLA's defaults (the ablation)
+    eye_small_kernels: bool = False
     # the eye keeps up to this many frames whose tracked fit failed (the image and occluded
     # pixels it was given, the tracker's snapshot before the frame), written to the run folder
     # as eye_failed_frames.pkl for an offline replay (``workers.replay_failed_frames``); 0: none.
@@ -105,6 +109,12 @@ class RealtimeConfig:
     # simulated one competes with the eye and the loop for the CPU. The simulated twin renders
     # alike (``CameraConfig.msaa``; before 2026-11-26 it kept the scene's 4 samples)
     camera_msaa: int | None = None
+    # [m] grid spacing of the rendered planes (``CameraConfig.plane_grid_m``; the twin renders
+    # alike); None: the scene's (0.01 m). scene.xml's floor at 0.01 m is 80,000 quads, about
+    # 2/3 of a 640x480 software render; at 0.05 the render took 3.2 ms instead of 6.9 (one
+    # core, the release frame) and its floor shading changed by at most a grey level for 99%
+    # of the 2% of pixels that changed (docs/realtime.md, "The floor's grid")
+    camera_plane_grid_m: float | None = None
     # the rendered lights cast shadows; None: the scene's (the lab's do, the void's do not).
     # False makes the lab's software rendering 3x cheaper (30 -> 10 ms a 640x480 frame without
     # multisampling on the 2-core VM); the eye's calibration shots are rendered alike, the
@@ -175,5 +185,15 @@ class RealtimeConfig:
             raise ValueError(
                 f"eye_defer_search must be an integer in 0..100, got {self.eye_defer_search!r}"
             )
+        if self.camera_plane_grid_m is not None and not (
+            isinstance(self.camera_plane_grid_m, (int, float))
+            and 0 < self.camera_plane_grid_m < math.inf
+        ):
+            raise ValueError(
+                "camera_plane_grid_m must be None or a number > 0 [m], "
+                f"got {self.camera_plane_grid_m!r}"
+            )
+        if not isinstance(self.eye_small_kernels, bool):
+            raise ValueError(f"eye_small_kernels must be a bool, got {self.eye_small_kernels!r}")
         if self.condition not in ("plain", "frozen", "learned"):
             raise ValueError(f"condition must be plain, frozen or learned, got {self.condition!r}")

@@ -45,7 +45,7 @@ from hec_jax.mjx_scene import (
     set_solver_options,
 )
 from hec_jax.mjx_scene.lab import scene_model
-from hec_jax.mjx_scene.render import render_model_like
+from hec_jax.mjx_scene.render import render_model_like, with_plane_grid
 from hec_jax.realtime.clock import Clock, monotonic_s
 from hec_jax.realtime.shared import _CTX, Board, FrameRing, Images, wait_for
 
@@ -159,11 +159,13 @@ def camera_model(
     lights cast shadows: :func:`plant_model` itself in the ``"void"`` scene (no shadows); in
     the ``"lab"`` the room around it (:func:`hec_jax.mjx_scene.lab.scene_model`, the plant's
     geometry copied onto scene.xml's rows as the simulated camera loop does), shadows on.
-    ``shadows`` given: that instead of the scene's.
+    ``shadows`` given: that instead of the scene's. Its planes drawn with ``cam.plane_grid_m``
+    (:func:`~hec_jax.mjx_scene.with_plane_grid`; None: the scene's), as the simulated loop.
     """
     m = plant_model(task)
     if cam.scene != "void":
         m = render_model_like(scene_model(cam.scene), m)
+    m = with_plane_grid(m, cam.plane_grid_m)
     return m, (cam.scene != "void") if shadows is None else bool(shadows)
 
 

@@ -714,9 +714,9 @@ class RealtimeResult:
 def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> ExperimentConfig:
     """``exp`` as the real-time loop runs it: one seed; swings from ``rt.duration_s``; the
     camera's tracker with ``rt.eye_local_starts``, ``rt.eye_local_keep``,
-    ``rt.eye_local_merge`` and ``rt.eye_defer_search``, without its
+    ``rt.eye_local_merge``, ``rt.eye_defer_search`` and ``rt.eye_small_kernels``, without its
     manoeuvre restart unless ``rt.eye_maneuver_restart``; the camera's multisampling
-    ``rt.camera_msaa`` where given.
+    ``rt.camera_msaa`` and planes' grid ``rt.camera_plane_grid_m`` where given.
     The simulated twin runs the same, so that its camera loop sees frames rendered as the
     real-time camera renders them.
     """
@@ -730,12 +730,15 @@ def realtime_experiment(exp: ExperimentConfig, rt: RealtimeConfig) -> Experiment
         local_keep=rt.eye_local_keep,
         local_merge=float(rt.eye_local_merge),
         defer_search=rt.eye_defer_search,
+        cpu_small_kernels=rt.eye_small_kernels,
     )
     if not rt.eye_maneuver_restart:
         track = dataclasses.replace(track, maneuver_nis=None)
     cam = dataclasses.replace(exp.camera, track=track)
     if rt.camera_msaa is not None:
         cam = dataclasses.replace(cam, msaa=rt.camera_msaa)
+    if rt.camera_plane_grid_m is not None:
+        cam = dataclasses.replace(cam, plane_grid_m=float(rt.camera_plane_grid_m))
     return dataclasses.replace(exp, task=task, seeds=1, camera=cam)
 
 
