@@ -52,6 +52,8 @@ VARIANTS = {
     "coverage blind to the mask": ({}, {"mask_aware_coverage": False}),
     # no fit with fewer than 4 segments where the mask hides edges (as before 2026-11-27)
     "4 segments always": ({"min_segments_hidden": 4}, {}),
+    # the floor drawn at a 0.05 m grid instead of scene.xml's 0.01 (``--camera-plane-grid-m``)
+    "floor grid 0.05 m": ({}, {"plane_grid_m": 0.05}),
 }
 
 # the task metrics tabulated (catching: last swing; hitting: the continuous run)

@@ -43,10 +43,9 @@ def with_plane_grid(m_c: mujoco.MjModel, spacing_m: float | None) -> mujoco.MjMo
     apart (None: ``m_c`` itself).
 
     MuJoCo draws a plane as a grid of quads, the third ``geom_size`` of a plane being their
-    spacing; it is a rendering parameter only (a plane collides as an infinite half-space), so
-    the physics of the copy is ``m_c``'s. scene.xml's floor (4 x 2 m at 0.01 m: 80,000 quads)
-    is most of a software render's time of a 640x480 frame; a coarser grid changes the
-    floor's Gouraud shading by a grey level or so and nothing else (tests/test_realtime.py).
+    spacing (its lighting is per vertex); it is a rendering parameter only (a plane collides as
+    an infinite half-space), so the physics of the copy is ``m_c``'s. A coarser grid draws fewer
+    quads and changes only the planes' shading (docs/realtime.md, "The floor's render grid").
 
     Raises:
         ValueError: ``spacing_m`` not None and not finite and > 0.

@@ -113,7 +113,7 @@ class RealtimeConfig:
     # alike); None: the scene's (0.01 m). scene.xml's floor at 0.01 m is 80,000 quads, about
     # 2/3 of a 640x480 software render; at 0.05 the render took 3.2 ms instead of 6.9 (one
     # core, the release frame) and its floor shading changed by at most a grey level for 99%
-    # of the 2% of pixels that changed (docs/realtime.md, "The floor's grid")
+    # of the 2% of pixels that changed (docs/realtime.md, "The floor's render grid")
     camera_plane_grid_m: float | None = None
     # the rendered lights cast shadows; None: the scene's (the lab's do, the void's do not).
     # False makes the lab's software rendering 3x cheaper (30 -> 10 ms a 640x480 frame without
