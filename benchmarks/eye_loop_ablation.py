@@ -52,6 +52,9 @@ VARIANTS = {
     "coverage blind to the mask": ({}, {"mask_aware_coverage": False}),
     # no fit with fewer than 4 segments where the mask hides edges (as before 2026-11-27)
     "4 segments always": ({"min_segments_hidden": 4}, {}),
+    # no stop hypothesis: a failed tracked fit goes straight to the local search, whose first
+    # stage also starts at the last fitted centre (with the search's wider gates)
+    "no stop hypothesis": ({"stop_hypothesis": False}, {}),
     # the floor drawn at a 0.05 m grid instead of scene.xml's 0.01 (``--camera-plane-grid-m``)
     "floor grid 0.05 m": ({}, {"plane_grid_m": 0.05}),
 }
