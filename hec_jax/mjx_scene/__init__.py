@@ -130,7 +130,6 @@ __all__ = [
     "X_HOME",
     "project",
     "render_model_like",
-    "with_plane_grid",
     "render_rollout",
     "render_swing",
     "rollout",
@@ -139,4 +138,5 @@ __all__ = [
     "scene_ids",
     "set_solver_options",
     "validate_conditions",
+    "with_plane_grid",
 ]
