@@ -325,6 +325,10 @@ def test_realtime_camera_run_reports_itself():
     assert np.all(eye_log["eye_cpu_ms"] >= 0) and np.all(cam_log["render_cpu_ms"] > 0)
     assert eye_log["eye_steal_ms"].shape[0] == len(eye_log["index"])
     assert cam_log["render_steal_ms"].shape[0] == len(cam_log["index"])
+    # JAX's compiles in the eye's process: the warm-up's are heard (a fresh process traces
+    # every path), and the frames that compiled are counted from the per-frame log
+    assert eye["eye"]["warm_up_compile_ms"] > 0
+    assert eye["eye"]["frames_compiling"] == int(np.sum(eye_log["jax_compile_events"] > 0))
     pipeline = 1e3 * (eye_log["t_wall_done"] - eye_log["t_wall_exposure"])
     period_ms = eye["frame_period_ms"]
     assert eye["slow_frames"]["over_one_period"] == int(np.sum(later & (pipeline > period_ms)))
@@ -585,6 +589,10 @@ def test_slow_frames_are_the_ones_published_after_a_frame_period():
     assert (first["render_ms"], second["render_cpu_ms"]) == (7, 6)
     assert (first["fit_source"], second["fit_source"]) == ("tracked", "invalid")
     assert slow_frames(camera_log, eye_log, 1e3 / 30, limit=1)["frames"] == [first]
+    assert "jax_compile_ms" not in first  # logs before session 47
+    eye_log["jax_compile_ms"] = np.array([900.0, 0, 0, 12.5])
+    compiled = slow_frames(camera_log, eye_log, 1e3 / 30)["frames"]
+    assert [f["jax_compile_ms"] for f in compiled] == [0, 12.5]
     np.testing.assert_array_equal(_steal_delta([1.0, 2.0], [1.0, 12.0]), [0, 10])
     # a reading failed: NaN for each CPU (every row as long); none accounted: empty
     assert np.isnan(_steal_delta([1.0, 2.0], [])).tolist() == [True, True]
@@ -593,3 +601,22 @@ def test_slow_frames_are_the_ones_published_after_a_frame_period():
 
     assert _steal_total([[0.0, 10.0], [np.nan, np.nan], [10.0, 0.0]]) == [10.0, 10.0]
     assert _steal_total(np.zeros((3, 0))) is None
+
+
+def test_compile_meter_counts_a_first_use_and_not_a_cached_call():
+    # ground truth: a function jitted here is traced, lowered and compiled on its first call,
+    # and its second call with the same shapes hits JAX's in-memory cache: nothing recorded
+    from hec_jax.realtime.workers import CompileMeter
+
+    meter = CompileMeter().install()
+    try:
+        fn = jax.jit(lambda x: jnp.sin(x) * 2.5)  # a new function object: never traced
+        fn(jnp.ones(3)).block_until_ready()
+        first_ms, first_events = meter.ms, meter.events
+        assert first_events >= 3 and first_ms > 0  # trace, lowering, backend compile
+        fn(jnp.ones(3)).block_until_ready()
+        assert (meter.ms, meter.events) == (first_ms, first_events)
+        fn(jnp.ones(4)).block_until_ready()  # a new shape: traced and compiled again
+        assert meter.events >= first_events + 3
+    finally:
+        jax.monitoring.unregister_event_duration_listener(meter._on_duration)

@@ -246,6 +246,12 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
             out["eye"]["eye_cpu_ms"] = percentiles(eye_log["eye_cpu_ms"][later])
             out["eye"]["eye_steal_ms_per_cpu"] = _steal_total(eye_log["eye_steal_ms"])
             out["slow_frames"] = slow_frames(camera_log, eye_log, 1e3 / fps)
+        if "jax_compile_ms" in eye_log:  # logs since session 47
+            # frames in which JAX traced or compiled (a path's first use after the warm-up)
+            traced = eye_log["jax_compile_events"] > 0
+            out["eye"]["frames_compiling"] = int(np.sum(traced))
+            out["eye"]["compile_ms_total"] = float(np.sum(eye_log["jax_compile_ms"]))
+            out["eye"]["warm_up_compile_ms"] = float(eye_log["warm_up_compile_ms"])
         if camera_log:
             # accuracy of the eye at its frames against the rendered truth
             truth = dict(zip(camera_log["index"].tolist(), camera_log["x_true"], strict=True))
@@ -305,6 +311,8 @@ def slow_frames(camera_log, eye_log, period_ms: float, limit: int = 32) -> dict:
                 "fit_source": None if src is None else (FIT_SOURCES[src] or "invalid"),
             }
         )
+        if "jax_compile_ms" in eye_log:
+            rows[-1]["jax_compile_ms"] = float(eye_log["jax_compile_ms"][k])
     return {"over_one_period": int(slow.size), "frames": rows}
 
 

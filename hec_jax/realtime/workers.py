@@ -49,6 +49,31 @@ def _stack(rows: list[dict]) -> dict[str, np.ndarray]:
     return {k: np.asarray([r[k] for r in rows]) for k in rows[0]}
 
 
+class CompileMeter:
+    """JAX's tracing, lowering and compiling in this process, summed from ``jax.monitoring``'s
+    duration events (``/jax/core/compile/...``; the backend's compile includes a load from the
+    persistent cache): ``ms`` [ms] and ``events`` since :meth:`install`. A real-time worker
+    reads both around each frame: a function traced or compiled on first use in mid-run shows
+    as that frame's ``jax_compile_ms`` (nothing else in a frame traces once warmed up).
+    """
+
+    def __init__(self) -> None:
+        self.ms, self.events, self.last_name = 0.0, 0, ""
+
+    def _on_duration(self, event: str, duration_s: float, **kwargs) -> None:
+        if event.startswith("/jax/core/compile/"):
+            self.ms += 1e3 * float(duration_s)
+            self.events += 1
+            self.last_name = str(kwargs.get("fun_name", ""))
+
+    def install(self) -> CompileMeter:
+        """Register with ``jax.monitoring`` (once per process); returns self."""
+        import jax.monitoring
+
+        jax.monitoring.register_event_duration_secs_listener(self._on_duration)
+        return self
+
+
 def _steal_delta(before: list[float], after: list[float]) -> np.ndarray:
     """[ms] per CPU: the host's steal between two :func:`~.clock.host_steal_ms` readings
     (empty without steal accounting; NaN per CPU where one of the two readings failed, so that
@@ -361,7 +386,9 @@ def eye_main(
         wait_for(lambda: camera.calibration.ready(1), 300.0, 0.01, "the calibration shots")
         tracker = BoxTracker(mcam.intrinsics, CUBE_EDGE, fps, cam.tracker, camera.background())
         warm, warm_occluded = masked(camera.release_frame(), np.asarray(q0)[arm])
+        compiles = CompileMeter().install()
         tracker.warm_up(warm, warm_occluded)  # compile the search, tracking, re-acquisition
+        warm_up_compile_ms = compiles.ms
         if priority:
             set_scheduling(os.SCHED_FIFO, priority)
         ready.set()
@@ -373,6 +400,7 @@ def eye_main(
                 time.sleep(_POLL_S)
                 continue
             t0, cpu0, steal0 = monotonic_s(), time.process_time(), host_steal_ms()
+            compile_ms0, compile_events0 = compiles.ms, compiles.events
             lost = frame.index - last - 1  # frames the camera made that the eye never saw
             dropped += lost
             last = frame.index
@@ -438,6 +466,9 @@ def eye_main(
                     # the process's CPU time (all threads) and the host's steal per CPU meanwhile
                     eye_cpu_ms=1e3 * (cpu1 - cpu0),
                     eye_steal_ms=_steal_delta(steal0, steal1),
+                    # JAX's tracing and compiling within the frame (first use of a path)
+                    jax_compile_ms=compiles.ms - compile_ms0,
+                    jax_compile_events=compiles.events - compile_events0,
                     # the eye's stages: the robot's mask, then the tracker's own split
                     mask_ms=1e3 * (t_masked - t0),
                     detection_ms=st.timing_ms["detection_ms"],
@@ -457,6 +488,7 @@ def eye_main(
         gc.enable()
         out = _stack(rows)
         out["dropped"] = dropped
+        out["warm_up_compile_ms"] = warm_up_compile_ms  # the meter heard the warm-up compile
         if save_failed:
             out["failed_frames"] = failed_frames_file(tracker, failed)
         log_queue.put(out)
