@@ -33,10 +33,28 @@ CAM = tl.CameraConfig(camera_model="perfect")
 
 @pytest.fixture(scope="module")
 def camera_run():
+    # the learned condition alone with the camera: the frozen one is the same run_camera with
+    # the learning off (the main job, `bash run.sh main`, runs both)
     camera, truth, _, eyes, video = he.run_conditions_camera(
-        LOOP, PENDULUM, 0, SEEDS, CAM, progress=False
+        LOOP, PENDULUM, 0, SEEDS, CAM, progress=False, camera_conditions=("learned",)
     )
     return camera, truth, eyes, video
+
+
+@pytest.mark.parametrize(
+    "conditions, video",
+    [
+        ((), "learned"),
+        (("plain",), "learned"),
+        (("learned", "learned"), "learned"),
+        (("frozen",), "learned"),
+    ],
+)
+def test_camera_conditions_refused_says_why(conditions, video):
+    with pytest.raises(ValueError, match="camera_conditions"):
+        he.run_conditions_camera(
+            LOOP, PENDULUM, 0, 1, CAM, video, False, camera_conditions=conditions
+        )
 
 
 def test_eye_object_state_is_the_constant_acceleration_prediction():
@@ -224,7 +242,8 @@ def test_camera_loop_matches_ground_truth(camera_run):
     np.testing.assert_allclose(peak_cam, peak_truth, rtol=0.2)
     # plain does not use the object's state, so camera and truth share its run
     assert camera["plain"] is truth["plain"]
-    for condition in ("frozen", "learned"):
+    assert set(camera) == {"plain", "learned"} and set(eyes) == {"learned"}
+    for condition in ("learned",):
         eye, logs = eyes[condition], camera[condition]
         m = mt.eye_metrics(eye, logs, 1e-3)
         # every frame of every seed and swing went through the eye (30 fps on the 1 ms grid)

@@ -634,6 +634,7 @@ def run_conditions_camera(
     video_condition: str = "learned",
     progress: bool = True,
     eye_source: str = "camera",
+    camera_conditions: tuple[str, ...] = ("frozen", "learned"),
 ):
     """The three conditions with the camera in the loop, and with ground truth for comparison.
 
@@ -644,8 +645,26 @@ def run_conditions_camera(
     last swing (or the continuous run when the task has one). ``progress``: one bar over the
     frames of both camera conditions (:class:`~hec_jax.progress.ProgressBar`), the ground-truth
     runs' compile and run times on their own line. ``eye_source``: as :func:`run_camera`.
+    ``camera_conditions``: which of ``frozen`` and ``learned`` run with the camera (the others
+    have ground-truth logs only; ``camera_logs`` and ``eye_by_condition`` leave them out).
+
+    Raises:
+        ValueError: ``camera_conditions`` empty or naming another condition, or
+            ``video_condition`` (when not None) not among them.
     """
-    total = 2 * n_seeds * frames_per_condition(loop, cam)
+    camera_conditions = tuple(camera_conditions)
+    unknown = set(camera_conditions) - {"frozen", "learned"}
+    if not camera_conditions or unknown or len(set(camera_conditions)) < len(camera_conditions):
+        raise ValueError(
+            "camera_conditions must be distinct names among 'frozen' and 'learned', "
+            f"got {camera_conditions!r}"
+        )
+    if video_condition is not None and video_condition not in camera_conditions:
+        raise ValueError(
+            f"video_condition {video_condition!r} is not among camera_conditions "
+            f"{camera_conditions!r}"
+        )
+    total = len(camera_conditions) * n_seeds * frames_per_condition(loop, cam)
     with ProgressBar(total, "frames", enabled=progress) as bar:
         bar.update(description="ground truth (compiling, then 3 conditions)")
         truth, timing = run_conditions(loop, conditions, seed, n_seeds)
@@ -656,6 +675,8 @@ def run_conditions_camera(
         shown = "final" if loop.final_steps else loop.config.swings - 1
         compiled = (make_start(loop), make_segment(loop))
         for condition in ("frozen", "learned"):
+            if condition not in camera_conditions:
+                continue
             want = condition == video_condition
             logs, eye, frames = run_camera(
                 loop,
@@ -669,7 +690,7 @@ def run_conditions_camera(
                 eye_source=eye_source,
             )
             camera_logs[condition], eyes[condition] = logs, eye
-            if condition == "frozen":  # the first call of the shared functions compiled them
+            if condition == camera_conditions[0]:  # its first call compiled the shared ones
                 bar.log(_first_segment_line(float(eye["sim_ms"][0, 0])))
             timing[f"{condition}_camera"] = float(
                 np.sum(eye["wall_s"]) + (np.sum(eye["final"]["wall_s"]) if "final" in eye else 0.0)
