@@ -255,11 +255,18 @@ def test_local_search_recovers_a_sudden_turn_from_its_turned_starts(seq, keep, m
     first, rest = tracker._local
     centres = []
     tracker._local = (first, lambda *a, _f=rest: centres.append(a[1].shape[0]) or _f(*a))
-    st = tracker.update(seq.frames[14])
+    from hec_jax.realtime.workers import CompileMeter
+
+    meter = CompileMeter().install()  # JAX's own trace and compile events, any function
+    try:
+        st = tracker.update(seq.frames[14])
+    finally:
+        meter.uninstall()
     assert st.valid and st.fit_source == "local_turned"
     assert np.linalg.norm(st.measured_position - seq.position[14]) < 0.002
     assert centres == [1 if merge > 1 else 2]
     assert [f._cache_size() for f in (first, rest)] == compiled
+    assert meter.events == 0, f"traced or compiled in update: {meter.last_name}"
 
 
 # the default suite keeps the real-time eye's setting (1); the others are slow

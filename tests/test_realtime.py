@@ -619,4 +619,4 @@ def test_compile_meter_counts_a_first_use_and_not_a_cached_call():
         fn(jnp.ones(4)).block_until_ready()  # a new shape: traced and compiled again
         assert meter.events >= first_events + 3
     finally:
-        jax.monitoring.unregister_event_duration_listener(meter._on_duration)
+        meter.uninstall()

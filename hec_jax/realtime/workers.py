@@ -73,6 +73,12 @@ class CompileMeter:
         jax.monitoring.register_event_duration_secs_listener(self._on_duration)
         return self
 
+    def uninstall(self) -> None:
+        """Unregister from ``jax.monitoring`` (the counts stay)."""
+        import jax.monitoring
+
+        jax.monitoring.unregister_event_duration_listener(self._on_duration)
+
 
 def _steal_delta(before: list[float], after: list[float]) -> np.ndarray:
     """[ms] per CPU: the host's steal between two :func:`~.clock.host_steal_ms` readings
