@@ -7,6 +7,7 @@ progress display.
 import dataclasses
 import importlib.util
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -37,6 +38,7 @@ USED = "<used folder>"  # replaced by an existing non-empty folder
 # scripts without a run folder (no --out)
 NO_OUT = {
     "benchmarks/control.py",
+    "benchmarks/cpu_steadiness.py",
     "benchmarks/gradients.py",
     "benchmarks/nets.py",
     "benchmarks/realtime_profile.py",
@@ -110,6 +112,11 @@ BAD = {
     "benchmarks/control.py": [
         (["--steps", "0"], "--steps: must be an integer >= 1"),
         (["--batches", "0"], "--batches: each value must be an integer >= 1"),
+    ],
+    "benchmarks/cpu_steadiness.py": [
+        (["--seconds", "0"], "--seconds: must be finite and > 0"),
+        (["--matmuls", "0"], "--matmuls: must be an integer >= 1"),
+        (["--gap-s", "-1"], "--gap-s: must be finite and >= 0"),
     ],
     "benchmarks/eye.py": [
         (["--scenes", "0"], "--scenes: must be an integer >= 1"),
@@ -497,3 +504,18 @@ def test_signal_handlers_come_back_after_a_command():
         assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, outer)
+
+
+def test_cpu_steadiness_summary_and_a_short_probe():
+    probe = _script("benchmarks/cpu_steadiness.py")
+    got = probe.summarise([30.0, 10.0, 20.0])
+    assert (got["n"], got["min"], got["p50"], got["max"]) == (3, 10.0, 20.0, 30.0)
+    assert got["max_over_min"] == 3.0 and got["p90"] == pytest.approx(28.0)
+    for bad in ([], [10.0, 0.0], [np.nan]):
+        with pytest.raises(ValueError, match="finite times > 0"):
+            probe.summarise(bad)
+    before = os.sched_getaffinity(0)
+    out = probe.main(["--seconds", "0.3", "--gap-s", "0", "--matmuls", "2"])
+    assert os.sched_getaffinity(0) == before  # the process is put back where it was
+    assert set(out) <= {str(c) for c in before} and sum(r["n"] for r in out.values()) >= 2
+    assert all(r["min"] > 0 and r["max_over_min"] >= 1 for r in out.values())
