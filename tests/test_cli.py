@@ -507,15 +507,21 @@ def test_signal_handlers_come_back_after_a_command():
 
 
 def test_cpu_steadiness_summary_and_a_short_probe():
-    probe = _script("benchmarks/cpu_steadiness.py")
-    got = probe.summarise([30.0, 10.0, 20.0])
+    from hec_jax.realtime.clock import probe_cpu_speed, speed_summary
+
+    got = speed_summary([30.0, 10.0, 20.0])
     assert (got["n"], got["min"], got["p50"], got["max"]) == (3, 10.0, 20.0, 30.0)
     assert got["max_over_min"] == 3.0 and got["p90"] == pytest.approx(28.0)
     for bad in ([], [10.0, 0.0], [np.nan]):
         with pytest.raises(ValueError, match="finite times > 0"):
-            probe.summarise(bad)
+            speed_summary(bad)
+    for bad in ((0.0, 0.0, 1), (0.1, -1.0, 1), (0.1, 0.0, 0), (0.1, 0.0, 1.5)):
+        with pytest.raises(ValueError, match="need seconds > 0"):
+            probe_cpu_speed(*bad)
     before = os.sched_getaffinity(0)
-    out = probe.main(["--seconds", "0.3", "--gap-s", "0", "--matmuls", "2"])
+    out = _script("benchmarks/cpu_steadiness.py").main(
+        ["--seconds", "0.3", "--gap-s", "0", "--matmuls", "2"]
+    )
     assert os.sched_getaffinity(0) == before  # the process is put back where it was
     assert set(out) <= {str(c) for c in before} and sum(r["n"] for r in out.values()) >= 2
     assert all(r["min"] > 0 and r["max_over_min"] >= 1 for r in out.values())

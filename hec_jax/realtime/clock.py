@@ -49,6 +49,72 @@ def host_steal_ms(path: str = "/proc/stat") -> list[float]:
     return out
 
 
+def cpu_work_ms(matmuls: int, a) -> float:
+    """[ms] this thread's own CPU time for ``matmuls`` products ``a @ a`` (a fixed piece of
+    work: its time moves only with the CPU's speed; steal and other threads' turns do not
+    count). With a multi-threaded BLAS the time is the calling thread's share only: set
+    ``OMP_NUM_THREADS`` / ``OPENBLAS_NUM_THREADS`` to 1 before NumPy loads.
+    """
+    t0 = time.thread_time()
+    for _ in range(matmuls):
+        a @ a
+    return 1e3 * (time.thread_time() - t0)
+
+
+def speed_summary(samples_ms) -> dict:
+    """{"n", "min", "p50", "p90", "max", "max_over_min"} of samples [ms] of one piece of work.
+
+    Raises:
+        ValueError: no samples, or one not finite and > 0.
+    """
+    import numpy as np
+
+    s = np.asarray(samples_ms, float)
+    if s.size == 0 or not np.all(np.isfinite(s) & (s > 0)):
+        raise ValueError(f"samples must be finite times > 0, got {samples_ms!r}")
+    p = {k: float(np.percentile(s, q)) for k, q in (("p50", 50), ("p90", 90))}
+    return {"n": int(s.size), "min": float(s.min()), **p, "max": float(s.max()),
+            "max_over_min": float(s.max() / s.min())}  # fmt: skip
+
+
+def probe_cpu_speed(seconds: float, gap_s: float = 0.5, matmuls: int = 200) -> dict:
+    """{cpu: :func:`speed_summary`}: every ``gap_s`` [s] for ``seconds`` [s] the calling thread
+    moves to the next CPU of its affinity (round robin) and times :func:`cpu_work_ms` of a fixed
+    200 x 200 float64 matrix there; the affinity is restored after. A CPU that runs at one speed
+    gives the same time every time; a virtual CPU sharing its physical core or clock with busy
+    tenants gives a spread (which the host does not count as steal). Keys: CPU numbers as
+    strings ("None" where the platform has no affinity).
+
+    Raises:
+        ValueError: ``seconds`` not > 0, ``gap_s`` < 0 or ``matmuls`` < 1.
+    """
+    import numpy as np
+
+    if not seconds > 0 or not gap_s >= 0 or int(matmuls) != matmuls or matmuls < 1:
+        raise ValueError(
+            f"need seconds > 0, gap_s >= 0 and matmuls >= 1, got {seconds}, {gap_s}, {matmuls}"
+        )
+    a = np.random.default_rng(0).random((200, 200))
+    movable = hasattr(os, "sched_setaffinity")
+    old = os.sched_getaffinity(0) if movable else None
+    cpus = sorted(old) if movable else [None]
+    samples: dict = {c: [] for c in cpus}
+    t_end, i = time.monotonic() + seconds, 0
+    try:
+        while time.monotonic() < t_end:
+            cpu = cpus[i % len(cpus)]
+            if cpu is not None:
+                os.sched_setaffinity(0, {cpu})
+                time.sleep(0.001)  # the move happens before the clock starts
+            samples[cpu].append(cpu_work_ms(int(matmuls), a))
+            i += 1
+            time.sleep(gap_s)
+    finally:
+        if movable:
+            os.sched_setaffinity(0, old)
+    return {str(c): speed_summary(s) for c, s in samples.items() if s}
+
+
 class Clock(Protocol):
     """A control loop's clock (times [s] since :meth:`start`)."""
 
