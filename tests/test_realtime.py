@@ -329,6 +329,10 @@ def test_realtime_camera_run_reports_itself():
     # every path), and the frames that compiled are counted from the per-frame log
     assert eye["eye"]["warm_up_compile_ms"] > 0
     assert eye["eye"]["frames_compiling"] == int(np.sum(eye_log["jax_compile_events"] > 0))
+    # the camera CPU's speed over the run: per-second medians of the render's CPU time
+    by_second = eye["camera"]["render_cpu_ms_per_second"]
+    assert by_second["min"] <= by_second["p50"] <= by_second["max"]
+    assert by_second["min"] >= cam_log["render_cpu_ms"].min()
     pipeline = 1e3 * (eye_log["t_wall_done"] - eye_log["t_wall_exposure"])
     period_ms = eye["frame_period_ms"]
     assert eye["slow_frames"]["over_one_period"] == int(np.sum(later & (pipeline > period_ms)))
@@ -620,3 +624,18 @@ def test_compile_meter_counts_a_first_use_and_not_a_cached_call():
         assert meter.events >= first_events + 3
     finally:
         meter.uninstall()
+
+
+def test_render_cpu_by_second_is_the_spread_of_per_second_medians():
+    # hand-made log: 3 whole seconds of 30 frames (medians 6, 9 and 12 ms, an outlier in the
+    # second) and a last partial second of 2 frames (too few: left out)
+    from hec_jax.realtime.report import render_cpu_by_second
+
+    t = np.concatenate([100.0 + np.arange(90) / 30, [103.0, 103.02]])
+    cpu = np.concatenate([np.full(30, 6.0), np.full(30, 9.0), np.full(30, 12.0), [50.0, 50.0]])
+    cpu[45] = 40.0  # one slow render does not move its second's median
+    got = render_cpu_by_second({"t_wall_start": t, "render_cpu_ms": cpu})
+    assert (got["n"], got["min"], got["p50"], got["max"]) == (3, 6.0, 9.0, 12.0)
+    assert got["max_over_min"] == 2.0
+    assert render_cpu_by_second({"t_wall_start": t[:3], "render_cpu_ms": cpu[:3]}) is None
+    assert render_cpu_by_second({"t_wall_start": [], "render_cpu_ms": []}) is None

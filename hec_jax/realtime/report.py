@@ -220,6 +220,9 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
         if "render_cpu_ms" in camera_log:  # logs since session 26
             out["camera"]["render_cpu_ms"] = percentiles(camera_log["render_cpu_ms"])
             out["camera"]["render_steal_ms_per_cpu"] = _steal_total(camera_log["render_steal_ms"])
+            by_second = render_cpu_by_second(camera_log)
+            if by_second is not None:
+                out["camera"]["render_cpu_ms_per_second"] = by_second
     if eye_log:
         out["eye"] = {
             "frames_processed": int(len(eye_log["index"])),
@@ -263,6 +266,28 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
             if err:
                 out["eye"]["position_rms_m"] = float(np.sqrt(np.mean(np.square(err))))
     return out
+
+
+def render_cpu_by_second(camera_log, min_frames: int = 5) -> dict | None:
+    """:func:`~.clock.speed_summary` of the render's CPU time [ms], its median over each whole
+    second of wall time (``t_wall_start``) holding at least ``min_frames`` frames: the camera's
+    CPU speed over the run. A render does about the same work every frame, so a spread here is
+    the CPU's (docs/realtime.md, "CPUs whose speed wanders"; on the 2-core VM the eye's tracked
+    frames followed it with correlation 0.87-0.98). None: no such second.
+    """
+    from hec_jax.realtime.clock import speed_summary
+
+    t = np.asarray(camera_log["t_wall_start"], float)
+    cpu = np.asarray(camera_log["render_cpu_ms"], float)
+    if t.size == 0:
+        return None
+    second = np.floor(t - t[0]).astype(int)
+    medians = [
+        float(np.median(cpu[second == k]))
+        for k in np.unique(second)
+        if np.sum(second == k) >= min_frames
+    ]
+    return speed_summary(medians) if medians else None
 
 
 def _steal_total(per_frame) -> list[float] | None:
@@ -428,6 +453,15 @@ def deadline_table(report: dict) -> list[str]:
             ]
             if "render_cpu_ms" in cam:
                 rows.append(("render process CPU p50 / p99 / max [ms]", ms(cam["render_cpu_ms"])))
+            if "render_cpu_ms_per_second" in cam:  # the camera CPU's speed over the run
+                r = cam["render_cpu_ms_per_second"]
+                rows.append(
+                    (
+                        "render CPU, median per second: min / p50 / max [ms] (max / min)",
+                        f"{r['min']:.1f} / {r['p50']:.1f} / {r['max']:.1f} "
+                        f"({r['max_over_min']:.2f})",
+                    )
+                )
         if "eye" in eye:
             e = eye["eye"]
             rows += [
