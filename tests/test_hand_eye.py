@@ -243,22 +243,21 @@ def test_camera_loop_matches_ground_truth(camera_run):
     # plain does not use the object's state, so camera and truth share its run
     assert camera["plain"] is truth["plain"]
     assert set(camera) == {"plain", "learned"} and set(eyes) == {"learned"}
-    for condition in ("learned",):
-        eye, logs = eyes[condition], camera[condition]
-        m = mt.eye_metrics(eye, logs, 1e-3)
-        # every frame of every seed and swing went through the eye (30 fps on the 1 ms grid)
-        per_swing = len(he.frame_steps(CAM, 1e-3, LOOP.swing_steps))
-        assert m["frames"] == SEEDS * CONFIG.swings * per_swing
-        # every frame before the first contact (the approach, where the virtual force acts on
-        # the eye's estimate) has a valid fit; after impacts failures are allowed and counted
-        f = mt.force_norm(logs)
-        for seed in range(SEEDS):
-            for swing in range(CONFIG.swings):
-                t_contact = np.argmax(f[seed, swing] > CONFIG.contact_threshold) * 1e-3
-                before = eye["t_stamp"][seed, swing] < t_contact
-                assert before.sum() >= 5 and eye["valid"][seed, swing][before].all()
-        assert m["position_rms_valid_frames_m"] < 0.01
-        assert np.all(np.isfinite(camera[condition]["x_e"]))
+    eye, logs = eyes["learned"], camera["learned"]
+    m = mt.eye_metrics(eye, logs, 1e-3)
+    # every frame of every seed and swing went through the eye (30 fps on the 1 ms grid)
+    per_swing = len(he.frame_steps(CAM, 1e-3, LOOP.swing_steps))
+    assert m["frames"] == SEEDS * CONFIG.swings * per_swing
+    # every frame before the first contact (the approach, where the virtual force acts on
+    # the eye's estimate) has a valid fit; after impacts failures are allowed and counted
+    f = mt.force_norm(logs)
+    for seed in range(SEEDS):
+        for swing in range(CONFIG.swings):
+            t_contact = np.argmax(f[seed, swing] > CONFIG.contact_threshold) * 1e-3
+            before = eye["t_stamp"][seed, swing] < t_contact
+            assert before.sum() >= 5 and eye["valid"][seed, swing][before].all()
+    assert m["position_rms_valid_frames_m"] < 0.01
+    assert np.all(np.isfinite(logs["x_e"]))
     assert mt.stability_summary(camera["learned"])["all_strictly_stable"]
 
 

@@ -67,7 +67,7 @@ class CompileMeter:
             self.last_name = str(kwargs.get("fun_name", ""))
 
     def install(self) -> CompileMeter:
-        """Register with ``jax.monitoring`` (once per process); returns self."""
+        """Register with ``jax.monitoring`` (once per meter); returns self."""
         import jax.monitoring
 
         jax.monitoring.register_event_duration_secs_listener(self._on_duration)
