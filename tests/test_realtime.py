@@ -639,3 +639,24 @@ def test_render_cpu_by_second_is_the_spread_of_per_second_medians():
     assert got["max_over_min"] == 2.0
     assert render_cpu_by_second({"t_wall_start": t[:3], "render_cpu_ms": cpu[:3]}) is None
     assert render_cpu_by_second({"t_wall_start": [], "render_cpu_ms": []}) is None
+
+
+def test_child_env_xla_flags_are_flags_xla_knows():
+    """Each token of the child processes' ``XLA_FLAGS`` is a ``--`` flag (XLA skips a token
+    without ``--`` silently) that XLA accepts: a JAX process started with them computes (an
+    unknown flag aborts XLA at start-up).
+    """
+    import subprocess
+    import sys
+
+    from hec_jax.realtime.plant import _child_env
+
+    flags = _child_env.SETTINGS["XLA_FLAGS"].split()
+    assert flags and all(f.startswith("--") for f in flags), flags
+    env = dict(os.environ, XLA_FLAGS=" ".join(flags), JAX_PLATFORMS="cpu")
+    code = "import jax.numpy as jnp; print(float(jnp.ones(3).sum()))"
+    done = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip() == "3.0"

@@ -576,12 +576,14 @@ class SharedCamera:
 
 class _child_env:
     """Environment of the child processes while they start (spawn copies it): one software
-    rendering thread, single-threaded XLA, so each child keeps to one core.
+    rendering thread, single-threaded Eigen in XLA, one OpenMP and one OpenCV thread, so each
+    child keeps to one core. Each ``XLA_FLAGS`` token must be a ``--`` flag XLA knows (it skips
+    other tokens silently and stops at an unknown flag).
     """
 
     SETTINGS = {
         "LP_NUM_THREADS": "1",
-        "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+        "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false",
         "OMP_NUM_THREADS": "1",
         "OPENCV_FOR_THREADS_NUM": "1",
     }
