@@ -793,6 +793,78 @@ def test_edge_points_sample_only_near_the_image():
     np.testing.assert_allclose(p_long[common, 1], [by_x[x] for x in p_long[common, 0]])
 
 
+@pytest.mark.parametrize("shape", [(480, 640), (123, 157)])
+def test_edge_points_smooth_only_their_window_with_the_whole_image_s_values(shape):
+    """``edge_points`` without ``blurred`` smooths only the window its samples read
+    (``detect.sample_window``): the same points, bit for bit, as with the whole image's
+    ``edge_blur``, for edges inside, across the border and outside the image, linear and cubic
+    interpolation, two blurs, and an image width that is not a multiple of the window's
+    alignment.
+    """
+    import cv2
+
+    from hec_jax.geometry.detect import edge_blur, edge_points
+
+    rng = np.random.default_rng(7)
+    h, w = shape
+    gray = cv2.GaussianBlur(rng.integers(0, 256, shape, dtype=np.uint8), (0, 0), 2.0)
+    cv2.rectangle(gray, (w // 5, h // 4), (3 * w // 5, 3 * h // 4), 230, -1)  # strong steps
+    checked = 0
+    for _ in range(40):
+        centre = rng.uniform([-0.2 * w, -0.2 * h], [1.2 * w, 1.2 * h])
+        ends = centre + rng.uniform(-0.6, 0.6, (12, 2, 2)) * [w, h]
+        usable = rng.random(12) < 0.8
+        for blur in (0.8, 1.3):
+            for interp in (cv2.INTER_LINEAR, cv2.INTER_CUBIC):
+                kw = dict(spacing=1.0, search=1.5, blur=blur, interpolation=interp)
+                got = edge_points(gray, ends, usable, **kw)
+                want = edge_points(gray, ends, usable, blurred=edge_blur(gray, blur), **kw)
+                np.testing.assert_array_equal(got[0], want[0])
+                np.testing.assert_array_equal(got[1], want[1])
+                checked += len(got[0])
+    assert checked > 1000  # the trials found edge points, inside the image and at its borders
+
+
+@pytest.mark.parametrize("x64", [False, True])
+def test_one_transfer_fetches_what_device_get_does(x64):
+    """``track._OneTransfer``: one packed array unpacked on the host gives ``jax.device_get``'s
+    leaves bit for bit (float32 and float64, with bool and int leaves, 0-d and 3-d), of the same
+    dtypes, shapes and tree.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from hec_jax.geometry.track import Finished, TrackConfig, _jit, _OneTransfer
+
+    def fn(x, n):
+        return Finished(
+            x[:9].reshape(3, 3) * 1.5,
+            jnp.sin(x[:3]),
+            jnp.sum(x),
+            jnp.sum(x) > 0,
+            jnp.outer(x[:6], x[:6]),
+            kf.FilterState(x[:9] / 3.0, jnp.outer(x[:9], x[:9])),
+            kf.FilterState(x[:9] ** 2, jnp.eye(9) * x[0]),
+            x[: 2 * n * 2].reshape(n, 2, 2),
+            jnp.arange(n, dtype=jnp.int32) - 1,
+            jnp.cos(x[:n]),
+            jnp.float32(0.25) * x[1],
+        )
+
+    with jax.enable_x64(x64):
+        dtype = np.float64 if x64 else np.float32
+        x = np.random.default_rng(3).normal(size=40).astype(dtype)
+        cfg = TrackConfig()
+        one = _OneTransfer(lambda x: fn(x, 8), cfg)
+        want = jax.device_get(_jit(lambda x: fn(x, 8), cfg)(x))
+        for _ in range(2):  # the layout made on the first call, reused on the second
+            got = one(x)
+            assert jax.tree.structure(got) == jax.tree.structure(want)
+            for g, v in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+                assert isinstance(g, np.ndarray) and g.dtype == v.dtype and g.shape == v.shape
+                np.testing.assert_array_equal(g, v)
+
+
 def test_configs_differing_only_on_the_host_share_their_compiled_functions():
     """Every TrackConfig field read inside the jitted functions (or by the functions they call in
     ``track.py``) is in ``_TRACED``, so normalising the others cannot change a compiled program;

@@ -637,9 +637,10 @@ def edge_points(
     [grey levels / px] are dropped; ``blur`` is the Gaussian's sigma [px]. Only the points
     within ``search`` + 2 px of the image are sampled (the same grid along each edge; an edge
     far outside, as a wrong fit can project, costs nothing). Returns (points (N, 2) [px], edge
-    index (N,)). ``blurred``: :func:`edge_blur` of ``gray`` and ``blur``, if already made.
+    index (N,)). ``blurred``: :func:`edge_blur` of ``gray`` and ``blur``, if already made; None:
+    only the window the samples read is smoothed (:func:`sample_window`), the same values as
+    the whole image's :func:`edge_blur` there.
     """
-    img = edge_blur(gray, blur) if blurred is None else blurred
     offs = np.arange(-search, search + 1e-9, step)
     h, w = gray.shape[:2]
     pad = search + 2.0  # [px] points farther outside the image sample only its replicated border
@@ -665,13 +666,16 @@ def edge_points(
         return np.zeros((0, 2)), np.zeros(0, int)
     pts, ids, normals = np.concatenate(pts), np.concatenate(ids), np.concatenate(normals)
     samp = pts[:, None, :] + offs[None, :, None] * normals[:, None, :] - PIXEL_OFFSET
-    vals = cv2.remap(
-        img,
-        samp[..., 0].astype(np.float32),
-        samp[..., 1].astype(np.float32),
-        interpolation,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
+    map_x, map_y = samp[..., 0].astype(np.float32), samp[..., 1].astype(np.float32)
+    if blurred is None:
+        x0, y0, x1, y1 = sample_window(map_x, map_y, w, h, blur)
+        img = edge_blur(gray[y0:y1, x0:x1], blur)
+        # an integer taken from a float32 coordinate inside [0, 2^24) is exact: remap reads the
+        # same pixel at the same sub-pixel fraction of the window
+        map_x, map_y = map_x - np.float32(x0), map_y - np.float32(y0)
+    else:
+        img = blurred
+    vals = cv2.remap(img, map_x, map_y, interpolation, borderMode=cv2.BORDER_REPLICATE)
     deriv = np.abs(vals[:, 2:] - vals[:, :-2]) / (2 * step)  # at offs[1:-1]
     i = np.argmax(deriv[:, 1:-1], axis=1) + 1
     rows = np.arange(len(i))
@@ -689,6 +693,37 @@ def edge_blur(gray: np.ndarray, blur: float = 0.8) -> np.ndarray:
     ``blur`` [px].
     """
     return cv2.GaussianBlur(gray.astype(np.float32), (0, 0), blur)
+
+
+# [px] the column multiple a smoothed window starts and ends at (or the image's edge). OpenCV's
+# separable filter runs its SIMD lanes from the row's first pixel: a window aligned to the lanes
+# computes each pixel with the same operations as the whole image (with another alignment, a
+# pixel a lane computes in one and the scalar tail in the other can differ in the last bit).
+# 64 covers 8 float32 lanes (AVX2; every window measured bit for bit, docs/realtime.md, "The
+# tracker's host side") up to 16 lanes unrolled four times.
+SAMPLE_WINDOW_ALIGN = 64
+
+
+def sample_window(map_x, map_y, width: int, height: int, blur: float) -> tuple[int, int, int, int]:
+    """(x0, y0, x1, y1) [px, OpenCV pixel indices, end exclusive] of ``gray`` whose
+    :func:`edge_blur` (sigma ``blur`` [px]) holds, at every pixel a cubic or linear
+    ``cv2.remap`` of the sample coordinates (``map_x``, ``map_y``) reads, the value of the whole
+    image's: the samples' box grown by the Gaussian's radius (OpenCV's kernel for float32,
+    ``round(8 sigma + 1) | 1`` taps), the interpolation's reach and a pixel of margin, clipped to
+    the image, its columns aligned to :data:`SAMPLE_WINDOW_ALIGN`. Samples outside the image
+    read its replicated edge either way (the window then reaches that edge).
+    """
+    taps = int(round(8.0 * blur + 1.0)) | 1
+    grow = taps // 2 + 3  # the kernel's radius, cubic interpolation's reach (2 px) and a margin
+
+    def span(coords, size: int) -> tuple[int, int]:  # the pixels read, within the image
+        lo = int(np.floor(np.clip(np.min(coords), 0.0, size - 1.0)))
+        hi = int(np.floor(np.clip(np.max(coords), 0.0, size - 1.0)))
+        return max(lo - grow, 0), min(hi + grow + 1, size)
+
+    (x0, x1), (y0, y1) = span(map_x, width), span(map_y, height)
+    a = SAMPLE_WINDOW_ALIGN
+    return x0 // a * a, y0, min(-(-x1 // a) * a, width), y1
 
 
 def _inside_interval(a, u, length: float, box) -> tuple[float, float]:
