@@ -820,10 +820,9 @@ class _OneTransfer:
     floating dtype; the host unpacks it into NumPy arrays of each leaf's own shape and dtype.
     Exact (bit for bit the leaves of ``jax.device_get``) where each integer or boolean leaf holds
     values the packed float type represents exactly (|v| <= 2^24 in float32), as the tracker's
-    do (model edge ids, flags). A fetched leaf costs about 20 us on the 2-core CPU, so a
-    13-leaf :class:`Finished` took about 0.26 ms more than one flat array (docs/realtime.md,
-    "The tracker's host side"). The layout (tree, shapes, dtypes) comes from ``jax.eval_shape``
-    once per packed dtype and size.
+    do (model edge ids, flags). Each fetched leaf has a fixed cost, which a 13-leaf
+    :class:`Finished` paid 13 times (docs/realtime.md, "The tracker's host side"). The layout
+    (tree, shapes, dtypes) comes from ``jax.eval_shape`` once per packed dtype and size.
     """
 
     def __init__(self, fn, cfg: TrackConfig):
