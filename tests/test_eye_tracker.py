@@ -857,7 +857,7 @@ def test_one_transfer_fetches_what_device_get_does(x64):
         cfg = TrackConfig()
         one = _OneTransfer(lambda x: fn(x, 8), cfg)
         want = jax.device_get(_jit(lambda x: fn(x, 8), cfg)(x))
-        for _ in range(2):  # the layout made on the first call, reused on the second
+        for _ in range(2):  # the layout recorded while tracing the first call, reused after
             got = one(x)
             assert jax.tree.structure(got) == jax.tree.structure(want)
             for g, v in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):

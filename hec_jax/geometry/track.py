@@ -822,28 +822,29 @@ class _OneTransfer:
     values the packed float type represents exactly (|v| <= 2^24 in float32), as the tracker's
     do (model edge ids, flags). Each fetched leaf has a fixed cost, which a 13-leaf
     :class:`Finished` paid 13 times (docs/realtime.md, "The tracker's host side"). The layout
-    (tree, shapes, dtypes) comes from ``jax.eval_shape`` once per packed dtype and size.
+    (tree, shapes, dtypes) is recorded while a signature is traced, and its number is the
+    packed array's last element.
     """
 
     def __init__(self, fn, cfg: TrackConfig):
         self._fn = fn
         self._packed = _jit(self._pack, cfg)
-        self._layouts: dict = {}
+        self._layouts: list = []
+        self._lock = threading.Lock()
 
     def _pack(self, *args):
-        leaves = jax.tree.leaves(self._fn(*args))
+        leaves, tree = jax.tree.flatten(self._fn(*args))
         floats = [x.dtype for x in leaves if jnp.issubdtype(x.dtype, jnp.floating)]
         dtype = jnp.result_type(*floats) if floats else jnp.float32
-        return jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves])
+        with self._lock:  # traced once per signature; host threads may trace at once
+            self._layouts.append((tree, [(x.shape, np.dtype(x.dtype)) for x in leaves]))
+            number = len(self._layouts) - 1
+        parts = [jnp.ravel(x).astype(dtype) for x in leaves]
+        return jnp.concatenate([*parts, jnp.full(1, number, dtype)])
 
     def __call__(self, *args):
         flat = np.asarray(self._packed(*args))
-        key = (flat.dtype, flat.size)
-        if key not in self._layouts:
-            out = jax.eval_shape(self._fn, *args)
-            leaves, tree = jax.tree.flatten(out)
-            self._layouts[key] = (tree, [(x.shape, np.dtype(x.dtype)) for x in leaves])
-        tree, specs = self._layouts[key]
+        tree, specs = self._layouts[int(flat[-1])]
         leaves, start = [], 0
         for shape, dtype in specs:
             n = int(np.prod(shape, dtype=np.int64))
