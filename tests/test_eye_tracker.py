@@ -225,13 +225,15 @@ def test_local_search_runs_its_turned_starts_only_when_the_predicted_rotation_fa
     assert one._local[1] is None  # no turns: the first stage only
 
 
-# the default suite keeps the real-time eye's setting (4, 0.1); the others are slow
+# slow, every setting (the CI's time: the real-time eye's (4, 0.1) alone took 71 s there, its
+# warm_up compiling every form). The default suite keeps the turned starts' recovery with (4, 0.1)
+# on the real-time eye's own frames: test_the_held_cube_s_turned_recoveries_with_fewer_turned_starts
 @pytest.mark.parametrize(
     "keep, merge",
     [
         pytest.param(0, 0.0, marks=pytest.mark.slow),
         pytest.param(4, 0.0, marks=pytest.mark.slow),
-        (4, 0.1),
+        pytest.param(4, 0.1, marks=pytest.mark.slow),
         pytest.param(0, 10.0, marks=pytest.mark.slow),
     ],
 )
@@ -829,12 +831,33 @@ def test_edge_points_smooth_only_their_window_with_the_whole_image_s_values(shap
 def test_one_transfer_fetches_what_device_get_does(x64):
     """``track._OneTransfer``: one packed array unpacked on the host gives ``jax.device_get``'s
     leaves bit for bit (float32 and float64, with bool and int leaves, 0-d and 3-d), of the same
-    dtypes, shapes and tree.
+    dtypes, shapes and tree: a finish's :class:`Finished` and a search's nested ``Located``
+    (pose, association); ``_cache_size`` counts its compiled signatures.
     """
     import jax
     import jax.numpy as jnp
 
-    from hec_jax.geometry.track import Finished, TrackConfig, _jit, _OneTransfer
+    from hec_jax.geometry.box_model import Pose
+    from hec_jax.geometry.track import (
+        Association,
+        Finished,
+        Located,
+        TrackConfig,
+        _jit,
+        _OneTransfer,
+    )
+
+    def located(x, n):  # the search's result: nested tuples, int32 ids (-1 unassigned), bools
+        association = Association(
+            x[: 2 * n * 2].reshape(n, 2, 2),
+            jnp.arange(n, dtype=jnp.int32) - 1,
+            jnp.abs(x[:n]),
+            jnp.tanh(x[0]),
+            jnp.sum(x[:3] > 0).astype(jnp.int32),
+            jnp.int32(0),
+        )
+        pose = Pose(x[:9].reshape(3, 3), x[9:12] + 1.0)
+        return Located(pose, association, jnp.sum(x**2), x[0] > x[1], jnp.outer(x[:3], x[:3]), True)
 
     def fn(x, n):
         return Finished(
@@ -855,14 +878,18 @@ def test_one_transfer_fetches_what_device_get_does(x64):
         dtype = np.float64 if x64 else np.float32
         x = np.random.default_rng(3).normal(size=40).astype(dtype)
         cfg = TrackConfig()
-        one = _OneTransfer(lambda x: fn(x, 8), cfg)
-        want = jax.device_get(_jit(lambda x: fn(x, 8), cfg)(x))
-        for _ in range(2):  # the layout recorded while tracing the first call, reused after
-            got = one(x)
-            assert jax.tree.structure(got) == jax.tree.structure(want)
-            for g, v in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
-                assert isinstance(g, np.ndarray) and g.dtype == v.dtype and g.shape == v.shape
-                np.testing.assert_array_equal(g, v)
+        for make in (fn, located):
+            one = _OneTransfer(lambda x, make=make: make(x, 8), cfg)
+            want = jax.device_get(_jit(lambda x, make=make: make(x, 8), cfg)(x))
+            for _ in range(2):  # the layout recorded while tracing the first call, reused after
+                got = one(x)
+                assert jax.tree.structure(got) == jax.tree.structure(want)
+                for g, v in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
+                    assert isinstance(g, np.ndarray) and g.dtype == v.dtype and g.shape == v.shape
+                    np.testing.assert_array_equal(g, v)
+            assert one._cache_size() == 1
+            one(x[:-1])  # another signature: traced and compiled again
+            assert one._cache_size() == 2
 
 
 def test_configs_differing_only_on_the_host_share_their_compiled_functions():

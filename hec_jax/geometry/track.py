@@ -834,6 +834,7 @@ class _OneTransfer:
 
     def _pack(self, *args):
         leaves, tree = jax.tree.flatten(self._fn(*args))
+        leaves = [jnp.asarray(x) for x in leaves]  # a Python scalar among them, as jax.jit does
         floats = [x.dtype for x in leaves if jnp.issubdtype(x.dtype, jnp.floating)]
         dtype = jnp.result_type(*floats) if floats else jnp.float32
         with self._lock:  # traced once per signature; host threads may trace at once
@@ -841,6 +842,10 @@ class _OneTransfer:
             number = len(self._layouts) - 1
         parts = [jnp.ravel(x).astype(dtype) for x in leaves]
         return jnp.concatenate([*parts, jnp.full(1, number, dtype)])
+
+    def _cache_size(self) -> int:
+        """How many signatures the packed function has compiled (``jax.jit``'s count)."""
+        return self._packed._cache_size()
 
     def __call__(self, *args):
         flat = np.asarray(self._packed(*args))
@@ -1123,8 +1128,8 @@ def seam_step(image, rotation, translation, size, intrinsics, min_thickness_px: 
 
 
 def _make_local_search(cfg: TrackConfig):
-    """The local search's two stages (:meth:`BoxTracker._reacquire_locally`): jitted
-    ``(first, rest)``, ``first`` the predicted rotation at each centre, ``rest`` the
+    """The local search's two stages (:meth:`BoxTracker._reacquire_locally`): jitted, their
+    result fetched in one transfer (:class:`_OneTransfer`), ``(first, rest)``, ``first`` the predicted rotation at each centre, ``rest`` the
     ``local_starts - 1`` random turns of it (None when there are none).
     """
     n = max(cfg.local_starts - 1, 0)
@@ -1162,7 +1167,7 @@ def _make_local_search(cfg: TrackConfig):
             fine = jax.vmap(lambda p: one(p.rotation, p.translation, gates[n_coarse:]))
             return _best_start(fine(kept))
 
-        return _jit(local, cfg)
+        return _OneTransfer(local, cfg)
 
     return make(turns[:1], 0), (make(turns[1:], cfg.local_keep) if n else None)
 
@@ -1234,7 +1239,7 @@ def _make_search(cfg: TrackConfig):
         _, keep = jax.lax.top_k(_start_score(first), min(cfg.search_keep, rots.shape[0]))
         return _best_start(jax.vmap(fine)(jax.tree.map(lambda x: x[keep], first.pose)))
 
-    return _jit(search, cfg)
+    return _OneTransfer(search, cfg)
 
 
 class BoxTrack(NamedTuple):
@@ -1874,17 +1879,15 @@ class BoxTracker:
             if not mask_c.any():
                 return None
             mask_c, texture_c = self._texture_roles(segp_c, mask_c, gray, roi)
-            cand = jax.device_get(
-                self._search(
-                    centre,
-                    np.float64(edge_px),
-                    segp_c,
-                    mask_c,
-                    np.float64(self.size),
-                    k,
-                    self._occluded,
-                    texture_c,
-                )
+            cand = self._search(  # on the host (one transfer)
+                centre,
+                np.float64(edge_px),
+                segp_c,
+                mask_c,
+                np.float64(self.size),
+                k,
+                self._occluded,
+                texture_c,
             )
             score = float(cand.association.coverage) - 0.1 * float(cand.rms)
             t_c = np.asarray(cand.pose.translation)
@@ -2049,16 +2052,14 @@ class BoxTracker:
             search = self._local[stage]
             if search is None:
                 continue
-            loc = jax.device_get(
-                search(
-                    np.asarray(rotation),
-                    centres[:1] if stage == 1 and merge else centres,
-                    segp,
-                    mask,
-                    np.float64(self.size),
-                    k,
-                    self._occluded,
-                )
+            loc = search(  # on the host (one transfer)
+                np.asarray(rotation),
+                centres[:1] if stage == 1 and merge else centres,
+                segp,
+                mask,
+                np.float64(self.size),
+                k,
+                self._occluded,
             )
             if not bool(loc.valid):
                 continue
