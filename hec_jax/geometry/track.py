@@ -1128,9 +1128,10 @@ def seam_step(image, rotation, translation, size, intrinsics, min_thickness_px: 
 
 
 def _make_local_search(cfg: TrackConfig):
-    """The local search's two stages (:meth:`BoxTracker._reacquire_locally`): jitted, their
-    result fetched in one transfer (:class:`_OneTransfer`), ``(first, rest)``, ``first`` the predicted rotation at each centre, ``rest`` the
-    ``local_starts - 1`` random turns of it (None when there are none).
+    """The local search's two stages (:meth:`BoxTracker._reacquire_locally`), jitted, each
+    result fetched in one transfer (:class:`_OneTransfer`): ``(first, rest)``, ``first`` the
+    predicted rotation at each centre, ``rest`` the ``local_starts - 1`` random turns of it
+    (None when there are none).
     """
     n = max(cfg.local_starts - 1, 0)
     rng = np.random.default_rng(cfg.seed + 1)
