@@ -879,17 +879,18 @@ def test_one_transfer_fetches_what_device_get_does(x64):
         x = np.random.default_rng(3).normal(size=40).astype(dtype)
         cfg = TrackConfig()
         for make in (fn, located):
-            one = _OneTransfer(lambda x, make=make: make(x, 8), cfg)
-            want = jax.device_get(_jit(lambda x, make=make: make(x, 8), cfg)(x))
-            for _ in range(2):  # the layout recorded while tracing the first call, reused after
-                got = one(x)
+            one = _OneTransfer(lambda x, make=make: make(x, len(x) // 5), cfg)
+            jitted = _jit(lambda x, make=make: make(x, len(x) // 5), cfg)
+            # the layout recorded while tracing the first call is reused after; another
+            # signature (x[:-1]: 7 segments instead of 8) is traced again and unpacked by its own
+            # layout
+            for arg, signatures in ((x, 1), (x, 1), (x[:-1], 2), (x, 2)):
+                got, want = one(arg), jax.device_get(jitted(arg))
                 assert jax.tree.structure(got) == jax.tree.structure(want)
                 for g, v in zip(jax.tree.leaves(got), jax.tree.leaves(want), strict=True):
                     assert isinstance(g, np.ndarray) and g.dtype == v.dtype and g.shape == v.shape
                     np.testing.assert_array_equal(g, v)
-            assert one._cache_size() == 1
-            one(x[:-1])  # another signature: traced and compiled again
-            assert one._cache_size() == 2
+                assert one._cache_size() == signatures
 
 
 def test_configs_differing_only_on_the_host_share_their_compiled_functions():
