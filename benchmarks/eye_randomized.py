@@ -12,7 +12,8 @@ Methods, on the same frames:
 
 * ``tracker``: ``track_box`` (segments -> box model -> pose -> state) with the issue-24 checks on
   (``TRACK`` = ``track.RANDOMIZED_BENCHMARK``: ``track.UNSEEN_SCENES``, i.e. colour background,
-  foreground edges, silhouette, IoU and inner-edge confirmation, plus
+  foreground edges, silhouette and IoU confirmation (its inner-edge check off since session 50:
+  ``--min-inner-support``), plus
   ``min_region_fraction=0.25``, the two-stage search ``search_keep=8``, ``blob_required``,
   ``low_contrast``, ``blob_core=0.4``, ``faint_candidates``, ``batched_search``,
   ``stretch_points``, ``max_outside_foreground=0.2``, ``faint_masks``, ``prior_segments``,
@@ -22,8 +23,9 @@ Methods, on the same frames:
   ``depth_gate``, on two host threads (``--threads``; the baselines on one), its jitted fits and
   searches compiled with ``cpu_small_kernels`` (``--no-cpu-small-kernels``: XLA's defaults);
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
-  ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``; the
-  library's defaults, which the hand-eye loop uses, have them off): its
+  ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``, plus the
+  jump test ``max_speed_m_s`` at the scenes' speed bound (``--max-speed-m-s``; the library's
+  defaults, which the hand-eye loop uses, have them off): its
   offline smoothed output and its causal one (``BoxTracker``);
 * ``opencv_pnp``: the visible face as a quadrilateral (``baselines.face_quad``) and
   ``cv2.solvePnP(IPPE_SQUARE)`` per frame, velocity by differences;
@@ -51,13 +53,16 @@ from hec_jax.geometry import accuracy
 from hec_jax.geometry.baselines import paper_two_frame_track, pnp_face_track
 from hec_jax.geometry.smooth import NO_EXTRAPOLATION
 from hec_jax.geometry.track import RANDOMIZED_BENCHMARK, track_box
+from hec_jax.mjx_scene.randomized import max_swing_speed_m_s
 from hec_jax.progress import ProgressBar
 from hec_jax.runs import run_folder, write_json, write_text
 
 SPLITS = {"dev": 0, "heldout": 1_000_000}
 METHODS = ("tracker", "tracker_causal", "opencv_pnp", "paper")
 TRACK = RANDOMIZED_BENCHMARK  # the issue-24 checks and the search options (see there)
-SMOOTH = NO_EXTRAPOLATION  # no extrapolation across gaps over 0.2 s
+# no extrapolation across gaps over 0.2 s; fits farther apart than the swing can move split the
+# track (the bound from the scene ranges' physics, randomized.max_swing_speed_m_s: 1.75 m/s)
+SMOOTH = dataclasses.replace(NO_EXTRAPOLATION, max_speed_m_s=max_swing_speed_m_s())
 
 
 @dataclass(frozen=True)
@@ -99,6 +104,12 @@ class EyeRandomized:
     # its jitted fits and searches; False for XLA's defaults, docs/eye_randomized.md "Compiler
     # options for the small kernels")
     cpu_small_kernels: bool = TRACK.cpu_small_kernels
+    # TrackConfig.min_inner_support of the tracker (the preset's, 0: off since session 50; 0.05
+    # for the ablation, docs/eye_randomized.md "Jumps in the smoother; the inner-edge check off")
+    min_inner_support: float = TRACK.min_inner_support
+    # SmootherConfig.max_speed_m_s of the smoother (the preset's: the scenes' speed bound; 0: no
+    # jump test, for the ablation; same docs section)
+    max_speed_m_s: float = SMOOTH.max_speed_m_s
 
     def __post_init__(self):
         require(self, "count", "sequences", "width", "height", "threads")
@@ -114,6 +125,7 @@ class EyeRandomized:
             require(self, "non_negative", "max_face_split")
         if self.face_seam_step is not None:
             require(self, "non_negative", "face_seam_step")
+        require(self, "non_negative", "min_inner_support", "max_speed_m_s")
 
 
 def tracker_config(a: EyeRandomized):
@@ -128,7 +140,13 @@ def tracker_config(a: EyeRandomized):
         face_seam_step=a.face_seam_step,
         threads=a.threads,
         cpu_small_kernels=a.cpu_small_kernels,
+        min_inner_support=a.min_inner_support,
     )
+
+
+def smoother_config(a: EyeRandomized):
+    """The smoother's configuration: ``SMOOTH`` with the flags' overrides."""
+    return dataclasses.replace(SMOOTH, max_speed_m_s=a.max_speed_m_s or None)
 
 
 def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:
@@ -142,7 +160,7 @@ def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:
     render_s = time.perf_counter() - t0
     k, size = seq.intrinsics, scene.edge_m
     vis = accuracy.fully_visible(seq.position, seq.rotation, size, k, a.width, a.height)
-    tr = track_box(seq.frames, k, size, a.fps, tracker_config(a), SMOOTH, background=bg)
+    tr = track_box(seq.frames, k, size, a.fps, tracker_config(a), smoother_config(a), background=bg)
     t_ms = tr.timing_ms["total_ms"]
     pnp = pnp_face_track(seq.frames, k, size, a.fps, bg)
     paper = paper_two_frame_track(pnp.quads, k, size, a.fps)
@@ -236,7 +254,7 @@ def main(argv=None) -> dict:
     seeds = [SPLITS[a.split] + a.first + i for i in range(a.sequences)]
     settings = {"seeds": [seeds[0], seeds[-1]], "frames": int(round(a.seconds * a.fps))}
     settings |= {"track": dataclasses.asdict(tracker_config(a))}
-    settings |= {"smoother": dataclasses.asdict(SMOOTH)}
+    settings |= {"smoother": dataclasses.asdict(smoother_config(a))}
     with run_folder(a.out, seeds[0], settings, a.overwrite) as folder:
         per = {name: [] for name in METHODS}
         summaries = []

@@ -134,6 +134,8 @@ BAD = {
         (["--lsd-contrast", "0"], "--lsd-contrast: must be finite and > 0"),
         (["--max-face-split", "-1"], "--max-face-split: must be finite and >= 0"),
         (["--face-seam-step", "-1"], "--face-seam-step: must be finite and >= 0"),
+        (["--min-inner-support", "-1"], "--min-inner-support: must be finite and >= 0"),
+        (["--max-speed-m-s", "-1"], "--max-speed-m-s: must be finite and >= 0"),
         (["--threads", "0"], "--threads: must be an integer >= 1"),
         (["--out", USED], "exists and is not empty"),
     ],
@@ -215,6 +217,7 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     argv = ["--no-faint-unshadowed", "--lsd-contrast", "20", "--search-texture", "0.25"]
     argv += ["--threads", "1", "--blob-scales", "3", "--no-cpu-small-kernels"]
     argv += ["--max-face-split", "None", "--face-seam-step", "None"]
+    argv += ["--min-inner-support", "0.05"]
     changed = bench.tracker_config(parse(bench.EyeRandomized(), argv))
     assert changed == dataclasses.replace(
         RANDOMIZED_BENCHMARK,
@@ -226,7 +229,17 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
         cpu_small_kernels=False,
         max_face_split=None,
         face_seam_step=None,
+        min_inner_support=0.05,
     )
+    assert default.min_inner_support == 0.0
+    # the smoother: the jump test at the scenes' speed bound; 0 turns it off
+    from hec_jax.geometry.smooth import NO_EXTRAPOLATION
+    from hec_jax.mjx_scene.randomized import max_swing_speed_m_s
+
+    smooth = bench.smoother_config(parse(bench.EyeRandomized(), []))
+    assert smooth == dataclasses.replace(NO_EXTRAPOLATION, max_speed_m_s=max_swing_speed_m_s())
+    off = bench.smoother_config(parse(bench.EyeRandomized(), ["--max-speed-m-s", "0"]))
+    assert off == NO_EXTRAPOLATION
     two = bench.tracker_config(parse(bench.EyeRandomized(), ["--blob-scales", "2", "3"]))
     assert two.blob_scales == (2.0, 3.0)
     with pytest.raises(SystemExit):

@@ -43,6 +43,37 @@ def test_draw_scene_is_seeded_and_in_range():
     assert any(sc.shadows for sc in scenes) and any(sc.exposure_s > 0 for sc in scenes)
 
 
+def test_max_swing_speed_bounds_the_simulated_cube():
+    """``max_swing_speed_m_s`` against MuJoCo C: the scene at the ranges' longest rod, largest
+    cube and largest release (release forced past draw_scene's in-view cap), 2 s at the scene's
+    own 1 ms step, its cube centre's fastest speed (finite differences) is under the bound and
+    within 2% of it (the bound's grid maximum is at that corner); the point-mass bound
+    sqrt(2 g L (1 - cos theta)) is not one (the rod's mass nearer the hinge speeds the cube)."""
+    import mujoco
+
+    from hec_jax.mjx_scene.randomized import max_swing_speed_m_s, scene_mjcf
+
+    r = RandomSceneRanges()
+    widest = RandomSceneRanges(edge_m=(r.edge_m[1],) * 2, rod_m=(r.rod_m[1],) * 2)
+    scene = draw_scene(3, widest)
+    m = mujoco.MjModel.from_xml_string(*scene_mjcf(scene, 64, 48))
+    d = mujoco.MjData(m)
+    d.qpos[0] = r.release_rad[1]
+    cube = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "cube")
+    mujoco.mj_forward(m, d)
+    centres = [d.xpos[cube].copy()]
+    for _ in range(int(2.0 / m.opt.timestep)):
+        mujoco.mj_step(m, d)
+        mujoco.mj_forward(m, d)
+        centres.append(d.xpos[cube].copy())
+    speed = np.linalg.norm(np.diff(centres, axis=0), axis=-1).max() / m.opt.timestep
+    bound = max_swing_speed_m_s(r)
+    assert 0.98 * bound < speed <= bound, (speed, bound)
+    arm = r.rod_m[1] + r.edge_m[1] / 2
+    assert speed > np.sqrt(2 * 9.81 * arm * (1 - np.cos(r.release_rad[1])))
+    assert max_swing_speed_m_s(RandomSceneRanges(release_rad=(0.1, 0.3))) < bound
+
+
 @pytest.fixture(scope="module")
 def rendered():
     scene = draw_scene(DEV_SEED)

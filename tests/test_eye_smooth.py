@@ -6,6 +6,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from hec_jax.geometry import filter as kf
 from hec_jax.geometry import rotation_error_deg
@@ -330,3 +331,96 @@ def _plain_inverse(info):
     """Lambda_tt^-1 as ``smooth._split`` computed it for every frame before the floor."""
     a = jnp.linalg.inv(info[3:, 3:] + 1e-12 * jnp.eye(3))
     return 0.5 * (a + a.T)
+
+
+# the jump test (SmootherConfig.max_speed_m_s): _pendulum's centre moves at most 0.6 rad x 3.5
+# rad/s x 0.552 m = 1.16 m/s
+PENDULUM_SPEED_BOUND = 1.2  # [m/s]
+JUMP_BASE = SmootherConfig(info_scale=1.0, hinge_max_cost=12.6, max_gap_s=0.2)
+
+
+def _jump_cfg(cfg=JUMP_BASE):
+    return dataclasses.replace(cfg, max_speed_m_s=PENDULUM_SPEED_BOUND)
+
+
+def test_jump_split_keeps_a_wrong_lock_from_bending_the_good_fits():
+    """A wrong lock 1 m off for 4 frames, lost for 5 frames (under ``max_gap_s``: one segment
+    without the jump test), then the pendulum tracked. With the jump test the good fits are
+    smoothed on their own: within 1 cm and 6 cm/s RMS, with the whole-track model on or off;
+    without it the free smoother bends them (over 5 cm, over 0.3 m/s RMS; seeds 11-15, 21, 22
+    gave 9.8-10.1 cm and 0.45-0.46 m/s against 1.6-4.7 mm and 1.2-3.4 cm/s with it). The wrong
+    lock's own piece (4 frames) is not rejected."""
+    for seed in (11, 12, 13):
+        (_, pos, vel, _), (meas_rot, meas_pos, info) = _pendulum(seed=seed)
+        meas_pos = meas_pos.copy()
+        meas_pos[:4] += np.array([0.6, -0.5, 0.6])  # [m]
+        valid = np.ones(len(pos), bool)
+        valid[4:9] = False
+        args = (meas_rot, meas_pos, info, valid, DT)
+        good = np.arange(len(pos)) >= 9
+
+        def errors(out, good=good, pos=pos, vel=vel):
+            err = np.linalg.norm(out.position - pos, axis=-1)[good]
+            v_err = np.linalg.norm(out.velocity - vel, axis=-1)[good]
+            return err.max(), np.sqrt(np.mean(v_err**2))
+
+        max_err, v_rms = errors(smooth_track(*args, JUMP_BASE))
+        assert max_err > 0.05 and v_rms > 0.3, (seed, max_err, v_rms)
+        for cfg in (JUMP_BASE, dataclasses.replace(JUMP_BASE, hinge_whole_track=True)):
+            split = smooth_track(*args, _jump_cfg(cfg))
+            max_err, v_rms = errors(split)
+            assert max_err < 0.01 and v_rms < 0.06, (seed, max_err, v_rms)
+            assert not split.jump_rejected.any()
+            # frames between the pieces hold the nearest piece's end: nothing carried across
+            if not cfg.hinge_whole_track:
+                np.testing.assert_array_equal(split.velocity[4:9], 0.0)
+
+
+def test_jump_split_bridges_a_short_wrong_piece():
+    """One fit 0.4 m off mid-track, two 0.3 m deep at the end: cut off by jumps from the long
+    track, they are flagged (``jump_rejected``) and bridged: the mid-track frame within 1 cm,
+    the last two holding the track's end (the motion of at most 2 frames, under 8 cm); every
+    other frame within 1 cm. Without the test the free smoother is pulled over 5 cm off (seeds
+    11-15, 21, 22: 19-20 cm at the next-to-last frame). With the whole-track model on, the
+    flagged fits are left out of it and it is accepted."""
+    for seed in (21, 22):
+        (_, pos, _, _), (meas_rot, meas_pos, info) = _pendulum(seed=seed)
+        meas_pos = meas_pos.copy()
+        t_n = len(pos)
+        wrong = np.zeros(t_n, bool)
+        wrong[[30, t_n - 2, t_n - 1]] = True
+        meas_pos[30] += np.array([0.0, 0.4, 0.0])  # [m]
+        meas_pos[-2:] *= 1.0 + 0.3 / np.linalg.norm(meas_pos[-2:], axis=-1, keepdims=True)
+        args = (meas_rot, meas_pos, info, np.ones(t_n, bool), DT)
+        for cfg in (JUMP_BASE, dataclasses.replace(JUMP_BASE, hinge_whole_track=True)):
+            split, plain = smooth_track(*args, _jump_cfg(cfg)), smooth_track(*args, cfg)
+            np.testing.assert_array_equal(split.jump_rejected, wrong)
+            err = np.linalg.norm(split.position - pos, axis=-1)
+            assert err[~wrong].max() < 0.01 and err[30] < 0.01, (seed, err)
+            assert err[-2:].max() < 0.08, err[-2:]
+            if cfg.hinge_whole_track:
+                assert split.hinge and not (split.hinge_outlier & split.jump_rejected).any()
+            else:
+                assert np.linalg.norm(plain.position - pos, axis=-1).max() > 0.05
+
+
+def test_jump_split_changes_nothing_without_a_jump():
+    """A track whose fits never jump: the same numbers, bit for bit, with the jump test on, with
+    and without a long gap and the whole-track model; nothing flagged."""
+    (_, _, _, _), (meas_rot, meas_pos, info) = _pendulum(seed=31)
+    valid = np.ones(len(meas_pos), bool)
+    for gap in (False, True):
+        valid[20:32] = not gap
+        for cfg in (JUMP_BASE, NO_EXTRAPOLATION):
+            args = (meas_rot, meas_pos, info, valid, DT)
+            on, off = smooth_track(*args, _jump_cfg(cfg)), smooth_track(*args, cfg)
+            assert not on.jump_rejected.any()
+            for name in ("rotation", "position", "velocity", "acceleration", "position_cov"):
+                np.testing.assert_array_equal(getattr(on, name), getattr(off, name))
+
+
+def test_jump_test_rejects_bad_settings():
+    args = (*_pendulum()[1], np.ones(60, bool), DT)
+    for bad in ({"max_speed_m_s": 0.0}, {"max_speed_m_s": -1.0}, {"jump_slack_m": -0.1}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            smooth_track(*args, dataclasses.replace(JUMP_BASE, **bad))

@@ -118,6 +118,25 @@ class SmootherConfig:
         hinge_min_inliers: least share of the valid frames that must be inliers [-]: the model
             must explain at least half of the track (0.6 and 0.75 tried, same docs section).
         hinge_min_frames: least number of inlier frames.
+        max_speed_m_s: the largest speed the tracked object can have [m/s] (a bound from its
+            physics, e.g. ``randomized.max_swing_speed_m_s`` for a released pendulum). Two
+            consecutive valid fits farther apart than ``max_speed_m_s`` x their time apart +
+            ``jump_slack_m`` cannot both be right (a jump). The valid frames are cut into
+            pieces at the gaps, the restarts (where split) and the jumps; a piece of under 4
+            valid frames that a jump cuts off from a piece of 4 or more is taken as wrong
+            (``SmoothedTrack.jump_rejected``): its fits are dropped from the smoothing and
+            its frames bridged by the rest (the frames stay valid: the smoother does not
+            decide validity). Then the jumps between the remaining fits split the track:
+            each side is smoothed on its own, so a wrong lock of 4 frames or more does not
+            bend the good fits next to it into a path the object cannot take (development
+            seed 115 of the randomized benchmark: a lock 1 m off for 4 frames, 5 frames lost,
+            pulled the next 12 smoothed centres up to 1.1 m off). The whole-track fixed-axis
+            model (``hinge_whole_track``) still acts over the gap-split segments (a segment
+            it agrees with takes its state on both sides of a jump), without the rejected
+            fits. None (the default): no jump test.
+        jump_slack_m: the fits' own error allowed on top of that distance [m]: at 0.1, a jump
+            between two fits means at least one of them is over 5 cm off (the benchmark's
+            gross error) when the speed bound holds.
     """
 
     angular_accel_psd: float = 20.0
@@ -134,6 +153,8 @@ class SmootherConfig:
     hinge_robust_passes: int = 5
     hinge_min_inliers: float = 0.5
     hinge_min_frames: int = 8
+    max_speed_m_s: float | None = None
+    jump_slack_m: float = 0.1
 
 
 # The smoother of the randomized benchmark (``benchmarks/eye_randomized.py``): no extrapolation
@@ -148,7 +169,10 @@ class SmoothedTrack(NamedTuple):
     residual over the measured frames (NaN where not fitted; over the inliers for the
     whole-track fit); hinge_outlier (T,) bool, valid frames whose own fit the accepted
     whole-track model down-weighted as inconsistent (their state is the model's; all False
-    otherwise; None from the per-segment pass).
+    otherwise; None from the per-segment pass); jump_rejected (T,) bool, valid frames whose fit
+    the jump test (``SmootherConfig.max_speed_m_s``) took as wrong: their state is bridged
+    from the fits around them (all False where the test is off; None from the per-segment
+    pass).
     """
 
     rotation: Array
@@ -160,6 +184,7 @@ class SmoothedTrack(NamedTuple):
     hinge_axis: Array
     hinge_cost: Array
     hinge_outlier: Array | None = None
+    jump_rejected: Array | None = None
 
 
 SINGULAR_TT = 1e-9  # a frame's Lambda_tt whose eigenvalues span more than 1 / this is singular
@@ -449,7 +474,7 @@ def smooth_track(
     restarts=None,
 ) -> SmoothedTrack:
     """Smooth a tracked sequence (NumPy in and out), segment by segment (``cfg.max_gap_s``,
-    ``cfg.split_at_restarts``).
+    ``cfg.split_at_restarts``, ``cfg.max_speed_m_s``).
 
     A segment with fewer than 4 valid frames is not smoothed: its valid frames keep their
     measurements (zero velocity and acceleration), the others hold the nearest valid frame's.
@@ -472,8 +497,13 @@ def smooth_track(
     fits): in float32 the fixed-axis fit returns NaN on many sequences and is silently dropped.
 
     Raises:
-        ValueError: ``restarts`` not of ``valid``'s shape.
+        ValueError: ``restarts`` not of ``valid``'s shape; ``cfg.max_speed_m_s`` not positive
+            or ``cfg.jump_slack_m`` negative.
     """
+    if cfg.max_speed_m_s is not None and not cfg.max_speed_m_s > 0:
+        raise ValueError(f"max_speed_m_s must be positive or None, got {cfg.max_speed_m_s}")
+    if not cfg.jump_slack_m >= 0:
+        raise ValueError(f"jump_slack_m must be >= 0, got {cfg.jump_slack_m}")
     with jax.enable_x64(True):
         return _smooth_track(rotations, positions, information, valid, dt, cfg, restarts)
 
@@ -501,23 +531,44 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
         np.full(3, np.nan),
         np.float64(np.nan),
         np.zeros(t_n, bool),
+        np.zeros(t_n, bool),
     )
     idx = np.flatnonzero(valid)
     if idx.size < 4:
         return out
-    if cfg.max_gap_s is None and not split:
+    if cfg.max_gap_s is None and not split and cfg.max_speed_m_s is None:
         seg = _smooth_segment(rotations, positions, information, valid, dt, cfg)
-        out = seg._replace(hinge_outlier=np.zeros(t_n, bool))
+        out = seg._replace(hinge_outlier=np.zeros(t_n, bool), jump_rejected=np.zeros(t_n, bool))
         if cfg.hinge and cfg.hinge_whole_track:
-            out = _whole_track(out, rotations, positions, information, valid, [(0, t_n)], dt, cfg)
+            out, _ = _whole_track(
+                out, rotations, positions, information, valid, [(0, t_n)], dt, cfg
+            )
         return out
     gap = t_n if cfg.max_gap_s is None else max(int(np.floor(cfg.max_gap_s / dt + 1e-9)), 1)
+    rejected = np.zeros(t_n, bool)
     new_segment = np.diff(idx) > gap + 1
     if split:
         new_segment |= restarts[idx[1:]]
-    breaks = np.flatnonzero(new_segment)
-    starts = np.concatenate([[idx[0]], idx[breaks + 1]])
-    ends = np.concatenate([idx[breaks], [idx[-1]]]) + 1
+    starts, ends = _segments(idx, new_segment)
+    model_segments = list(zip(starts, ends, strict=True))  # where the whole-track model may act
+    if cfg.max_speed_m_s is not None:
+        jump = ~new_segment & _jumps(positions, idx, dt, cfg)
+        piece = np.concatenate([[0], np.cumsum(new_segment | jump)])  # each valid frame's piece
+        size = np.bincount(piece)[piece]
+        # a short piece cut off by a jump from a long one: its fits are taken as wrong
+        next_long = np.concatenate([jump & (size[1:] >= 4), [False]])
+        prev_long = np.concatenate([[False], jump & (size[:-1] >= 4)])
+        bad = np.isin(piece, piece[(size < 4) & (next_long | prev_long)])
+        if bad.any():
+            valid = valid.copy()
+            valid[idx[bad]] = False
+            rejected[idx[bad]] = True
+            idx = idx[~bad]
+            new_segment = np.diff(idx) > gap + 1
+            if split:
+                new_segment |= restarts[idx[1:]]
+        new_segment |= _jumps(positions, idx, dt, cfg)
+        starts, ends = _segments(idx, new_segment)
     longest = -1
     for a, b in zip(starts, ends, strict=True):
         sl = slice(a, b)
@@ -541,21 +592,50 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
         ends_all += [a, b - 1]
     ends_all = np.asarray(ends_all)
     if cfg.hinge and cfg.hinge_whole_track:
-        segments = list(zip(starts, ends, strict=True))
-        out = _whole_track(out, rotations, positions, information, valid, segments, dt, cfg)
+        out, modelled = _whole_track(
+            out, rotations, positions, information, valid, model_segments, dt, cfg
+        )
+        inside |= modelled  # the model's state across a jump inside a segment it agrees with
     # frames outside every segment hold the nearest segment end (no extrapolation)
     for t in np.flatnonzero(~inside):
         e = ends_all[np.argmin(np.abs(ends_all - t))]
         out.rotation[t], out.position[t] = out.rotation[e], out.position[e]
         out.velocity[t], out.acceleration[t] = 0.0, 0.0
         out.position_cov[t] = out.position_cov[e]
-    return out
+    return out._replace(jump_rejected=rejected)
+
+
+def _jumps(positions: np.ndarray, idx: np.ndarray, dt: float, cfg: SmootherConfig) -> np.ndarray:
+    """(len(idx) - 1,) bool: consecutive valid fits ``idx`` farther apart than the object can
+    move (``cfg.max_speed_m_s``) plus ``cfg.jump_slack_m``.
+    """
+    dist = np.linalg.norm(np.diff(positions[idx], axis=0), axis=-1)
+    return dist > cfg.max_speed_m_s * dt * np.diff(idx) + cfg.jump_slack_m
+
+
+def _unsplit(cfg: SmootherConfig) -> SmootherConfig:
+    """``cfg`` with the fields that only split segments (not used inside the jitted fits) at
+    their defaults: one compilation for all their values.
+    """
+    return dataclasses.replace(
+        cfg, max_gap_s=None, split_at_restarts=False, max_speed_m_s=None, jump_slack_m=0.1
+    )
+
+
+def _segments(idx: np.ndarray, new_segment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(starts, ends) [a, b) of the segments of the valid frames ``idx`` (sorted), a new one
+    after each ``new_segment`` (len(idx) - 1,) break.
+    """
+    breaks = np.flatnonzero(new_segment)
+    starts = np.concatenate([[idx[0]], idx[breaks + 1]])
+    ends = np.concatenate([idx[breaks], [idx[-1]]]) + 1
+    return starts, ends
 
 
 def _smooth_segment(rotations, positions, information, valid, dt, cfg) -> SmoothedTrack:
     """:func:`_smooth` on one segment (>= 4 valid frames), padded to a multiple of ``PAD``."""
     t_n = len(valid)
-    cfg = dataclasses.replace(cfg, max_gap_s=None)  # not used inside: one compilation for all
+    cfg = _unsplit(cfg)
     key = (cfg, float(dt))
     if key not in _JIT:
         _JIT[key] = jax.jit(lambda r, p, i, v: _smooth(r, p, i, v, dt, cfg))
@@ -588,10 +668,10 @@ def _whole_track(out, rotations, positions, information, valid, segments, dt, cf
     ``segments`` in which at least half the valid frames are inliers takes the model's state; a
     segment the model disagrees with keeps its own (the model's state there would be carried
     across the gap from other segments); the acceleration stays the per-segment one. NumPy in
-    and out.
+    and out: (out, (T,) bool the frames that took the model's state).
     """
     t_n = len(valid)
-    key = ("whole", cfg, float(dt))
+    key = ("whole", _unsplit(cfg), float(dt))
     if key not in _JIT:
 
         def run(r, p, i, v, r0, p0):
@@ -603,7 +683,7 @@ def _whole_track(out, rotations, positions, information, valid, segments, dt, cf
     r0, p0, _, _ = _pad_inputs(out.rotation, out.position, information, valid)  # the start
     robust = _JIT[key](r, p, i, v, r0, p0)
     if not bool(robust.accepted):
-        return out
+        return out, np.zeros(t_n, bool)
     fit = robust.fit
     take = {
         "rotation": np.asarray(fit.rotation)[:t_n],
@@ -616,9 +696,10 @@ def _whole_track(out, rotations, positions, information, valid, segments, dt, cf
         use[a:b] = 2 * np.sum(inlier[a:b]) >= np.sum(valid[a:b])
     for name, model in take.items():
         getattr(out, name)[use] = model[use]
-    return out._replace(
+    out = out._replace(
         hinge=np.bool_(True),
         hinge_axis=np.asarray(fit.axis),
         hinge_cost=np.float64(fit.cost),
         hinge_outlier=valid & ~inlier & use,
     )
+    return out, use

@@ -508,7 +508,11 @@ UNSEEN_SCENES = TrackConfig(
 # one real face: ``face_seam_step`` 5), and the bar is lowered to 40; chosen (40, 5) on the
 # development seeds' true poses (none of 17927 refused) and fits, before the runs: over
 # development seeds 0-399 and 120 new validation seeds, 1 late sequence fewer, 36 valid frames
-# more, 1 gross frame fewer (causal)
+# more, 1 gross frame fewer (causal). Session 50: ``min_inner_support`` 0 (the inner-edge check
+# off): on development seeds 0-159 and 240-399 it refused true poses whose two visible faces share
+# a shade and caught no twin the later checks let through; its only cost, on seed 115, came
+# through the smoother, which the benchmark's jump test (``SmootherConfig.max_speed_m_s``) now
+# stops (docs/eye_randomized.md, session 50)
 RANDOMIZED_BENCHMARK = dataclasses.replace(
     UNSEEN_SCENES,
     min_region_fraction=0.25,
@@ -534,6 +538,7 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
     cpu_small_kernels=True,
     max_face_split=40.0,
     face_seam_step=5.0,
+    min_inner_support=0.0,
 )
 
 

@@ -205,6 +205,32 @@ def _look_at_xyaxes(pos: np.ndarray, target: np.ndarray) -> str:
     return " ".join(f"{v:.9f}" for v in look_at_xyaxes(pos, target))
 
 
+GRAVITY_M_S2 = 9.81  # the scene's gravity (``scene_mjcf``'s option)
+ROD_MASS_KG, CUBE_MASS_KG = 0.05, 0.5  # the pendulum's masses (``scene_mjcf``'s geoms)
+
+
+def max_swing_speed_m_s(ranges: RandomSceneRanges = RandomSceneRanges()) -> float:
+    """An upper bound on the cube centre's speed in any scene drawn from ``ranges`` [m/s].
+
+    Energy: released at rest from angle theta, the pendulum (a thin rod of length l and a cube
+    of edge e whose centre is L = l + e/2 from the hinge) turns at most at
+    w^2 = 2 g (1 - cos theta) (m_c L + m_r l / 2) / I, I = m_c (L^2 + e^2 / 6) + m_r l^2 / 3
+    about the hinge (damping only lowers it), so the cube's centre moves at most at w L. Taken
+    at the largest release angle and maximised over a 41 x 41 grid of rod lengths and cube
+    edges in the ranges (the grid's largest; with 0.5% added for what lies between its points).
+    Not the point-mass bound sqrt(2 g L (1 - cos theta)): the rod's mass sits nearer the hinge
+    and makes the cube faster than that.
+    """
+    rod = np.linspace(*ranges.rod_m, 41)[:, None]
+    edge = np.linspace(*ranges.edge_m, 41)[None, :]
+    arm = rod + edge / 2
+    inertia = CUBE_MASS_KG * (arm**2 + edge**2 / 6) + ROD_MASS_KG * rod**2 / 3
+    moment = CUBE_MASS_KG * arm + ROD_MASS_KG * rod / 2
+    lift = 1 - np.cos(ranges.release_rad[1])
+    speed = arm * np.sqrt(2 * GRAVITY_M_S2 * lift * moment / inertia)
+    return float(1.005 * speed.max())
+
+
 def swing_bottom(scene: RandomScene) -> np.ndarray:
     """(3,) world position of the cube centre at the bottom of the swing [m]."""
     return np.array([0.0, 0.0, HINGE_HEIGHT - scene.rod_m - scene.edge_m / 2])
@@ -271,7 +297,7 @@ def scene_mjcf(scene: RandomScene, width: int, height: int) -> tuple[str, dict[s
     xml = f"""
 <mujoco model="random_swing_{scene.seed}">
   <compiler angle="radian"/>
-  <option timestep="0.001" gravity="0 0 -9.81"/>
+  <option timestep="0.001" gravity="0 0 {-GRAVITY_M_S2:.6g}"/>
   <visual>
     <global offwidth="{width}" offheight="{height}"/>
     <headlight ambient="{scene.ambient:.4g} {scene.ambient:.4g} {scene.ambient:.4g}"
@@ -297,10 +323,10 @@ def scene_mjcf(scene: RandomScene, width: int, height: int) -> tuple[str, dict[s
     <body name="rod" pos="0 0 {HINGE_HEIGHT}">
       <joint name="hinge" type="hinge" axis="0 1 0" damping="0.0005"/>
       <geom name="rod" type="cylinder" size="0.003 {scene.rod_m / 2:.6g}"
-            pos="0 0 {-scene.rod_m / 2:.6g}" rgba="0.6 0.6 0.62 1" mass="0.05" group="2"/>
+            pos="0 0 {-scene.rod_m / 2:.6g}" rgba="0.6 0.6 0.62 1" mass="{ROD_MASS_KG:.6g}" group="2"/>
       <body name="cube" pos="0 0 {-scene.rod_m - half:.6g}">
         <geom name="cube" type="box" size="{half:.6g} {half:.6g} {half:.6g}" material="cube"
-              rgba="{cube_rgba}" mass="0.5" group="2"/>
+              rgba="{cube_rgba}" mass="{CUBE_MASS_KG:.6g}" group="2"/>
       </body>
     </body>
   </worldbody>
