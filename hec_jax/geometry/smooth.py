@@ -43,6 +43,11 @@ and a tilt error moves the fitted centre sideways; both are fixed by using the w
    noisy (docs/eye_randomized.md, "One hinge over the whole track"). Frames outside every
    segment still hold the nearest segment end's state (nothing extrapolated across a long gap).
 
+5. jumps (``SmootherConfig.max_speed_m_s``): consecutive fits farther apart than the object can
+   move cannot both be right; a short piece of the track cut off by such a jump is dropped from
+   the smoothing (``SmoothedTrack.jump_rejected``) and the track is split at the jumps left, so
+   a wrong lock does not bend the good fits next to it.
+
 Frames without a measurement get zero information (bridged by the priors).
 """
 
