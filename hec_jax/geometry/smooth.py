@@ -551,9 +551,12 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
         return out
     gap = t_n if cfg.max_gap_s is None else max(int(np.floor(cfg.max_gap_s / dt + 1e-9)), 1)
     rejected = np.zeros(t_n, bool)
-    new_segment = np.diff(idx) > gap + 1
-    if split:
-        new_segment |= restarts[idx[1:]]
+
+    def gap_breaks(idx):  # (len(idx) - 1,) bool: a long gap or a restart before the next frame
+        long_gap = np.diff(idx) > gap + 1
+        return long_gap | restarts[idx[1:]] if split else long_gap
+
+    new_segment = gap_breaks(idx)
     starts, ends = _segments(idx, new_segment)
     model_segments = list(zip(starts, ends, strict=True))  # where the whole-track model may act
     if cfg.max_speed_m_s is not None:
@@ -569,9 +572,7 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
             valid[idx[bad]] = False
             rejected[idx[bad]] = True
             idx = idx[~bad]
-            new_segment = np.diff(idx) > gap + 1
-            if split:
-                new_segment |= restarts[idx[1:]]
+            new_segment = gap_breaks(idx)
         new_segment |= _jumps(positions, idx, dt, cfg)
         starts, ends = _segments(idx, new_segment)
     longest = -1
