@@ -538,3 +538,21 @@ def test_cpu_steadiness_summary_and_a_short_probe():
     assert os.sched_getaffinity(0) == before  # the process is put back where it was
     assert set(out) <= {str(c) for c in before} and sum(r["n"] for r in out.values()) >= 2
     assert all(r["min"] > 0 and r["max_over_min"] >= 1 for r in out.values())
+
+
+def test_the_eye_benchmark_s_strata_table_has_a_row_per_stratum():
+    """``benchmarks/eye_randomized.py``'s table of strata: a header and one row per stratum of
+    :func:`accuracy.strata`, each with its counts and interval."""
+    from hec_jax.geometry import accuracy
+
+    bench = _script("benchmarks/eye_randomized.py")
+    result = {"acquire_delay": 0, "valid_visible": 45, "gross": 0}
+    summaries = [
+        {"look": look, "elevation_deg": el, "visible_frames": 45, "tracker": result}
+        for look, el in [("plain", 0.0), ("plain", 45.0), ("wood", 20.0)]
+    ]
+    lines = bench.strata_lines(summaries)
+    rows = accuracy.strata(summaries)
+    assert len(lines) == 2 + len(rows) == 2 + 3 + 2 + 1
+    assert lines[2] == "| plain | -90 to 10 | 1 | 1 (0.21-1.00) | 1.000 | 0 |"
+    assert lines[-1].startswith("| all | -90 to 90 | 3 | 3 (0.44-1.00) |")

@@ -158,6 +158,60 @@ def test_frame_kinds_and_time_by_kind():
         accuracy.time_by_kind(kinds, ms[:-1])
 
 
+def test_wilson_interval_against_hand_worked_values():
+    """The 95% Wilson score interval against values worked by hand from its formula (Wilson
+    1927; e.g. 0 of 10: (0, 0.2775), 5 of 10: (0.2366, 0.7634), 9 of 10: (0.5958, 0.9821)),
+    and the degenerate and bad inputs."""
+    want = {(0, 10): (0.0, 0.2775), (5, 10): (0.2366, 0.7634), (9, 10): (0.5958, 0.9821)}
+    for (k, n), (lo, hi) in want.items():
+        np.testing.assert_allclose(accuracy.wilson_interval(k, n), (lo, hi), atol=5e-5)
+    assert accuracy.wilson_interval(0, 0) == (0.0, 1.0)
+    lo, hi = accuracy.wilson_interval(183, 200)  # shrinks about sqrt(n)
+    assert lo < 183 / 200 < hi and hi - lo < 0.09
+    for bad in [(3, 2), (-1, 2)]:
+        with pytest.raises(ValueError, match="successes"):
+            accuracy.wilson_interval(*bad)
+
+
+def test_strata_count_each_look_and_elevation_band():
+    """:func:`accuracy.strata` against counts made by hand on made-up sequence summaries: a
+    never-acquired sequence (a large delay) counts as not acquired, a never fully visible one
+    (None) is left out of the acquisition's denominator but not of the frames."""
+
+    def seq(look, elevation, delay, valid, gross=0, visible=45):
+        result = {"acquire_delay": delay, "valid_visible": valid, "gross": gross}
+        return {"look": look, "elevation_deg": elevation, "visible_frames": visible, "t": result}
+
+    summaries = [
+        seq("plain", 5.0, 0, 45),
+        seq("plain", 40.0, 4, 30, gross=2),
+        seq("wood", -3.0, 10**6, 0),
+        seq("wood", 9.99, 1, 40),
+        seq("wood", 10.0, None, 0, visible=0),
+    ]
+    rows = accuracy.strata(summaries, method="t", bands=(-90, 10, 90))
+    got = [(r["look"], r["elevation_deg"], r["sequences"], r["acquired"]) for r in rows]
+    assert got == [
+        ("plain", (-90.0, 10.0), 1, 1),
+        ("plain", (10.0, 90.0), 1, 0),
+        ("wood", (-90.0, 10.0), 2, 1),
+        ("wood", (10.0, 90.0), 1, 0),
+        ("plain", (-90.0, 90.0), 2, 1),
+        ("wood", (-90.0, 90.0), 3, 1),
+        ("all", (-90.0, 90.0), 5, 2),
+    ]
+    wood_low, wood_high, everything = rows[2], rows[3], rows[-1]
+    assert wood_low["acquired_rate"] == 0.5 and wood_low["valid_rate"] == 40 / 90
+    assert np.isnan(wood_high["acquired_rate"]) and wood_high["acquired_interval"] == (0.0, 1.0)
+    assert everything["acquired_rate"] == 2 / 4 and everything["gross_errors"] == 2
+    assert everything["valid_rate"] == (45 + 30 + 40) / (4 * 45)
+    assert everything["acquired_interval"] == accuracy.wilson_interval(2, 4)
+    with pytest.raises(ValueError, match="increasing"):
+        accuracy.strata(summaries, method="t", bands=(10, -90))
+    with pytest.raises(ValueError, match="lacks"):
+        accuracy.strata(summaries, method="tracker")
+
+
 @functools.cache
 def _rendered_six(seed: int):
     """(scene, 6 rendered frames, background) of a development seed (made once per module)."""
