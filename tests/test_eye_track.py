@@ -145,7 +145,13 @@ def test_causal_outputs_and_timing(seq, track):
 # The checks are opt-in (``track.UNSEEN_SCENES``, ``SmootherConfig.max_gap_s``).
 
 REFERENCE = Path(__file__).parent / "data" / "tracker_reference.npz"
-RTOL = 1e-9  # the same numbers (to 1e-9 relative: another CPU may round the last bits otherwise)
+# The same numbers up to the last bits of the float32 image stage (OpenCV's blur and segments),
+# which differ between SIMD instruction sets: on an AMD Zen 5 CPU (AVX-512) the plain case's
+# segments moved by 2e-7 px and its outputs by up to 2.7e-9 of their scale (causal rotation and
+# acceleration; 2026-12-02, session 51), over the 1e-9 this was set to on the CPUs before. 1e-7
+# (float32's resolution) leaves that a margin; a changed decision moves outputs by 1e-3 or more,
+# and the decisions themselves (EXACT) must match exactly.
+RTOL = 1e-7
 EXACT = ("valid", "edge_ids", "hinge")
 OFF = {  # the issue-24 settings and their off values
     "colour_background": False,
