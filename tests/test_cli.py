@@ -129,7 +129,7 @@ BAD = {
     "benchmarks/eye_randomized.py": [
         (["--sequences", "0"], "--sequences: must be an integer >= 1"),
         (["--fps", "0"], "--fps: must be finite and > 0"),
-        (["--split", "test"], "--split: 'test' is not one of dev, heldout"),
+        (["--split", "test"], "--split: 'test' is not one of dev, heldout, dev-low-views"),
         (["--search-texture", "-1"], "--search-texture: must be finite and >= 0"),
         (["--lsd-contrast", "0"], "--lsd-contrast: must be finite and > 0"),
         (["--max-face-split", "-1"], "--max-face-split: must be finite and >= 0"),
@@ -556,3 +556,22 @@ def test_the_eye_benchmark_s_strata_table_has_a_row_per_stratum():
     assert len(lines) == 2 + len(rows) == 2 + 3 + 2 + 1
     assert lines[2] == "| plain | -90 to 10 | 1 | 1 (0.21-1.00) | 1.000 | 0 |"
     assert lines[-1].startswith("| all | -90 to 90 | 3 | 3 (0.44-1.00) |")
+
+
+def test_the_eye_benchmark_s_splits_give_their_seeds():
+    """``benchmarks/eye_randomized.py``'s seed ranges: dev and heldout by offset, dev-low-views
+    the scenes from 5000 on that ``draw_scene`` draws as a low-contrast cube seen from under 12
+    deg (every seed skipped fails that), in order, ``--first`` counted within the split."""
+    from hec_jax.cli import parse
+    from hec_jax.mjx_scene.randomized import draw_scene
+
+    bench = _script("benchmarks/eye_randomized.py")
+    seeds = lambda *argv: bench.split_seeds(parse(bench.EyeRandomized(), list(argv)))  # noqa: E731
+    assert seeds("--split", "dev", "--sequences", "3") == [0, 1, 2]
+    assert seeds("--sequences", "2", "--first", "5") == [1_000_005, 1_000_006]
+    low = seeds("--split", "dev-low-views", "--sequences", "3")
+    assert low == [5009, 5047, 5057]  # session 51's LV-40 begins so (docs/eye_randomized.md)
+    for seed in range(5000, 5058):
+        scene = draw_scene(seed)
+        assert (seed in low) == (scene.look == "low_contrast" and scene.elevation_deg < 12)
+    assert seeds("--split", "dev-low-views", "--sequences", "2", "--first", "1") == low[1:]
