@@ -35,11 +35,11 @@ Methods, on the same frames:
 Seed ranges: ``--split dev`` uses seeds 0, 1, ... (tuning); ``--split heldout`` uses seeds
 1_000_000, ... (only for reported numbers); ``--split dev-low-views`` the development seeds from
 5000 on whose scene is a low-contrast cube seen from under 12 deg, the stratum where the eye
-fails most (picked by ``draw_scene`` alone; its first 40 are session 51's LV-40, 5009-5471). Writes config.json, metrics.json (the target table
-per method; the warm-up, i.e. compilation, time apart; the tracker's time by kind of frame,
-``accuracy.time_by_kind``; its acquisition and valid frames per look and elevation band with the
-acquisition's 95% interval, ``accuracy.strata``), sequences.json (per-sequence summaries) and
-table.md to --out.
+fails most (picked by ``draw_scene`` alone; the first 40 are docs/eye_randomized.md's LV-40).
+Writes config.json, metrics.json (the target table per method; the warm-up, i.e. compilation,
+time apart; the tracker's time by kind of frame, ``accuracy.time_by_kind``; its acquisition and
+valid frames per look and elevation band with the acquisition's 95% interval,
+``accuracy.strata``), sequences.json (per-sequence summaries) and table.md to --out.
 """
 
 from __future__ import annotations
