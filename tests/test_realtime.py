@@ -259,6 +259,12 @@ def _check_report(result):
     assert n["late"] == n["late_from_recorded_times"] == late.sum()
     np.testing.assert_array_equal(tt["kind"][ticked] == 1, late)
     assert not np.any(ticked & (tt["kind"] == 2))  # a skipped step has no tick
+    # each episode's time 0 on the monotonic clock: its ticks' wall times are origin + t, and
+    # they fall between the run's start and now
+    origin = tt["t_origin"][ticked]
+    assert len(result.loop_run.origin_s) == len(result.loop_run.ticks)
+    assert np.all(np.diff(result.loop_run.origin_s) > 0)
+    assert np.all(origin + tt["t_write"][ticked] <= RT.clock.monotonic_s())
     assert n["missed"] == n["late"] + n["skipped"] and n["consistent"]
     assert sum(rep["histogram"]["counts"]) == n["ticks"]
     p = rep["latency_us"]
@@ -336,6 +342,7 @@ def test_realtime_camera_run_reports_itself():
     pipeline = 1e3 * (eye_log["t_wall_done"] - eye_log["t_wall_exposure"])
     period_ms = eye["frame_period_ms"]
     assert eye["slow_frames"]["over_one_period"] == int(np.sum(later & (pipeline > period_ms)))
+    assert 0 <= eye["slow_frames"]["with_control_missed"] <= eye["slow_frames"]["over_one_period"]
     # the saved failed frames: every frame after the release whose tracked fit failed (up to
     # 50), each replaying to the fit the run logged
     from hec_jax.geometry.track import FIT_SOURCES
@@ -594,6 +601,26 @@ def test_slow_frames_are_the_ones_published_after_a_frame_period():
     assert (first["fit_source"], second["fit_source"]) == ("tracked", "invalid")
     assert slow_frames(camera_log, eye_log, 1e3 / 30, limit=1)["frames"] == [first]
     assert "jax_compile_ms" not in first  # logs before session 47
+    assert "control_missed" not in first and "with_control_missed" not in out  # no tick table
+    # the control loop's missed steps during each slow frame: an episode whose time 0 is at
+    # wall time -0.5 s (dt 1 ms), so step j's deadline is at -0.5 + (j + 1) 1e-3 s. Frame 1's
+    # window [1/30, 1/30 + 0.040] holds the deadlines of steps 533-572: steps 540-544 (a run of
+    # 5) and 560 missed there; frame 3's [0.1, 0.135] (steps 600-634) none, 650 after it
+    n = 700
+    kind = np.zeros(n, np.int8)
+    kind[[540, 541, 542, 543, 544, 560, 650]] = [2, 2, 2, 2, 1, 1, 2]
+    ticks = {"t_origin": np.full(n, -0.5), "index": np.arange(n), "kind": kind}
+    timed = slow_frames(camera_log, eye_log, 1e3 / 30, ticks=ticks, dt=1e-3)
+    assert timed["with_control_missed"] == 1
+    assert [(f["control_missed"], f["control_longest_miss_ms"]) for f in timed["frames"]] == [
+        (6, pytest.approx(5.0)),
+        (0, 0.0),
+    ]
+    # the same steps in a second episode's rows (another time 0) do not count for these frames
+    ticks2 = {k: np.concatenate([v, v]) for k, v in ticks.items()}
+    ticks2["t_origin"][n:] = 100.0
+    timed2 = slow_frames(camera_log, eye_log, 1e3 / 30, ticks=ticks2, dt=1e-3)
+    assert timed2 == timed
     eye_log["jax_compile_ms"] = np.array([900.0, 0, 0, 12.5])
     compiled = slow_frames(camera_log, eye_log, 1e3 / 30)["frames"]
     assert [f["jax_compile_ms"] for f in compiled] == [0, 12.5]

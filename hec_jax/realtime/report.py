@@ -46,13 +46,17 @@ def percentiles(x, scale: float = 1.0) -> dict:
 
 
 def tick_table(run) -> dict[str, np.ndarray]:
-    """The ticks of every episode in one table: ``episode``, ``index`` (sample j), ``t_sched``
-    [s] (= j dt), the recorded times, ``kind`` (plant: 0 fresh, 1 late, 2 skipped).
+    """The ticks of every episode in one table: ``episode``, ``index`` (sample j), the recorded
+    times [s] (from the episode's time 0), ``kind`` (plant: 0 fresh, 1 late, 2 skipped) and,
+    where the run recorded it, ``t_origin`` (the episode's time 0 on the monotonic clock [s]).
     """
+    origins = getattr(run, "origin_s", [])
     out: dict[str, list] = {}
     for e, rec in enumerate(run.ticks):
         n = len(rec["kind"])
         cols = dict(rec, episode=np.full(n, e), index=np.arange(n))
+        if len(origins) == len(run.ticks):
+            cols["t_origin"] = np.full(n, float(origins[e]))
         for k, v in cols.items():
             out.setdefault(k, []).append(np.asarray(v)[:n])
     return {k: np.concatenate(v) for k, v in out.items()}
@@ -248,7 +252,7 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
             later = eye_log["number"] > 0
             out["eye"]["eye_cpu_ms"] = percentiles(eye_log["eye_cpu_ms"][later])
             out["eye"]["eye_steal_ms_per_cpu"] = _steal_total(eye_log["eye_steal_ms"])
-            out["slow_frames"] = slow_frames(camera_log, eye_log, 1e3 / fps)
+            out["slow_frames"] = slow_frames(camera_log, eye_log, 1e3 / fps, ticks=tt, dt=dt)
         if "jax_compile_ms" in eye_log:  # logs since session 47
             # frames in which JAX traced or compiled (a path's first use after the warm-up)
             traced = eye_log["jax_compile_events"] > 0
@@ -298,17 +302,48 @@ def _steal_total(per_frame) -> list[float] | None:
     return np.nansum(a, axis=0).tolist() if a.ndim == 2 and a.shape[1] else None
 
 
-def slow_frames(camera_log, eye_log, period_ms: float, limit: int = 32) -> dict:
+def control_misses_between(ticks: dict, dt: float, t0: float, t1: float) -> tuple[int, float]:
+    """The control loop's missed steps (plant ``kind`` late or skipped) whose deadline, wall
+    time ``t_origin`` + (j + 1) dt, falls in [``t0``, ``t1``] (monotonic [s]): their count and
+    the longest run of consecutive ones [ms]. A frame slowed while the control thread, alone on
+    its own CPU, missed deadlines too was slowed by the machine (both CPUs stalled at once), not
+    by the eye's own work.
+    """
+    deadline = ticks["t_origin"] + (ticks["index"] + 1) * dt
+    hit = np.flatnonzero((ticks["kind"] != 0) & (deadline >= t0) & (deadline <= t1))
+    if hit.size == 0:
+        return 0, 0.0
+    # consecutive steps of one episode are consecutive rows of the table
+    breaks = np.flatnonzero(np.diff(hit) != 1)
+    lengths = np.diff(np.concatenate([[0], breaks + 1, [hit.size]]))
+    return int(hit.size), float(lengths.max() * dt * 1e3)
+
+
+def slow_frames(
+    camera_log, eye_log, period_ms: float, limit: int = 32, ticks=None, dt: float | None = None
+) -> dict:
     """The frames after a release whose estimate was published more than one frame period
     after their exposure (wall clock): the ones that can age the state past two frame periods.
     For each (the first ``limit``): where the time went, wall [ms] against the process's CPU
     time [ms] and the host's steal [ms] per CPU, for the render and for the eye, and the fit's
     source. A stage whose wall time far exceeds its usual with steal on its CPU was slowed by
     the machine's host; one whose CPU time grew did more work (or ran on a slower CPU).
+
+    With ``ticks`` (:func:`tick_table` with ``t_origin``) and ``dt`` [s], each row also gets
+    :func:`control_misses_between` over the frame's exposure to its estimate
+    (``control_missed``, ``control_longest_miss_ms``), and ``with_control_missed`` counts the
+    slow frames (all of them) during which the control loop missed a deadline too.
     """
     later = eye_log["number"] > 0
     pipeline = 1e3 * (eye_log["t_wall_done"] - eye_log["t_wall_exposure"])
     slow = np.flatnonzero(later & (pipeline > period_ms))
+    timed = ticks is not None and dt is not None and "t_origin" in ticks
+    misses = {
+        int(k): control_misses_between(
+            ticks, dt, float(eye_log["t_wall_exposure"][k]), float(eye_log["t_wall_done"][k])
+        )
+        for k in (slow if timed else [])
+    }
     render = {}
     if camera_log and "render_cpu_ms" in camera_log:
         for j, i in enumerate(camera_log["index"].tolist()):
@@ -338,7 +373,12 @@ def slow_frames(camera_log, eye_log, period_ms: float, limit: int = 32) -> dict:
         )
         if "jax_compile_ms" in eye_log:
             rows[-1]["jax_compile_ms"] = float(eye_log["jax_compile_ms"][k])
-    return {"over_one_period": int(slow.size), "frames": rows}
+        if timed:
+            rows[-1]["control_missed"], rows[-1]["control_longest_miss_ms"] = misses[int(k)]
+    out = {"over_one_period": int(slow.size), "frames": rows}
+    if timed:
+        out["with_control_missed"] = sum(m[0] > 0 for m in misses.values())
+    return out
 
 
 _COMPARED = ("peak_force", "settle_force", "hits", "periodic_hits")
@@ -497,6 +537,15 @@ def deadline_table(report: dict) -> list[str]:
                         f"{slow['over_one_period']}; {steal:.0f}",
                     )
                 )
+                if "with_control_missed" in slow:
+                    longest = max((f["control_longest_miss_ms"] for f in frames), default=0.0)
+                    rows.append(
+                        (
+                            "... of them with the control loop (its own CPU) missing deadlines "
+                            "meanwhile; its longest miss [ms]",
+                            f"{slow['with_control_missed']}; {longest:.0f}",
+                        )
+                    )
             if "fits_by_source" in e:
                 by = e["fits_by_source"]
                 rows.append(

@@ -364,6 +364,9 @@ class LoopRun:
         learner: the learner state after the last episode.
         wall_s: per episode, the clock time of its ticks [s].
         rest_s: per episode, the rest before its lead [s] (``rt_budget_rest``; 0: none).
+        origin_s: per episode, the monotonic clock time [s] of its time 0 (``ticks``' times
+            and j dt are relative to it; the camera's and eye's wall times are absolute);
+            0 for an un-timed clock.
     """
 
     logs: list = field(default_factory=list)
@@ -373,6 +376,7 @@ class LoopRun:
     learner: Any = None
     wall_s: list = field(default_factory=list)
     rest_s: list = field(default_factory=list)
+    origin_s: list = field(default_factory=list)
 
 
 def run_loop(
@@ -477,7 +481,7 @@ def run_loop(
         if rest > 0:
             time.sleep(rest)
         out.rest_s.append(rest)
-        clock.start(lead_s)
+        out.origin_s.append(clock.start(lead_s))
         # until shortly before tick 0, dry ticks (the arm model and the jitted step on copies of
         # the release sample) keep the tick's code and data in the caches: after the episode's
         # set-up and the lead's wait, the first tick took 2-10x the median (docs/realtime.md).
