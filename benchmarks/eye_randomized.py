@@ -224,6 +224,7 @@ def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:
     }
     for name, r in res.items():
         err = r["position_err_m"]
+        vel_sq_sum, vel_frames = accuracy.velocity_sums(r)
         summary[name] = {
             "acquire_delay": r["acquire_delay"],
             "valid_visible": r["valid_visible_frames"],
@@ -231,6 +232,9 @@ def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:
             "pos_median_mm": float(np.median(err) * 1e3) if err.size else None,
             "rot_median_deg": float(np.median(r["rotation_err_deg"])) if err.size else None,
             "time_ms": r["time_ms"],
+            # the pooled velocity RMS split by sequence (accuracy.target_table's frames)
+            "vel_sq_sum": vel_sq_sum,
+            "vel_frames": vel_frames,
         }
     summary["tracker"]["search_skipped"] = int(tr.search_skipped.sum())
     kinds = accuracy.frame_kinds(tr.valid, tr.fit_source, tr.initialised, tr.search_skipped)
@@ -271,17 +275,44 @@ def strata_lines(summaries: list[dict]) -> list[str]:
     """
     rows = [
         "| look | elevation [deg] | sequences | acquired within 3 (95% interval) | valid |"
-        " > 5 cm off |",
-        "|---|---|---|---|---|---|",
+        " > 5 cm off | vel RMS [m/s] | share of the vel. squares |",
+        "|---|---|---|---|---|---|---|---|",
     ]
+
+    def num(v, fmt):
+        return "-" if v is None or not np.isfinite(v) else format(v, fmt)
+
     for r in accuracy.strata(summaries):
         lo, hi = r["elevation_deg"]
         a, b = r["acquired_interval"]
         rows.append(
             f"| {r['look']} | {lo:.0f} to {hi:.0f} | {r['sequences']} |"
             f" {r['acquired']} ({a:.2f}-{b:.2f}) | {r['valid_rate']:.3f} | {r['gross_errors']} |"
+            f" {num(r['velocity_rms_m_s'], '.4f')} | {num(r['velocity_sq_share'], '.3f')} |"
         )
     return rows
+
+
+def velocity_top_lines(summaries: list[dict], count: int = 5) -> list[str]:
+    """The sequences holding the most of the tracker's pooled velocity error (sum of squares),
+    each with its share, look, elevation and RMS; empty where the summaries lack the sums.
+    """
+    rows = [s for s in summaries if "vel_sq_sum" in s.get("tracker", {})]
+    total = sum(s["tracker"]["vel_sq_sum"] for s in rows)
+    if not rows or len(rows) < len(summaries) or total <= 0:
+        return []
+    out = [
+        "| seed | look | elevation [deg] | share of the vel. squares | vel RMS [m/s] | frames |",
+        "|---|---|---|---|---|---|",
+    ]
+    for s in sorted(rows, key=lambda s: -s["tracker"]["vel_sq_sum"])[:count]:
+        t = s["tracker"]
+        rms = np.sqrt(t["vel_sq_sum"] / t["vel_frames"]) if t["vel_frames"] else float("nan")
+        out.append(
+            f"| {s['seed']} | {s['look']} | {s['elevation_deg']:.1f} |"
+            f" {t['vel_sq_sum'] / total:.3f} | {rms:.4f} | {t['vel_frames']} |"
+        )
+    return out
 
 
 @command
@@ -333,6 +364,8 @@ def main(argv=None) -> dict:
         write_json(folder / "sequences.json", summaries)
         lines = table_lines(metrics) + [""] + time_lines(metrics["tracker"]["time_by_kind"])
         lines += [""] + strata_lines(summaries)
+        top = velocity_top_lines(summaries)
+        lines += [""] + top if top else []
         write_text(folder / "table.md", "\n".join(lines) + "\n")
         print("\n".join(lines))
         return metrics

@@ -554,8 +554,20 @@ def test_the_eye_benchmark_s_strata_table_has_a_row_per_stratum():
     lines = bench.strata_lines(summaries)
     rows = accuracy.strata(summaries)
     assert len(lines) == 2 + len(rows) == 2 + 3 + 2 + 1
-    assert lines[2] == "| plain | -90 to 10 | 1 | 1 (0.21-1.00) | 1.000 | 0 |"
+    assert lines[2] == "| plain | -90 to 10 | 1 | 1 (0.21-1.00) | 1.000 | 0 | - | - |"
     assert lines[-1].startswith("| all | -90 to 90 | 3 | 3 (0.44-1.00) |")
+    assert bench.velocity_top_lines(summaries) == []  # summaries without the velocity sums
+    # with them: the strata's velocity columns and the sequences holding most of the squares
+    for seed, (summary, sq) in enumerate(zip(summaries, (0.9, 0.1, 3.0), strict=True)):
+        summary |= {"seed": seed, "tracker": dict(result, vel_sq_sum=sq, vel_frames=40)}
+    lines = bench.strata_lines(summaries)
+    assert lines[2] == "| plain | -90 to 10 | 1 | 1 (0.21-1.00) | 1.000 | 0 | 0.1500 | 0.225 |"
+    assert lines[-1].endswith("| 0.1826 | 1.000 |")  # sqrt(4 / 120)
+    top = bench.velocity_top_lines(summaries, count=2)
+    assert top[2:] == [
+        "| 2 | wood | 20.0 | 0.750 | 0.2739 | 40 |",
+        "| 0 | plain | 0.0 | 0.225 | 0.1500 | 40 |",
+    ]
 
 
 def test_the_eye_benchmark_s_splits_give_their_seeds():

@@ -8,6 +8,7 @@ import dataclasses
 import functools
 import threading
 import time
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -206,10 +207,47 @@ def test_strata_count_each_look_and_elevation_band():
     assert everything["acquired_rate"] == 2 / 4 and everything["gross_errors"] == 2
     assert everything["valid_rate"] == (45 + 30 + 40) / (4 * 45)
     assert everything["acquired_interval"] == accuracy.wilson_interval(2, 4)
+    assert everything["velocity_rms_m_s"] is None and everything["velocity_sq_share"] is None
     with pytest.raises(ValueError, match="increasing"):
         accuracy.strata(summaries, method="t", bands=(10, -90))
     with pytest.raises(ValueError, match="lacks"):
         accuracy.strata(summaries, method="tracker")
+    # with every summary's velocity sums: the strata's pooled RMS and share of the squares
+    sums = [(0.5, 40), (2.0, 30), (0.0, 0), (1.5, 40), (0.0, 0)]
+    for summary, (sq, frames) in zip(summaries, sums, strict=True):
+        summary["t"] |= {"vel_sq_sum": sq, "vel_frames": frames}
+    rows = accuracy.strata(summaries, method="t", bands=(-90, 10, 90))
+    wood_low, wood_high, everything = rows[2], rows[3], rows[-1]
+    assert wood_low["velocity_rms_m_s"] == pytest.approx(np.sqrt(1.5 / 40))
+    assert wood_low["velocity_sq_share"] == pytest.approx(1.5 / 4.0)
+    assert np.isnan(wood_high["velocity_rms_m_s"]) and wood_high["velocity_sq_share"] == 0
+    assert everything["velocity_rms_m_s"] == pytest.approx(np.sqrt(4.0 / 110))
+    assert everything["velocity_sq_share"] == 1.0
+
+
+def test_velocity_sums_split_the_pooled_velocity_rms():
+    """:func:`accuracy.velocity_sums` of each sequence adds up to :func:`accuracy.target_table`'s
+    velocity RMS: valid frames only, frames without a velocity (NaN) left out."""
+    rng = np.random.default_rng(7)
+    per = []
+    for n in (12, 30, 5):
+        truth = SimpleNamespace(
+            position=rng.normal(size=(n, 3)) + [0, 0, 2],
+            rotation=np.broadcast_to(np.eye(3), (n, 3, 3)),
+            velocity=rng.normal(size=(n, 3)),
+        )
+        velocity = truth.velocity + rng.normal(0, 0.1, (n, 3))
+        velocity[1] = np.nan  # no velocity on one frame
+        valid = rng.uniform(size=n) < 0.7
+        per.append(
+            accuracy.sequence_errors(
+                truth.position, truth.rotation, velocity, valid, truth, np.ones(n, bool), 1.0
+            )
+        )
+    sums = [accuracy.velocity_sums(e) for e in per]
+    pooled = np.sqrt(sum(s for s, _ in sums) / sum(k for _, k in sums))
+    assert pooled == pytest.approx(accuracy.target_table(per)["velocity_rms_m_s"], rel=1e-12)
+    assert sum(k for _, k in sums) == sum(np.isfinite(e["velocity_err_m_s"]).sum() for e in per)
 
 
 @functools.cache

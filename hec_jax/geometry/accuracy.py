@@ -206,6 +206,16 @@ def sequence_errors(
     }
 
 
+def velocity_sums(errors: dict) -> tuple[float, int]:
+    """One sequence's share of :func:`target_table`'s pooled velocity RMS: the sum of squared
+    velocity errors [m^2/s^2] over the valid frames with a velocity, and their count, from
+    :func:`sequence_errors`. Over sequences, sqrt(sum of sums / sum of counts) is the pooled RMS.
+    """
+    vel = np.asarray(errors["velocity_err_m_s"], float)
+    vel = vel[np.isfinite(vel)]
+    return float(np.sum(vel**2)), int(vel.size)
+
+
 def target_table(per_sequence: list[dict]) -> dict:
     """Pool :func:`sequence_errors` of many sequences into the issue's target metrics.
 
@@ -347,7 +357,9 @@ def strata(summaries: list[dict], method: str = "tracker", bands=ELEVATION_BANDS
         summaries: one dict a sequence, as the randomized benchmark's ``sequences.json``: ``look``,
             ``elevation_deg``, ``visible_frames`` and ``summaries[i][method]`` with
             ``acquire_delay`` (None: never fully visible; a large number: never acquired),
-            ``valid_visible`` and ``gross``.
+            ``valid_visible`` and ``gross``; optionally ``vel_sq_sum`` and ``vel_frames`` (the
+            sum of squared velocity errors [m^2/s^2] over the valid frames with a velocity, and
+            their count: :func:`velocity_sums`).
         method: which method's results.
         bands: increasing elevation edges [deg]; a scene in [bands[j], bands[j + 1]).
 
@@ -356,7 +368,10 @@ def strata(summaries: list[dict], method: str = "tracker", bands=ELEVATION_BANDS
         row per look over all elevations, then ``look`` "all"): ``look``, ``elevation_deg`` (lo,
         hi), ``sequences``, ``acquired`` (within :data:`ACQUIRE_FRAMES`, of those ever fully
         visible), ``acquired_rate`` and its 95% Wilson interval ``acquired_interval``,
-        ``valid_rate`` (valid among fully visible frames) and ``gross_errors``.
+        ``valid_rate`` (valid among fully visible frames), ``gross_errors``, and, where every
+        summary has the velocity sums, ``velocity_rms_m_s`` (pooled over the stratum's frames;
+        NaN: none) and ``velocity_sq_share`` (its share of the "all" row's sum of squares);
+        None where a summary lacks them.
 
     Raises:
         ValueError: ``bands`` not increasing, or a summary without the fields above.
@@ -372,8 +387,20 @@ def strata(summaries: list[dict], method: str = "tracker", bands=ELEVATION_BANDS
     except (KeyError, TypeError) as e:
         raise ValueError(f"a summary lacks look, elevation_deg, visible_frames or {method}") from e
 
+    has_velocity = all("vel_sq_sum" in r[3] and "vel_frames" in r[3] for r in rows)
+    lo_all, hi_all = float(edges[0]), float(edges[-1])
+    total_sq = (
+        sum(r[3]["vel_sq_sum"] for r in rows if lo_all <= r[1] < hi_all) if has_velocity else 0
+    )
+
     def row(look, lo, hi, members) -> dict:
         seen = [m for m in members if m[3]["acquire_delay"] is not None]
+        rms = share = None
+        if has_velocity:
+            sq = float(sum(m[3]["vel_sq_sum"] for m in members))
+            frames = int(sum(m[3]["vel_frames"] for m in members))
+            rms = float(np.sqrt(sq / frames)) if frames else float("nan")
+            share = sq / total_sq if total_sq > 0 else float("nan")
         got = sum(m[3]["acquire_delay"] <= ACQUIRE_FRAMES for m in seen)
         visible = sum(m[2] for m in members)
         return {
@@ -385,6 +412,8 @@ def strata(summaries: list[dict], method: str = "tracker", bands=ELEVATION_BANDS
             "acquired_interval": wilson_interval(int(got), len(seen)),
             "valid_rate": sum(m[3]["valid_visible"] for m in members) / max(visible, 1),
             "gross_errors": int(sum(m[3]["gross"] for m in members)),
+            "velocity_rms_m_s": rms,
+            "velocity_sq_share": share,
         }
 
     looks = list(dict.fromkeys(r[0] for r in rows))
@@ -394,7 +423,7 @@ def strata(summaries: list[dict], method: str = "tracker", bands=ELEVATION_BANDS
             members = [r for r in rows if r[0] == look and lo <= r[1] < hi]
             if members:
                 out.append(row(look, float(lo), float(hi), members))
-    lo, hi = float(edges[0]), float(edges[-1])
+    lo, hi = lo_all, hi_all
     inside = [r for r in rows if lo <= r[1] < hi]
     out += [row(look, lo, hi, [r for r in inside if r[0] == look]) for look in looks]
     out.append(row("all", lo, hi, inside))
