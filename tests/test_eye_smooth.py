@@ -419,6 +419,37 @@ def test_jump_split_changes_nothing_without_a_jump():
                 np.testing.assert_array_equal(getattr(on, name), getattr(off, name))
 
 
+def test_the_speed_bound_caps_the_smoothed_velocity():
+    """Fits that rush 0.3 m along a line over frames 20-24 and back (a wrong drift), with the
+    jump test unable to fire (slack 100 m): the smoothed velocity there exceeds the pendulum's
+    bound, and with the bound set it is scaled down to it, direction kept; every frame under the
+    bound is the same bit for bit, and no frame's velocity is farther from the truth (the true
+    speed, at most 1.16 m/s, is within the bound). ``bound_speed`` alone: a hand-made case."""
+    from hec_jax.geometry.smooth import bound_speed
+
+    (_, _, vel, _), (meas_rot, meas_pos, info) = _pendulum(seed=41)
+    meas_pos = meas_pos.copy()
+    meas_pos[20:30] += np.outer([0, 0.1, 0.2, 0.3, 0.3, 0.3, 0.3, 0.2, 0.1, 0], [0.6, 0, 0.8])
+    args = (meas_rot, meas_pos, info, np.ones(len(meas_pos), bool), DT)
+    loose = dataclasses.replace(JUMP_BASE, jump_slack_m=100.0)
+    off, on = smooth_track(*args, loose), smooth_track(*args, _jump_cfg(loose))
+    speed_off = np.linalg.norm(off.velocity, axis=-1)
+    speed_on = np.linalg.norm(on.velocity, axis=-1)
+    over = speed_off > PENDULUM_SPEED_BOUND
+    assert 2 <= over.sum() < len(over) // 2, speed_off.max()
+    np.testing.assert_array_equal(on.velocity[~over], off.velocity[~over])
+    np.testing.assert_allclose(speed_on[over], PENDULUM_SPEED_BOUND, rtol=1e-12)
+    cos = np.sum(on.velocity[over] * off.velocity[over], -1) / (speed_on * speed_off)[over]
+    np.testing.assert_allclose(cos, 1.0, rtol=1e-12)
+    err_on = np.linalg.norm(on.velocity - vel, axis=-1)
+    err_off = np.linalg.norm(off.velocity - vel, axis=-1)
+    assert np.all(err_on <= err_off + 1e-12) and np.all(err_on[over] < err_off[over])
+    for name in ("rotation", "position", "acceleration", "position_cov"):
+        np.testing.assert_array_equal(getattr(on, name), getattr(off, name))
+    capped = bound_speed(np.array([[3.0, 4.0, 0.0], [0.3, 0.4, 0.0], [0.0, 0.0, 0.0]]), 1.0)
+    np.testing.assert_allclose(capped, [[0.6, 0.8, 0.0], [0.3, 0.4, 0.0], [0.0, 0.0, 0.0]])
+
+
 def test_jump_test_rejects_bad_settings():
     args = (*_pendulum()[1], np.ones(60, bool), DT)
     for bad in ({"max_speed_m_s": 0.0}, {"max_speed_m_s": -1.0}, {"jump_slack_m": -0.1}):

@@ -46,7 +46,9 @@ and a tilt error moves the fitted centre sideways; both are fixed by using the w
 5. jumps (``SmootherConfig.max_speed_m_s``): consecutive fits farther apart than the object can
    move cannot both be right; a short piece of the track cut off by such a jump is dropped from
    the smoothing (``SmoothedTrack.jump_rejected``) and the track is split at the jumps left, so
-   a wrong lock does not bend the good fits next to it.
+   a wrong lock does not bend the good fits next to it. A smoothed velocity faster than that
+   bound is scaled down to it: the nearest velocity the object can have, which (the true speed
+   being within the bound, and the bound's ball convex) is never farther from the true one.
 
 Frames without a measurement get zero information (bridged by the priors).
 """
@@ -139,6 +141,10 @@ class SmootherConfig:
             model (``hinge_whole_track``) still acts over the gap-split segments (a segment
             it agrees with takes its state on both sides of a jump), without the rejected
             fits. None (the default): no jump test.
+            The same bound caps the output: a smoothed velocity faster than it is scaled down
+            to it (:func:`bound_speed`; every velocity under it unchanged bit for bit). As the
+            true speed is within the bound, the capped velocity is never farther from the true
+            one (docs/eye_randomized.md, session 52).
         jump_slack_m: the fits' own error allowed on top of that distance [m]: at 0.1, a jump
             between two fits means at least one of them is over 5 cm off (the benchmark's
             gross error) when the speed bound holds.
@@ -608,7 +614,20 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
         out.rotation[t], out.position[t] = out.rotation[e], out.position[e]
         out.velocity[t], out.acceleration[t] = 0.0, 0.0
         out.position_cov[t] = out.position_cov[e]
+    if cfg.max_speed_m_s is not None:
+        out = out._replace(velocity=bound_speed(out.velocity, cfg.max_speed_m_s))
     return out._replace(jump_rejected=rejected)
+
+
+def bound_speed(velocity: np.ndarray, max_speed: float) -> np.ndarray:
+    """``velocity`` (..., 3) [m/s] with every vector faster than ``max_speed`` [m/s] scaled down
+    to that speed, its direction kept: the projection onto the ball of the speeds an object
+    bounded by ``max_speed`` can have. Vectors within the bound are returned bit for bit.
+    """
+    velocity = np.asarray(velocity, np.float64)
+    speed = np.linalg.norm(velocity, axis=-1, keepdims=True)
+    over = speed > max_speed
+    return np.where(over, velocity * (max_speed / np.where(over, speed, 1.0)), velocity)
 
 
 def _jumps(positions: np.ndarray, idx: np.ndarray, dt: float, cfg: SmootherConfig) -> np.ndarray:
