@@ -24,7 +24,8 @@ Methods, on the same frames:
   searches compiled with ``cpu_small_kernels`` (``--no-cpu-small-kernels``: XLA's defaults);
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
   ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``, plus the
-  jump test ``max_speed_m_s`` at the scenes' speed bound (``--max-speed-m-s``; the library's
+  jump test ``max_speed_m_s`` at the scenes' speed bound, which also caps the smoothed speed
+  (``--max-speed-m-s``; the library's
   defaults, which the hand-eye loop uses, have them off): its
   offline smoothed output and its causal one (``BoxTracker``);
 * ``opencv_pnp``: the visible face as a quadrilateral (``baselines.face_quad``) and
