@@ -140,11 +140,11 @@ class SmootherConfig:
             pulled the next 12 smoothed centres up to 1.1 m off). The whole-track fixed-axis
             model (``hinge_whole_track``) still acts over the gap-split segments (a segment
             it agrees with takes its state on both sides of a jump), without the rejected
-            fits. None (the default): no jump test.
-            The same bound caps the output: a smoothed velocity faster than it is scaled down
-            to it (:func:`bound_speed`; every velocity under it unchanged bit for bit). As the
-            true speed is within the bound, the capped velocity is never farther from the true
-            one (docs/eye_randomized.md, session 52).
+            fits. The same bound caps the output: a smoothed velocity faster than it is
+            scaled down to it (:func:`bound_speed`; every velocity under it unchanged bit for
+            bit). As the true speed is within the bound, the capped velocity is never farther
+            from the true one (docs/eye_randomized.md, session 52). None (the default): no
+            jump test and no cap.
         jump_slack_m: the fits' own error allowed on top of that distance [m]: at 0.1, a jump
             between two fits means at least one of them is over 5 cm off (the benchmark's
             gross error) when the speed bound holds.
