@@ -23,7 +23,8 @@ Methods, on the same frames:
   ``depth_gate``, on two host threads (``--threads``; the baselines on one), its jitted fits and
   searches compiled with ``cpu_small_kernels`` (``--no-cpu-small-kernels``: XLA's defaults);
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
-  ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``, plus the
+  ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``
+  (accepted up to ``hinge_max_cost=2``, ``--hinge-max-cost``), plus the
   jump test ``max_speed_m_s`` at the scenes' speed bound, which also caps the smoothed speed
   (``--max-speed-m-s``; the library's
   defaults, which the hand-eye loop uses, have them off): its
@@ -117,6 +118,9 @@ class EyeRandomized:
     # SmootherConfig.max_speed_m_s of the smoother (the preset's: the scenes' speed bound; 0: no
     # jump test, for the ablation; same docs section)
     max_speed_m_s: float = SMOOTH.max_speed_m_s
+    # SmootherConfig.hinge_max_cost of the smoother (the preset's, 2.0; 0.5, the library's
+    # default, for the ablation; docs/eye_randomized.md "The fixed-axis model's cost bound")
+    hinge_max_cost: float = SMOOTH.hinge_max_cost
 
     def __post_init__(self):
         require(self, "count", "sequences", "width", "height", "threads")
@@ -133,6 +137,7 @@ class EyeRandomized:
         if self.face_seam_step is not None:
             require(self, "non_negative", "face_seam_step")
         require(self, "non_negative", "min_inner_support", "max_speed_m_s")
+        require(self, "positive", "hinge_max_cost")
 
 
 def tracker_config(a: EyeRandomized):
@@ -168,7 +173,9 @@ def split_seeds(a: EyeRandomized) -> list[int]:
 
 def smoother_config(a: EyeRandomized):
     """The smoother's configuration: ``SMOOTH`` with the flags' overrides."""
-    return dataclasses.replace(SMOOTH, max_speed_m_s=a.max_speed_m_s or None)
+    return dataclasses.replace(
+        SMOOTH, max_speed_m_s=a.max_speed_m_s or None, hinge_max_cost=a.hinge_max_cost
+    )
 
 
 def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:

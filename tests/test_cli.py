@@ -240,6 +240,12 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     assert smooth == dataclasses.replace(NO_EXTRAPOLATION, max_speed_m_s=max_swing_speed_m_s())
     off = bench.smoother_config(parse(bench.EyeRandomized(), ["--max-speed-m-s", "0"]))
     assert off == NO_EXTRAPOLATION
+    # the fixed-axis model's cost bound: the preset's 2, the library's 0.5 for the ablation
+    assert smooth.hinge_max_cost == 2.0
+    half = bench.smoother_config(parse(bench.EyeRandomized(), ["--hinge-max-cost", "0.5"]))
+    assert half == dataclasses.replace(smooth, hinge_max_cost=0.5)
+    with pytest.raises(SystemExit):
+        parse(bench.EyeRandomized(), ["--hinge-max-cost", "0"])
     two = bench.tracker_config(parse(bench.EyeRandomized(), ["--blob-scales", "2", "3"]))
     assert two.blob_scales == (2.0, 3.0)
     with pytest.raises(SystemExit):
