@@ -94,10 +94,9 @@ class SmootherConfig:
             fixed-axis result then still within 0.02 deg of the free one or better) and 0.53-1.7
             at 0.5 deg/s (where the fixed-axis model is worse than the free one: rejected).
             :data:`NO_EXTRAPOLATION` (the randomized benchmark, whose object is a pendulum by
-            construction) uses 2.0: on its development seeds 0-399 the bound 0.5 alone
-            rejected 20 whole-track fits with enough inliers (median costs 0.50-2.8), and every
-            sequence a bound of 2 changed had a smaller velocity error (docs/eye_randomized.md,
-            session 53).
+            construction) uses 2.0, chosen on its development seeds, where 0.5 rejected
+            whole-track fits with enough inliers; the held-out effect is mixed
+            (docs/eye_randomized.md, "The fixed-axis model's cost bound").
         max_gap_s: valid frames more than this apart [s] start a new segment; each segment (first
             to last valid frame) is smoothed on its own, and a frame outside every segment (before
             the first acquisition, after a loss, in a long gap) holds the state of the nearest
