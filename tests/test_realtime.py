@@ -412,6 +412,44 @@ def test_realtime_refused_says_why_and_leaves_the_scheduling(monkeypatch):
     assert "SCHED_FIFO 50" in why and "--rt-priority" in why
 
 
+def test_children_are_pinned_off_the_control_cpu_unless_the_eye_may_share_it():
+    import os
+    import subprocess
+    import sys
+    from types import SimpleNamespace
+
+    from hec_jax.realtime.config import RealtimeConfig
+    from hec_jax.realtime.runner import _pin_children
+
+    cpus = sorted(os.sched_getaffinity(0))
+    if len(cpus) < 2:
+        pytest.skip("placement needs two CPUs")
+    sleeper = [sys.executable, "-c", "import time; time.sleep(30)"]
+    procs = [subprocess.Popen(sleeper) for _ in range(2)]
+    try:
+        plant = SimpleNamespace(_camera_proc=procs[0])
+        eye = SimpleNamespace(proc=procs[1])
+        for shared in (False, True):
+            where: dict = {}
+            control = _pin_children(plant, eye, where, shared)
+            assert control == {cpus[0]}
+            camera, seen = os.sched_getaffinity(procs[0].pid), os.sched_getaffinity(procs[1].pid)
+            assert cpus[0] not in camera and where["camera_cpus"] == sorted(camera)
+            assert where["eye_cpus"] == sorted(seen)
+            assert (cpus[0] in seen) == shared and set(cpus[1:]) >= seen - {cpus[0]}
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+    # sharing the loop's CPU without real-time priority would let the eye compete with it
+    for bad in (dict(rt_priority=0), dict(rt_priority=50, pin_cpus=False)):
+        with pytest.raises(ValueError, match="eye_on_control_cpu"):
+            RealtimeConfig(eye_on_control_cpu=True, **bad)
+    with pytest.raises(ValueError, match="eye_on_control_cpu must be a bool"):
+        RealtimeConfig(eye_on_control_cpu=1)
+    assert RealtimeConfig(eye_on_control_cpu=True, rt_priority=50).eye_on_control_cpu
+
+
 def test_cpu_latency_request_writes_holds_and_withdraws(tmp_path):
     import os
     import struct

@@ -36,6 +36,13 @@ class RealtimeConfig:
     # the control process (its loop and XLA's pool threads) on the first CPU, the camera and eye
     # processes on the others (False: wherever the kernel puts them; docs/realtime.md)
     pin_cpus: bool = True
+    # with pin_cpus, the eye's process also on the control loop's CPU, where it runs while the
+    # loop waits for its next tick (the loop at real-time priority preempts it the moment it
+    # wakes; so rt_priority > 0 is required). False: the eye on the other CPUs only (with two
+    # CPUs it shares the second with the camera). On the 2-core VM it made the eye slower, not
+    # faster (its wall time per frame p50 8 -> 12 ms, the state age worse): measured in
+    # docs/realtime.md, "The eye on the control loop's CPU" (session 54); kept as the ablation
+    eye_on_control_cpu: bool = False
     # SCHED_FIFO priority of the control loop while it runs (1-99); 0: normal scheduling (other
     # processes on the machine may preempt the loop)
     rt_priority: int = 0
@@ -157,6 +164,13 @@ class RealtimeConfig:
                 raise ValueError(f"RealtimeConfig.{name} must be an integer in 0..99, got {v}")
             if self.rt_priority and v >= self.rt_priority:
                 raise ValueError(f"RealtimeConfig.{name} must be below rt_priority")
+        if not isinstance(self.eye_on_control_cpu, bool):
+            raise ValueError(f"eye_on_control_cpu must be a bool, got {self.eye_on_control_cpu!r}")
+        if self.eye_on_control_cpu and (not self.pin_cpus or self.rt_priority <= 0):
+            raise ValueError(
+                "eye_on_control_cpu needs pin_cpus and rt_priority > 0: without real-time "
+                "priority the eye would compete with the control loop for its CPU"
+            )
         if not (isinstance(self.child_nice, int) and -20 <= self.child_nice <= 19):
             raise ValueError(f"child_nice must be an integer in -20..19, got {self.child_nice}")
         if self.camera_msaa is not None and not (

@@ -850,7 +850,11 @@ def run_realtime(
                 )
                 eye.wait_ready(rt.startup_timeout_s)
             children: dict = {}
-            control_cpus = _pin_children(plant, eye, children) if rt.pin_cpus and rt.timed else None
+            control_cpus = (
+                _pin_children(plant, eye, children, rt.eye_on_control_cpu)
+                if rt.pin_cpus and rt.timed
+                else None
+            )
             clock = WallClock(rt.spin_us * 1e-6) if rt.timed else FreeClock()
             load["start"] = os.getloadavg()
             steal_start = host_steal_ms()
@@ -927,11 +931,14 @@ def run_realtime(
     )
 
 
-def _pin_children(plant: MujocoPlant, eye: EyeProcess | None, where: dict) -> set[int] | None:
+def _pin_children(
+    plant: MujocoPlant, eye: EyeProcess | None, where: dict, eye_on_control_cpu: bool = False
+) -> set[int] | None:
     """The camera's and the eye's processes (all their threads) on every CPU but the first (with
     three or more: the camera on the second, the eye on the others); returns the first, for the
     control loop's process (:class:`~.clock.pinned`). None on a single CPU. ``where`` receives
-    the CPUs of each child process (``camera_cpus``, ``eye_cpus``).
+    the CPUs of each child process (``camera_cpus``, ``eye_cpus``). ``eye_on_control_cpu``: the
+    eye's CPUs include the first (``RealtimeConfig.eye_on_control_cpu``).
     """
     cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
     if len(cpus) < 2:
@@ -940,6 +947,8 @@ def _pin_children(plant: MujocoPlant, eye: EyeProcess | None, where: dict) -> se
     # with three CPUs or more the camera gets the second to itself and the eye the rest (the
     # renderer's and the tracker's bursts then never wait for each other); else both share
     camera_cpus, eye_cpus = ({cpus[1]}, set(cpus[2:])) if len(cpus) >= 3 else (rest, rest)
+    if eye_on_control_cpu:
+        eye_cpus = eye_cpus | {cpus[0]}
     for name, proc, cpu_set in (
         ("camera_cpus", plant._camera_proc, camera_cpus),
         ("eye_cpus", eye and eye.proc, eye_cpus),
