@@ -155,6 +155,11 @@ BAD = {
         (["--ticks", "0"], "--ticks: must be an integer >= 1"),
         (["--idle-us", "-1"], "--idle-us: must be finite and >= 0"),
     ],
+    "benchmarks/realtime_jitter.py": [
+        (["--work-us", "1000"], "--work-us must be under the 1000 us period"),
+        (["--block-s", "0"], "--block-s: must be finite and > 0"),
+        (["--duration-s", "1", "--block-s", "2"], "--block-s must be <= --duration-s"),
+    ],
     "benchmarks/sweep.py": [
         (["--batch", "0"], "--batch: must be an integer >= 1"),
         (["--grad-batch", "-1"], "--grad-batch must be an integer >= 0"),
@@ -544,6 +549,47 @@ def test_cpu_steadiness_summary_and_a_short_probe():
     assert os.sched_getaffinity(0) == before  # the process is put back where it was
     assert set(out) <= {str(c) for c in before} and sum(r["n"] for r in out.values()) >= 2
     assert all(r["min"] > 0 and r["max_over_min"] >= 1 for r in out.values())
+
+
+@pytest.mark.parametrize("kind", ["spin", "memory"])
+def test_the_jitter_probe_times_both_arms_and_leaves_no_load_behind(kind, tmp_path):
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("the probe needs two CPUs")
+    out = tmp_path / "jitter"
+    before = os.sched_getaffinity(0)
+    table = _script("benchmarks/realtime_jitter.py").main(
+        ["--duration-s", "0.2", "--block-s", "0.1", "--rt-priority", "0"]
+        + ["--cpu-latency-us", "None", "--work-us", "300", "--out", str(out)]
+        + ["--work", kind, "--load", kind, "--work-kib", "64"]
+    )
+    assert os.sched_getaffinity(0) == before  # the loop's CPU given back
+    assert set(table) == {"others idle", "others busy"}
+    for t in table.values():
+        assert t["ticks"] == 200  # two blocks of 100 ticks at 1 kHz per arm
+        wake, end = t["wake_us"], t["end_us"]
+        assert 0 <= wake["p50"] <= wake["p99"] <= wake["p99_9"] <= wake["max"]
+        # a spinning tick is busy for its work after it woke; the memory work's passes take
+        # about as long, calibrated on this machine
+        assert end["p50"] >= (300.0 if kind == "spin" else 0.0) and end["p50"] > wake["p50"]
+        assert 0 <= t["past_deadline_share"] <= 1
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["table"] == json.loads(json.dumps(table))
+    assert (saved["memory_passes"] >= 1) == (kind == "memory")
+    assert "| others busy | 200 |" in (out / "table.md").read_text()
+
+    def spinning_children() -> list[int]:  # the probe's load processes still alive
+        found = []
+        for proc in Path("/proc").glob("[0-9]*"):
+            try:
+                ppid = int((proc / "stat").read_text().rsplit(")", 1)[1].split()[1])
+                cmd = (proc / "cmdline").read_bytes()
+            except (OSError, IndexError, ValueError):
+                continue
+            if ppid == os.getpid() and b"while True:" in cmd:
+                found.append(int(proc.name))
+        return found
+
+    assert spinning_children() == []
 
 
 def test_the_eye_benchmark_s_strata_table_has_a_row_per_stratum():
