@@ -8,13 +8,17 @@ MuJoCo, as cyclictest): on the first CPU at ``SCHED_FIFO`` (:class:`~hec_jax.rea
 realtime_priority`, :class:`~hec_jax.realtime.clock.pinned`), with the CPUs' wake-up latency
 asked of the kernel (:class:`~hec_jax.realtime.clock.cpu_latency_request`), ticks at 1 kHz on the
 wall clock (:class:`~hec_jax.realtime.clock.WallClock`: sleep, then spin the last ``--spin-us``),
-each busy for ``--work-us`` (a control tick's CPU time: 260-300 us on the 2-core VM of session
-54). Two arms alternate in blocks of ``--block-s``: the other CPUs idle, and the other CPUs each
-kept busy by a process at normal priority (as the camera and the eye keep the second CPU). Per
-arm: the wake-up lateness (the tick's start after its time) and the tick's end after its time,
-percentiles and the share past 1 ms (a missed deadline), and the host's steal per CPU over the
-arm's blocks. A deadline missed here is the machine's, not the loop's: the loop's own work is a
-fixed busy wait. Writes ``metrics.json`` and ``table.md`` in ``--out``.
+each doing ``--work-us`` of work (a control tick's CPU time, as a run's deadline report gives
+it): a busy wait (``--work spin``: a fixed time, so only the scheduling shows), or a fixed
+number of passes over a working set (``--work memory``: as many as take ``--work-us`` on the quiet
+machine, so their time shows what the machine does to a tick whose data should stay in its
+caches). Two arms alternate in blocks of ``--block-s``: the other CPUs idle, and the other CPUs
+each loaded by a process at normal priority (``--load``: a busy loop, or a stream through
+memory; as the camera and the eye load the second CPU). Per arm: the wake-up lateness (the
+tick's start after its time) and the tick's end after its time, percentiles and the share past
+1 ms (a missed deadline), and the host's steal per CPU over the arm's blocks. A deadline missed
+here is the machine's, not the loop's: the loop's own work is fixed. Writes ``metrics.json``
+and ``table.md`` in ``--out``.
 """
 
 from __future__ import annotations
@@ -163,7 +167,7 @@ def main(argv=None) -> dict:
     blocks = int(np.ceil(a.duration_s / a.block_s))
     with run_folder(a.out, 0, settings, a.overwrite) as folder:
         got = {arm: ([], [], []) for arm in ARMS}
-        # the load: one spinning process per other CPU at normal priority, started before the
+        # the load: one process per other CPU at normal priority, started before the
         # loop takes real-time priority (a child inherits it), stopped between its blocks
         load = [subprocess.Popen([sys.executable, "-c", LOADS[a.load]]) for _ in cpus[1:]]
         try:
