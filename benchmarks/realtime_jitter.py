@@ -33,7 +33,7 @@ from typing import Literal
 
 import numpy as np
 
-from hec_jax.cli import command, parse, require
+from hec_jax.cli import command, parse, require, usage_error
 from hec_jax.realtime.clock import (
     WallClock,
     cpu_latency_refused,
@@ -86,9 +86,6 @@ class JitterProbe:
             raise ValueError("--work-us must be under the 1000 us period")
         if self.block_s > self.duration_s:
             raise ValueError("--block-s must be <= --duration-s")
-        refused = realtime_refused(self.rt_priority) or cpu_latency_refused(self.cpu_latency_us)
-        if refused:
-            raise ValueError(refused)
 
 
 def _busy_until(t_end: float) -> None:
@@ -160,6 +157,11 @@ def _summary(wake: np.ndarray, end: np.ndarray, steal_ms: np.ndarray) -> dict:
 def main(argv=None) -> dict:
     """Parses ``argv``, runs the alternated blocks, prints and writes the table."""
     a = parse(JitterProbe(), argv, __doc__)
+    # asked of the machine once the flags are read (the defaults' priority may be refused where
+    # the flags ask for none)
+    refused = realtime_refused(a.rt_priority) or cpu_latency_refused(a.cpu_latency_us)
+    if refused:
+        raise usage_error(refused)
     cpus = sorted(os.sched_getaffinity(0))
     if len(cpus) < 2:
         raise SystemExit("the probe needs two CPUs (the loop's and the others')")

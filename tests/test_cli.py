@@ -592,6 +592,30 @@ def test_the_jitter_probe_times_both_arms_and_leaves_no_load_behind(kind, tmp_pa
     assert spinning_children() == []
 
 
+def test_the_jitter_probe_asks_for_priority_only_as_its_flags_say(tmp_path, monkeypatch, capsys):
+    """A machine that refuses real-time priority still runs the probe at ``--rt-priority 0``
+    (the default's 50 is not asked for), and refuses ``--rt-priority 50`` in one line."""
+    probe = _script("benchmarks/realtime_jitter.py")
+    asked = []
+
+    def refuse(priority):
+        asked.append(priority)
+        return "real-time scheduling (SCHED_FIFO 50) is not permitted here" if priority else None
+
+    monkeypatch.setattr(probe, "realtime_refused", refuse)
+    with pytest.raises(SystemExit) as exc:
+        probe.main(["--out", str(tmp_path / "refused"), "--cpu-latency-us", "None"])
+    assert exc.value.code == 2 and "not permitted" in capsys.readouterr().err
+    assert not (tmp_path / "refused").exists()
+    if len(os.sched_getaffinity(0)) >= 2:
+        table = probe.main(
+            ["--duration-s", "0.05", "--block-s", "0.05", "--rt-priority", "0"]
+            + ["--cpu-latency-us", "None", "--out", str(tmp_path / "ran")]
+        )
+        assert table["others idle"]["ticks"] == 50
+    assert asked[0] == 50 and all(p == 0 for p in asked[1:])
+
+
 def test_the_eye_benchmark_s_strata_table_has_a_row_per_stratum():
     """``benchmarks/eye_randomized.py``'s table of strata: a header and one row per stratum of
     :func:`accuracy.strata`, each with its counts and interval."""
