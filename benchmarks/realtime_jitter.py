@@ -168,7 +168,8 @@ def main(argv=None) -> dict:
     settings = {"probe": a.__dict__ | {"out": str(a.out)}, "cpus": cpus}
     blocks = int(np.ceil(a.duration_s / a.block_s))
     with run_folder(a.out, 0, settings, a.overwrite) as folder:
-        got = {arm: ([], [], []) for arm in ARMS}
+        # per arm, per block: wake-up lateness, tick end [us], the host's steal per CPU [ms]
+        got = {arm: {"wake": [], "end": [], "steal": []} for arm in ARMS}
         # the load: one process per other CPU at normal priority, started before the
         # loop takes real-time priority (a child inherits it), stopped between its blocks
         load = [subprocess.Popen([sys.executable, "-c", LOADS[a.load]]) for _ in cpus[1:]]
@@ -186,18 +187,20 @@ def main(argv=None) -> dict:
                                 p.send_signal(signal.SIGCONT)
                             before = np.asarray(host_steal_ms())
                             wake, end = _block(a, work)
-                            got[arm][2].append(np.asarray(host_steal_ms()) - before)
+                            got[arm]["steal"].append(np.asarray(host_steal_ms()) - before)
                             for p in load if busy else ():
                                 p.send_signal(signal.SIGSTOP)
-                            got[arm][0].append(wake)
-                            got[arm][1].append(end)
+                            got[arm]["wake"].append(wake)
+                            got[arm]["end"].append(end)
         finally:
             for p in load:
                 p.kill()
                 p.wait()
         table = {
-            arm: _summary(np.concatenate(w), np.concatenate(e), np.sum(s, axis=0))
-            for arm, (w, e, s) in got.items()
+            arm: _summary(
+                np.concatenate(g["wake"]), np.concatenate(g["end"]), np.sum(g["steal"], axis=0)
+            )
+            for arm, g in got.items()
         }
         write_json(folder / "metrics.json", {"table": table, "memory_passes": work.passes})
         lines = [
