@@ -65,15 +65,33 @@ def test_scripts_do_not_edit_sys_path():
 
 def test_headless_rendering_is_the_default_backend():
     """Importing the world sets MUJOCO_GL=egl unless the user chose one (a camera run on a
-    machine without a display must not fall back to GLFW and fail)."""
+    machine without a display must not fall back to GLFW and fail), on a Linux with EGL."""
+    import ctypes.util
     import os
     import subprocess
     import sys
 
-    code = "import os, hec_jax.loop; print(os.environ['MUJOCO_GL'])"
+    code = "import os, hec_jax.loop; print(os.environ.get('MUJOCO_GL'))"
     env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
-    assert out.stdout.strip() == "egl", out.stderr[-2000:]
+    expected = "egl" if ctypes.util.find_library("EGL") else "None"
+    assert out.stdout.strip() == expected, out.stderr[-2000:]
     env["MUJOCO_GL"] = "glfw"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
     assert out.stdout.strip() == "glfw", out.stderr[-2000:]
+
+
+@pytest.mark.parametrize(
+    "system, egl, expected",
+    [
+        ("Linux", "libEGL.so.1", "egl"),
+        ("Linux", None, None),  # no EGL: MuJoCo's own default (GLFW), not a failing import
+        ("Darwin", None, None),  # MUJOCO_GL=egl makes ``import mujoco`` raise on macOS
+        ("Darwin", "libEGL.dylib", None),
+        ("Windows", None, None),
+    ],
+)
+def test_egl_is_set_only_where_mujoco_can_use_it(system, egl, expected):
+    from hec_jax import default_gl_backend
+
+    assert default_gl_backend(system, egl) == expected
