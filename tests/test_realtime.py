@@ -276,6 +276,11 @@ def _check_report(result):
     assert all(cpu[f"{k}_us"]["p50"] > 0 for k in ("read", "observe", "step", "write"))
     wall_step = (tt["t_step"] - tt["t_obs"])[ticked]
     assert np.all(tt["cpu_step"][ticked] * 1e-9 <= wall_step + 2e-5)
+    # every late tick is given one cause
+    causes = rep["miss_causes"]
+    assert causes["late"] == n["late"] == sum(causes["counts"].values())
+    assert causes["events"] == sum(causes["event_counts"].values()) <= n["missed"]
+    assert (causes["events"] > 0) == (n["missed"] > 0)
     print("\n".join(RT.report.deadline_table(result.report)))
 
 
@@ -491,6 +496,62 @@ def test_cpu_latency_request_writes_holds_and_withdraws(tmp_path):
     with clock.cpu_latency_request(0):
         assert target() == 0
     assert target() == before
+
+
+def test_late_ticks_are_given_the_part_of_their_latency_that_grew():
+    """Hand-made ticks (dt 1 ms): the usual tick wakes on time, runs 250 us on the CPU and
+    takes 300 us to its torques. Ticks 2, 4 and 6 are late, one for each reason; tick 6's stall
+    goes on: step 7 is skipped and tick 8 wakes late, the same event."""
+    import numpy as np
+
+    from hec_jax.realtime.report import latency_parts, miss_causes
+
+    dt = 1e-3
+    index = np.arange(10)
+    nan = np.nan
+    woke = np.array([0, 0, 900, 0, 0, 0, 0, nan, 800, 0]) * 1e-6
+    cpu_step = np.array([100, 100, 100, 100, 950, 100, 100, nan, 100, 100]) * 1e3  # [ns]
+    off = np.array([50, 50, 50, 50, 50, 50, 950, nan, 50, 50]) * 1e-6
+    cpu = (2 * 75e3 + cpu_step) * 1e-9  # read and observe 75 us each
+    t_wake = index * dt + woke
+    tt = {
+        "index": index,
+        "episode": np.zeros(10, int),
+        "kind": np.array([0, 0, 1, 0, 1, 0, 1, 2, 1, 0]),  # fresh, late, skipped (the plant's)
+        "t_wake": t_wake,
+        "t_write": t_wake + cpu + off,  # NaN: step 7 had no tick
+        "cpu_read": np.full(10, 75e3),
+        "cpu_observe": np.full(10, 75e3),
+        "cpu_step": cpu_step,
+    }
+    parts = latency_parts(tt, dt)
+    ok = np.isfinite(tt["t_write"])
+    total = sum(parts.values())[ok]
+    np.testing.assert_allclose(total, (tt["t_write"] - index * dt)[ok], atol=1e-12)
+    np.testing.assert_allclose(parts["off_cpu"][ok], off[ok], atol=1e-12)
+    causes = miss_causes(tt, dt)
+    assert causes["late"] == 4
+    assert causes["counts"] == {"woke_late": 2, "cpu_work": 1, "off_cpu": 1}
+    assert causes["events"] == 3
+    assert causes["event_counts"] == {"woke_late": 1, "cpu_work": 1, "off_cpu": 1}
+    assert causes["median_us"] == pytest.approx({"woke_late": 0, "cpu_work": 250, "off_cpu": 50})
+    assert causes["late_us"]["woke_late"]["max"] == pytest.approx(900)
+    assert causes["late_us"]["cpu_work"]["max"] == pytest.approx(1100)
+    # a run of skipped steps alone (the thread woke after them, on time for its own step)
+    skipped_only = dict(tt, kind=np.array([0, 0, 0, 0, 0, 0, 0, 2, 0, 0]))
+    for k in ("t_wake", "t_write", "cpu_step"):
+        skipped_only[k] = tt[k].copy()
+    for j in (2, 4, 6, 8):  # every tick on time
+        skipped_only["t_wake"][j] = j * dt
+        skipped_only["cpu_step"][j] = 100e3
+        skipped_only["t_write"][j] = j * dt + 300e-6
+    causes = miss_causes(skipped_only, dt)
+    assert causes["late"] == 0 and causes["events"] == 1
+    assert causes["event_counts"] == {"woke_late": 1, "cpu_work": 0, "off_cpu": 0}
+    # no missed step: nothing counted
+    on_time = {k: v[:2] for k, v in tt.items()}
+    none = miss_causes(on_time, dt)
+    assert none["events"] == 0 and none["counts"] == {"woke_late": 0, "cpu_work": 0, "off_cpu": 0}
 
 
 def test_in_contact_follows_the_episode_logs():

@@ -6,6 +6,9 @@
   one was applied) and skipped (no controller call at all: the loop fell behind); missed
   deadlines = late + skipped. The late count is recomputed from the recorded write times and
   must equal the plant's.
+* Why the late ticks were late (:func:`miss_causes`): each one's latency split into its
+  wake-up's lateness, the control thread's CPU time up to the torques, and the time it spent
+  off the CPU meanwhile; each counted under the part furthest above its median.
 * Eye: frames rendered (and exposed late or skipped by the camera), frames the eye processed and
   dropped (latest-frame policy), the latency from a frame's exposure to the tick where its
   estimate becomes the controller's object state, and the age of the state in force at each tick
@@ -107,6 +110,7 @@ def deadline_report(run, dt: float, fps: float | None, camera_log=None, eye_log=
     }
     if "cpu_step" in tt:
         control["cpu"] = cpu_report(tt, ticked)
+        control["miss_causes"] = miss_causes(tt, dt)
     p999 = control["latency_us"]["p99_9"]
     targets = {
         "p99_9_latency_within_period": bool(p999 is not None and p999 < dt * 1e6),
@@ -141,6 +145,73 @@ def cpu_report(tt: dict, ticked: np.ndarray) -> dict:
     for k in ("switches_voluntary", "switches_involuntary"):
         out[f"{k}_per_tick"] = float(np.mean(tt[k][ticked])) if ticked.any() else None
     return out
+
+
+# the parts of a tick's latency (:func:`miss_causes`)
+MISS_CAUSES = ("woke_late", "cpu_work", "off_cpu")
+# the control thread's CPU stages on the path to the torques (the write takes them at its start)
+PATH_STAGES = ("cpu_read", "cpu_observe", "cpu_step")
+
+
+def latency_parts(tt: dict, dt: float) -> dict[str, np.ndarray]:
+    """Each tick's latency [s] (NaN where no tick) as the sum of three parts.
+
+    * ``woke_late``: the wake-up after the tick's time, t_wake - j dt (the clock's wait, the
+      kernel's and the host's scheduling, or the previous tick still running);
+    * ``cpu_work``: the control thread's CPU time from the wake-up to the torques (plant read,
+      observation, jitted step). In a virtual machine this includes any time the host takes
+      the virtual CPU away without the guest accounting it as steal: a tick whose CPU time is
+      several times the usual may have done no more work;
+    * ``off_cpu``: the rest of that stretch, t_write - t_wake - cpu_work: the thread not
+      running (preempted, by the host's hypervisor or a thread of higher priority, or waiting
+      for XLA's threads), plus the few microseconds of the clock reads.
+    """
+    woke = tt["t_wake"] - tt["index"] * dt
+    cpu = sum(tt[k] for k in PATH_STAGES) * 1e-9
+    return {"woke_late": woke, "cpu_work": cpu, "off_cpu": tt["t_write"] - tt["t_wake"] - cpu}
+
+
+def miss_causes(tt: dict, dt: float) -> dict:
+    """Why the late ticks (torques taken at or after the deadline (j + 1) dt) were late.
+
+    Each late tick's latency is split by :func:`latency_parts`, and the tick is counted under
+    the part that exceeds that part's median over all ticks by the most. One stall of the
+    thread makes several misses in a row (the ticks after it wake late, steps are skipped), so
+    the misses are also grouped into events: runs of consecutive missed steps (late or skipped,
+    ``tt["kind"]`` 1 or 2) of one episode, each counted under the cause of its first late tick
+    (``woke_late`` where it has none: the thread woke after the run's steps had passed).
+
+    Returns ``late`` (count), ``counts`` {cause: late ticks}, ``events`` (count),
+    ``event_counts`` {cause: events}, ``late_us`` {cause: percentiles over the late ticks [us]}
+    and ``median_us`` {cause: median over all ticks [us]}.
+    """
+    ticked = np.isfinite(tt["t_write"])
+    parts = latency_parts(tt, dt)
+    late = ticked & (tt["t_write"] >= (tt["index"] + 1) * dt)
+    median = {k: float(np.median(parts[k][ticked])) if ticked.any() else 0.0 for k in parts}
+    excess = np.stack([np.where(late, parts[k] - median[k], -np.inf) for k in MISS_CAUSES])
+    cause = np.where(late, np.argmax(excess, axis=0), -1)
+    # events: runs of missed steps within an episode
+    missed = np.asarray(tt["kind"]) != 0
+    episode = np.asarray(tt.get("episode", np.zeros(missed.size, int)))
+    continues = np.zeros(missed.size, bool)
+    continues[1:] = missed[:-1] & (episode[1:] == episode[:-1])
+    starts = np.flatnonzero(missed & ~continues)
+    ends = np.append(starts[1:], missed.size)
+    event_cause = []
+    for a, b in zip(starts, ends):
+        run = cause[a:b][: int(np.argmin(missed[a:b])) or b - a]  # up to the first step not missed
+        first = run[run >= 0]
+        event_cause.append(int(first[0]) if first.size else 0)
+    event_cause = np.asarray(event_cause, int)
+    return {
+        "late": int(late.sum()),
+        "counts": {k: int(np.sum(cause == i)) for i, k in enumerate(MISS_CAUSES)},
+        "events": int(starts.size),
+        "event_counts": {k: int(np.sum(event_cause == i)) for i, k in enumerate(MISS_CAUSES)},
+        "late_us": {k: percentiles(parts[k][late], 1e6) for k in MISS_CAUSES},
+        "median_us": {k: median[k] * 1e6 for k in MISS_CAUSES},
+    }
 
 
 def in_contact(run, tt: dict) -> np.ndarray | None:
@@ -442,6 +513,19 @@ def deadline_table(report: dict) -> list[str]:
     cpu = c.get("cpu")
     if cpu:
         stages = ("read", "observe", "step", "write", "tick")
+        causes = c.get("miss_causes")
+        if causes:
+            n_c, n_e = causes["counts"], causes["event_counts"]
+            rows += [
+                (
+                    "late ticks by cause: woke late / CPU work / off the CPU",
+                    " / ".join(str(n_c[k]) for k in MISS_CAUSES) + f" (of {causes['late']})",
+                ),
+                (
+                    "runs of missed steps by the cause of their first late tick (the same)",
+                    " / ".join(str(n_e[k]) for k in MISS_CAUSES) + f" (of {causes['events']})",
+                ),
+            ]
         rows += [
             (
                 "control thread CPU p50 [us]: " + " / ".join(stages),
