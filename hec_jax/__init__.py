@@ -21,7 +21,7 @@ def default_gl_backend(system: str, egl_library: str | None) -> str | None:
     return "egl" if system == "Linux" and egl_library else None
 
 
-_backend = default_gl_backend(platform.system(), ctypes.util.find_library("EGL"))
-if _backend is not None:
-    os.environ.setdefault("MUJOCO_GL", _backend)
-del _backend
+if "MUJOCO_GL" not in os.environ:  # (the library search runs ldconfig: only when needed)
+    _backend = default_gl_backend(platform.system(), ctypes.util.find_library("EGL"))
+    if _backend is not None:
+        os.environ["MUJOCO_GL"] = _backend
