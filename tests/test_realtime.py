@@ -500,28 +500,32 @@ def test_cpu_latency_request_writes_holds_and_withdraws(tmp_path):
 
 def test_late_ticks_are_given_the_part_of_their_latency_that_grew():
     """Hand-made ticks (dt 1 ms): the usual tick wakes on time, runs 250 us on the CPU and
-    takes 300 us to its torques. Ticks 2, 4 and 6 are late, one for each reason; tick 6's stall
-    goes on: step 7 is skipped and tick 8 wakes late, the same event."""
+    takes 300 us to its torques. Late: tick 2 wakes 900 us late; ticks 4 and 9 run 850 us
+    longer on the CPU; tick 6 is 900 us off the CPU and its stall goes on (step 7 skipped,
+    tick 8 wakes late: the same event). Tick 9 ends episode 0 and tick 10 opens episode 1
+    late (woke late): two events, not one."""
     import numpy as np
 
     from hec_jax.realtime.report import latency_parts, miss_causes
 
     dt = 1e-3
-    index = np.arange(10)
+    n = 12
+    index = np.array([*range(10), 0, 1])  # episode 1 starts at row 10
     nan = np.nan
-    woke = np.array([0, 0, 900, 0, 0, 0, 0, nan, 800, 0]) * 1e-6
-    cpu_step = np.array([100, 100, 100, 100, 950, 100, 100, nan, 100, 100]) * 1e3  # [ns]
-    off = np.array([50, 50, 50, 50, 50, 50, 950, nan, 50, 50]) * 1e-6
+    woke = np.array([0, 0, 900, 0, 0, 0, 0, nan, 800, 0, 900, 0]) * 1e-6
+    cpu_step = np.array([100, 100, 100, 100, 950, 100, 100, nan, 100, 950, 100, 100]) * 1e3
+    off = np.array([50, 50, 50, 50, 50, 50, 950, nan, 50, 50, 50, 50]) * 1e-6
     cpu = (2 * 75e3 + cpu_step) * 1e-9  # read and observe 75 us each
     t_wake = index * dt + woke
     tt = {
         "index": index,
-        "episode": np.zeros(10, int),
-        "kind": np.array([0, 0, 1, 0, 1, 0, 1, 2, 1, 0]),  # fresh, late, skipped (the plant's)
+        "episode": np.array([0] * 10 + [1] * 2),
+        # fresh (0), late (1), skipped (2), as the plant's log
+        "kind": np.array([0, 0, 1, 0, 1, 0, 1, 2, 1, 1, 1, 0]),
         "t_wake": t_wake,
         "t_write": t_wake + cpu + off,  # NaN: step 7 had no tick
-        "cpu_read": np.full(10, 75e3),
-        "cpu_observe": np.full(10, 75e3),
+        "cpu_read": np.full(n, 75e3),
+        "cpu_observe": np.full(n, 75e3),
         "cpu_step": cpu_step,
     }
     parts = latency_parts(tt, dt)
@@ -529,22 +533,25 @@ def test_late_ticks_are_given_the_part_of_their_latency_that_grew():
     total = sum(parts.values())[ok]
     np.testing.assert_allclose(total, (tt["t_write"] - index * dt)[ok], atol=1e-12)
     np.testing.assert_allclose(parts["off_cpu"][ok], off[ok], atol=1e-12)
+    np.testing.assert_allclose(parts["cpu_work"][ok], cpu[ok], atol=1e-12)
     causes = miss_causes(tt, dt)
-    assert causes["late"] == 4
-    assert causes["counts"] == {"woke_late": 2, "cpu_work": 1, "off_cpu": 1}
-    assert causes["events"] == 3
-    assert causes["event_counts"] == {"woke_late": 1, "cpu_work": 1, "off_cpu": 1}
+    assert causes["late"] == 6
+    assert causes["counts"] == {"woke_late": 3, "cpu_work": 2, "off_cpu": 1}
+    # events: {2}, {4}, {6, 7, 8, 9} (its first late tick: 6), {10} in the next episode
+    assert causes["events"] == 4
+    assert causes["event_counts"] == {"woke_late": 2, "cpu_work": 1, "off_cpu": 1}
     assert causes["median_us"] == pytest.approx({"woke_late": 0, "cpu_work": 250, "off_cpu": 50})
     assert causes["late_us"]["woke_late"]["max"] == pytest.approx(900)
     assert causes["late_us"]["cpu_work"]["max"] == pytest.approx(1100)
-    # a run of skipped steps alone (the thread woke after them, on time for its own step)
-    skipped_only = dict(tt, kind=np.array([0, 0, 0, 0, 0, 0, 0, 2, 0, 0]))
+    assert causes["late_us"]["off_cpu"]["max"] == pytest.approx(950)
+    # a run of skipped steps alone (the thread ran after them, on time for its own step)
+    skipped_only = dict(tt, kind=np.where(np.arange(n) == 7, 2, 0))
     for k in ("t_wake", "t_write", "cpu_step"):
         skipped_only[k] = tt[k].copy()
-    for j in (2, 4, 6, 8):  # every tick on time
-        skipped_only["t_wake"][j] = j * dt
+    for j in np.flatnonzero(tt["kind"] == 1):  # every tick on time
+        skipped_only["t_wake"][j] = index[j] * dt
         skipped_only["cpu_step"][j] = 100e3
-        skipped_only["t_write"][j] = j * dt + 300e-6
+        skipped_only["t_write"][j] = index[j] * dt + 300e-6
     causes = miss_causes(skipped_only, dt)
     assert causes["late"] == 0 and causes["events"] == 1
     assert causes["event_counts"] == {"woke_late": 1, "cpu_work": 0, "off_cpu": 0}

@@ -161,10 +161,16 @@ def latency_parts(tt: dict, dt: float) -> dict[str, np.ndarray]:
     * ``cpu_work``: the control thread's CPU time from the wake-up to the torques (plant read,
       observation, jitted step). In a virtual machine this includes any time the host takes
       the virtual CPU away without the guest accounting it as steal: a tick whose CPU time is
-      several times the usual may have done no more work;
+      several times the usual may have done no more work. After a stall it also holds the
+      simulated plant's integration of the steps whose deadline passed (``MujocoPlant.read``
+      catches up before the sample);
     * ``off_cpu``: the rest of that stretch, t_write - t_wake - cpu_work: the thread not
       running (preempted, by the host's hypervisor or a thread of higher priority, or waiting
       for XLA's threads), plus the few microseconds of the clock reads.
+
+    A tick's row is the sample the plant returned (j), which is later than the step the clock
+    waited for when the plant caught up on skipped steps; ``woke_late`` is then negative and
+    the stretch from the wake-up on is counted in the other two parts.
     """
     woke = tt["t_wake"] - tt["index"] * dt
     cpu = sum(tt[k] for k in PATH_STAGES) * 1e-9
@@ -178,8 +184,10 @@ def miss_causes(tt: dict, dt: float) -> dict:
     the part that exceeds that part's median over all ticks by the most. One stall of the
     thread makes several misses in a row (the ticks after it wake late, steps are skipped), so
     the misses are also grouped into events: runs of consecutive missed steps (late or skipped,
-    ``tt["kind"]`` 1 or 2) of one episode, each counted under the cause of its first late tick
-    (``woke_late`` where it has none: the thread woke after the run's steps had passed).
+    ``tt["kind"]`` 1 or 2) of one episode, each counted under the cause of its first late tick.
+    An event with no late tick (only skipped steps, the tick after them on time) is counted as
+    ``woke_late``: the thread ran after the steps' deadlines, whether it woke late or was held
+    off the CPU between its wake-up and the plant's read, which the records cannot tell apart.
 
     Returns ``late`` (count), ``counts`` {cause: late ticks}, ``events`` (count),
     ``event_counts`` {cause: events}, ``late_us`` {cause: percentiles over the late ticks [us]}
@@ -197,11 +205,12 @@ def miss_causes(tt: dict, dt: float) -> dict:
     continues = np.zeros(missed.size, bool)
     continues[1:] = missed[:-1] & (episode[1:] == episode[:-1])
     starts = np.flatnonzero(missed & ~continues)
-    ends = np.append(starts[1:], missed.size)
+    ends = np.append(starts[1:], missed.size)[: starts.size]  # (none without an event)
     event_cause = []
-    for a, b in zip(starts, ends):
-        run = cause[a:b][: int(np.argmin(missed[a:b])) or b - a]  # up to the first step not missed
-        first = run[run >= 0]
+    for a, b in zip(starts, ends, strict=True):
+        # the steps from one event's start to the next: the event's own, then on-time ticks
+        # (cause -1, like the skipped steps), so its first cause is its first late tick's
+        first = cause[a:b][cause[a:b] >= 0]
         event_cause.append(int(first[0]) if first.size else 0)
     event_cause = np.asarray(event_cause, int)
     return {
@@ -522,7 +531,8 @@ def deadline_table(report: dict) -> list[str]:
                     " / ".join(str(n_c[k]) for k in MISS_CAUSES) + f" (of {causes['late']})",
                 ),
                 (
-                    "runs of missed steps by the cause of their first late tick (the same)",
+                    "runs of missed steps by the cause of their first late tick (the same; "
+                    "none late: woke late)",
                     " / ".join(str(n_e[k]) for k in MISS_CAUSES) + f" (of {causes['events']})",
                 ),
             ]
