@@ -108,10 +108,6 @@ class EyeRandomized:
     # TrackConfig.threads of the tracker (its host threads; the same outputs for any number; the
     # baselines run on one)
     threads: int = TRACK.threads
-    # TrackConfig.search_parts of the tracker (the preset's: the search's coarse stage in that
-    # many calls, on the free host threads; 1: one call, as before session 56, for the ablation;
-    # docs/eye_randomized.md "The search's coarse stage on both cores")
-    search_parts: int = TRACK.search_parts
     # TrackConfig.cpu_small_kernels of the tracker (the preset's, on: XLA:CPU compiler options of
     # its jitted fits and searches; False for XLA's defaults, docs/eye_randomized.md "Compiler
     # options for the small kernels")
@@ -127,7 +123,7 @@ class EyeRandomized:
     hinge_max_cost: float = SMOOTH.hinge_max_cost
 
     def __post_init__(self):
-        require(self, "count", "sequences", "width", "height", "threads", "search_parts")
+        require(self, "count", "sequences", "width", "height", "threads")
         require(self, "seed", "first")
         require(self, "positive", "seconds", "fps")
         if self.blob_scales:
@@ -155,7 +151,6 @@ def tracker_config(a: EyeRandomized):
         max_face_split=a.max_face_split,
         face_seam_step=a.face_seam_step,
         threads=a.threads,
-        search_parts=a.search_parts,
         cpu_small_kernels=a.cpu_small_kernels,
         min_inner_support=a.min_inner_support,
     )

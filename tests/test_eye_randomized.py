@@ -21,7 +21,6 @@ from hec_jax.geometry.track import (
     RANDOMIZED_BENCHMARK,
     UNSEEN_SCENES,
     _iou,
-    _PartedSearch,
     cube_symmetries,
     track_box,
 )
@@ -295,81 +294,6 @@ def test_host_threads_give_the_one_thread_outputs_bit_for_bit():
     assert spread(lambda x: (time.sleep(0.02 * (3 - x)), x)[1], [0, 1, 2]) == [0, 1, 2]
     with pytest.raises(ValueError, match="threads"):
         BoxTracker(seq.intrinsics, scene.edge_m, FPS, dataclasses.replace(cfg, threads=0))
-
-
-def test_search_parts_run_on_the_free_thread_and_match_the_one_call_search():
-    """``search_parts`` 2: the search's coarse stage in two calls of 48 starts. On development
-    seed 0 (frame 0 one blob, found by the search) the second part runs on the pool thread; the
-    tracker's outputs are the same bit for bit with ``threads`` 1 (both parts on the calling
-    thread), and equal the one-call search's (``search_parts`` 1) to round-off on every frame.
-    ``spare`` runs a part itself when the pool thread is busy (no wait behind another
-    candidate's search)."""
-    from hec_jax.geometry import BoxTracker
-
-    scene, seq, background = _rendered_six(DEV_SEED)
-    steps, ran_on = {}, []
-    for parts, threads in ((1, 2), (2, 1), (2, 2)):
-        cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, search_parts=parts, threads=threads)
-        tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
-        spare_of = tracker._spare
-
-        def spy(_spare_of=spare_of, _key=(parts, threads)):
-            spare = _spare_of()
-            if spare is None:
-                ran_on.append((_key, None))
-                return None
-
-            def wrapped(fn):
-                return spare(
-                    lambda: (ran_on.append((_key, threading.current_thread().name)), fn())[1]
-                )
-
-            return wrapped
-
-        tracker._spare = spy
-        steps[parts, threads] = [tracker.update(f) for f in seq.frames]
-    assert steps[2, 2][0].fit_source == "search"
-    assert ((2, 1), None) in ran_on and ((1, 2), None) not in ran_on
-    # part 2 of frame 0's search went to the pool (which runs it, or hands it back to the
-    # calling thread if it has not started it by the time part 1 is done)
-    assert len([n for k, n in ran_on if k == (2, 2)]) == 1
-    for one, two, ref in zip(steps[2, 1], steps[2, 2], steps[1, 2], strict=True):
-        for name in one._fields:
-            if name != "timing_ms":
-                np.testing.assert_array_equal(getattr(one, name), getattr(two, name), name)
-        assert two.valid == ref.valid
-        assert two.fit_source == ref.fit_source
-        np.testing.assert_allclose(two.position, ref.position, rtol=0, atol=1e-9)  # [m]
-        np.testing.assert_allclose(two.measured_position, ref.measured_position, rtol=0, atol=1e-9)
-        np.testing.assert_allclose(two.pose_rotation, ref.pose_rotation, rtol=0, atol=1e-9)
-
-    # the fine stage gets every part's (poses, scores) in the starts' order, with or without a
-    # spare thread (stand-in stages: a part's "poses" are its numbers, its score their sum)
-    parts = [np.arange(3), np.arange(3, 6), np.arange(6, 8)]
-    parted = _PartedSearch(
-        parts, lambda part, x: (part * x, part.sum() * x), lambda p, q, x: (p, q, x)
-    )
-    for spare in (None, tracker._spare()):
-        poses, scores, x = parted(10, spare=spare)
-        assert x == 10 and [list(p) for p in poses] == [list(10 * p) for p in parts]
-        assert list(scores) == [30, 120, 130]
-
-    # a busy pool: the part runs on the calling thread, and the busy task is not waited for
-    cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, search_parts=2, threads=2)
-    tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
-    release = threading.Event()
-    busy = tracker._map_async(release.wait)
-    wait = tracker._spare()(lambda: threading.current_thread().name)
-    assert wait() == threading.current_thread().name
-    release.set()
-    assert busy.result() is True
-    started = threading.Event()
-    wait = tracker._spare()(lambda: (started.set(), threading.current_thread().name)[1])
-    assert started.wait(10)
-    assert wait().startswith("box-tracker")  # the free pool took it
-    for bad in ({"search_parts": 0}, {"search_parts": 2, "search_keep": 0}):
-        with pytest.raises(ValueError, match="search_parts"):
-            BoxTracker(seq.intrinsics, scene.edge_m, FPS, dataclasses.replace(cfg, **bad))
 
 
 def test_one_frame_s_windows_share_their_difference_and_change_nothing():

@@ -166,13 +166,6 @@ class TrackConfig:
             +1 if valid) through the fine ``gates_px`` rounds. A kept start ends exactly where
             the one-stage search takes it; the result differs only where the best start was not
             among the kept. 0: one stage, every start through every round (as before).
-        search_parts: the two-stage search's coarse stage (``search_keep`` > 0) in this many
-            jitted calls, each on a part of the ``init_starts`` starts, run at once on the host
-            threads (``threads``) that are free; the fine stage takes the best of them all, as
-            before. The result is the same for any ``threads``; against 1 it differs by
-            round-off (XLA sums a batch of another size in another order). On the 2-core CPU
-            two parts took the search's call from 12-18 to 8-10 ms (docs/eye_randomized.md,
-            "The search's coarse stage on both cores"). 1: one call (as before).
         blob_required: with a background, search from scratch only in moving blobs; a frame
             with none gives no detection (False: the segments of the whole image are searched,
             as before, which fits clutter when the box does not differ from the background).
@@ -433,7 +426,6 @@ class TrackConfig:
     inner_edge_px: float = 10.0
     min_region_fraction: float = 0.0
     search_keep: int = 0
-    search_parts: int = 1
     blob_required: bool = False
     low_contrast: bool = False
     blob_core: float = 0.0
@@ -520,8 +512,7 @@ UNSEEN_SCENES = TrackConfig(
 # off): on development seeds 0-159 and 240-399 it refused true poses whose two visible faces share
 # a shade and caught no twin the later checks let through; its only cost, on seed 115, came
 # through the smoother, which the benchmark's jump test (``SmootherConfig.max_speed_m_s``) now
-# stops (docs/eye_randomized.md, session 50). Session 56: ``search_parts`` 2 (the search's coarse
-# stage on both host threads; round-off only, chosen for its time, docs/eye_randomized.md)
+# stops (docs/eye_randomized.md, session 50)
 RANDOMIZED_BENCHMARK = dataclasses.replace(
     UNSEEN_SCENES,
     min_region_fraction=0.25,
@@ -544,7 +535,6 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
     shadow_faces=0.1,
     faint_unshadowed=True,
     threads=2,
-    search_parts=2,
     cpu_small_kernels=True,
     max_face_split=40.0,
     face_seam_step=5.0,
@@ -1216,19 +1206,16 @@ def _batch_refine(cfg: TrackConfig):
 def _make_search(cfg: TrackConfig):
     rots = jnp.asarray(random_rotation(np.random.default_rng(cfg.seed), (cfg.init_starts,)))
     refine = _batch_refine(cfg)
-    n_coarse = len(cfg.init_gates)
-
-    def start_and_gates(centre_px, edge_px, segments, intrinsics, size):
-        f = intrinsics[0, 0]
-        depth = f * size / edge_px
-        ray = jnp.linalg.solve(intrinsics, jnp.concatenate([centre_px, jnp.ones(1)]))
-        return ray * depth, _search_gates(cfg, edge_px, segments.dtype)
 
     def search(centre_px, edge_px, segments, mask, size, intrinsics, occluded, texture):
         """Multi-start search from a window centre [px] and box image size [px] (``texture``:
         as :func:`associate`).
         """
-        t0, gates = start_and_gates(centre_px, edge_px, segments, intrinsics, size)
+        f = intrinsics[0, 0]
+        depth = f * size / edge_px
+        ray = jnp.linalg.solve(intrinsics, jnp.concatenate([centre_px, jnp.ones(1)]))
+        t0 = ray * depth
+        gates = _search_gates(cfg, edge_px, segments.dtype)
 
         def one(r):
             pose = Pose(r, t0)
@@ -1239,96 +1226,26 @@ def _make_search(cfg: TrackConfig):
         if cfg.search_keep <= 0:
             return _best_start(jax.vmap(one)(rots))
         # two stages: the coarse rounds for every start, the fine ones for the best few
-        first = jax.vmap(
-            lambda r: coarse_one(r, t0, gates, segments, mask, size, intrinsics, occluded, texture)
-        )(rots)
-        return fine_of(
-            first.pose,
-            _start_score(first),
-            gates,
-            segments,
-            mask,
-            size,
-            intrinsics,
-            occluded,
-            texture,
-        )
+        n_coarse = len(cfg.init_gates)
 
-    def coarse_one(r, t0, gates, segments, mask, size, intrinsics, occluded, texture):
-        coarse_gates = gates[:n_coarse]
-        pose = Pose(r, t0)
-        return locate(
-            pose, segments, mask, size, intrinsics, coarse_gates, cfg, occluded, refine, texture
-        )
+        def coarse(r):
+            coarse_gates = gates[:n_coarse]
+            pose = Pose(r, t0)
+            return locate(
+                pose, segments, mask, size, intrinsics, coarse_gates, cfg, occluded, refine, texture
+            )
 
-    def fine_of(poses, scores, gates, segments, mask, size, intrinsics, occluded, texture):
         def fine(pose):
             fine_gates = gates[n_coarse:]
             return locate(
                 pose, segments, mask, size, intrinsics, fine_gates, cfg, occluded, refine, texture
             )
 
-        _, keep = jax.lax.top_k(scores, min(cfg.search_keep, scores.shape[0]))
-        return _best_start(jax.vmap(fine)(jax.tree.map(lambda x: x[keep], poses)))
+        first = jax.vmap(coarse)(rots)
+        _, keep = jax.lax.top_k(_start_score(first), min(cfg.search_keep, rots.shape[0]))
+        return _best_start(jax.vmap(fine)(jax.tree.map(lambda x: x[keep], first.pose)))
 
-    if cfg.search_parts <= 1:
-        return _OneTransfer(search, cfg)
-
-    def coarse(part, centre_px, edge_px, segments, mask, size, intrinsics, occluded, texture):
-        """The coarse stage of the starts ``part`` (P, 3, 3): (poses, scores), on the device."""
-        t0, gates = start_and_gates(centre_px, edge_px, segments, intrinsics, size)
-        first = jax.vmap(
-            lambda r: coarse_one(r, t0, gates, segments, mask, size, intrinsics, occluded, texture)
-        )(part)
-        return first.pose, _start_score(first)
-
-    def fine(
-        poses, scores, centre_px, edge_px, segments, mask, size, intrinsics, occluded, texture
-    ):
-        """The fine stage of the parts' (poses, scores), in the starts' order."""
-        _, gates = start_and_gates(centre_px, edge_px, segments, intrinsics, size)
-        poses = jax.tree.map(lambda *x: jnp.concatenate(x), *poses)
-        return fine_of(
-            poses,
-            jnp.concatenate(scores),
-            gates,
-            segments,
-            mask,
-            size,
-            intrinsics,
-            occluded,
-            texture,
-        )
-
-    parts = [jnp.asarray(x) for x in np.array_split(np.asarray(rots), cfg.search_parts)]
-    return _PartedSearch(parts, _jit(coarse, cfg), _OneTransfer(fine, cfg))
-
-
-class _PartedSearch:
-    """The search from scratch with its coarse stage in ``TrackConfig.search_parts`` jitted
-    calls (a part of the starts each), then one call for the fine stage: ``(*args, spare=None)
-    -> Located`` in one transfer. ``spare(fn)`` runs ``fn`` on another host thread and returns
-    a function that waits for its result (None: every part on the calling thread).
-
-    The same compiled calls on the same parts whichever thread runs them, so the result does
-    not depend on ``spare``; against the one-call search (``search_parts`` 1) it differs by
-    round-off, as XLA sums a batch of another size in another order.
-    """
-
-    def __init__(self, parts, coarse, fine):
-        self._parts, self._coarse, self._fine = parts, coarse, fine
-
-    def __call__(self, *args, spare=None):
-        def run(part):
-            return jax.block_until_ready(self._coarse(part, *args))
-
-        if spare is None:
-            firsts = [run(p) for p in self._parts]
-        else:
-            waits = [spare(lambda p=p: run(p)) for p in self._parts[1:]]
-            firsts = [run(self._parts[0])] + [wait() for wait in waits]
-        poses, scores = zip(*firsts, strict=True)
-        return self._fine(poses, scores, *args)
+    return _OneTransfer(search, cfg)
 
 
 class BoxTrack(NamedTuple):
@@ -1451,7 +1368,6 @@ _TRACED = frozenset(
         "min_edge_px",
         "rotation_prior_deg",
         "search_keep",
-        "search_parts",
         "seed",
         "sigma_floor_px",
     }
@@ -1703,20 +1619,10 @@ class BoxTracker:
             raise ValueError(
                 f"TrackConfig.blob_scales must be a tuple of numbers > 0, got {scales!r}"
             )
-        least_of = (("lost_search_every", 1), ("lost_search_after", 0), ("threads", 1))
-        for name, least in least_of + (("search_parts", 1),):
+        for name, least in (("lost_search_every", 1), ("lost_search_after", 0), ("threads", 1)):
             value = getattr(config, name)
             if not (isinstance(value, int) and value >= least):
                 raise ValueError(f"TrackConfig.{name} must be an integer >= {least}, got {value!r}")
-        if config.search_parts > 1 and not 0 < config.search_parts <= config.init_starts:
-            raise ValueError(
-                f"TrackConfig.search_parts {config.search_parts} needs init_starts >= it, got "
-                f"{config.init_starts}"
-            )
-        if config.search_parts > 1 and config.search_keep <= 0:
-            raise ValueError(
-                "TrackConfig.search_parts > 1 needs the two-stage search (search_keep > 0)"
-            )
         self._background_rgb = None  # the given background in colour (colour_background)
         self._background_terms = None  # it as a detect.Background (its terms kept)
         self._frame_rgb = None  # the frame being processed
@@ -1979,12 +1885,16 @@ class BoxTracker:
             if not mask_c.any():
                 return None
             mask_c, texture_c = self._texture_roles(segp_c, mask_c, gray, roi)
-            args = (centre, np.float64(edge_px), segp_c, mask_c, np.float64(self.size), k)
-            args += (self._occluded, texture_c)
-            if cfg.search_parts > 1:  # its parts on the free host threads
-                cand = self._search(*args, spare=self._spare())
-            else:
-                cand = self._search(*args)  # on the host (one transfer)
+            cand = self._search(  # on the host (one transfer)
+                centre,
+                np.float64(edge_px),
+                segp_c,
+                mask_c,
+                np.float64(self.size),
+                k,
+                self._occluded,
+                texture_c,
+            )
             score = float(cand.association.coverage) - 0.1 * float(cand.rms)
             t_c = np.asarray(cand.pose.translation)
             near = gate is None or gate.admits(t_c)
@@ -2046,21 +1956,6 @@ class BoxTracker:
             return [fn(x) for x in items]  # (a task on the pool runs its own items itself)
         futures = [self._map_async(lambda x=x: fn(x)) for x in items[1:]]
         return [fn(items[0])] + [f.result() for f in futures]
-
-    def _spare(self):
-        """A ``spare(fn)`` for :class:`_PartedSearch`: ``fn`` on the pool, and a function that
-        waits for its result, or runs ``fn`` itself if no pool thread has taken it yet (the pool
-        busy with another candidate). None where there is no other thread (``config.threads``
-        1, or on a pool thread).
-        """
-        if self.config.threads <= 1 or getattr(_POOL_TASK, "active", False):
-            return None
-
-        def spare(fn):
-            future = self._map_async(fn)
-            return lambda: fn() if future.cancel() else future.result()
-
-        return spare
 
     def _map_async(self, fn):
         """``fn()`` started on the host threads' pool (``config.threads`` > 1): its future."""
