@@ -269,6 +269,15 @@ def _check_report(result):
     assert sum(rep["histogram"]["counts"]) == n["ticks"]
     p = rep["latency_us"]
     assert 0 < p["p50"] <= p["p99"] <= p["p99_9"] <= p["max"] == pytest.approx(lat.max() * 1e6)
+    # every step's deadline: the ticks' latencies, and a skipped step's at least its period
+    every = RT.report.deadline_latency(tt, dt)
+    np.testing.assert_array_equal(every[ticked], lat)
+    assert np.all(every[~ticked] >= dt)  # the next torques come at (j + 1) dt or later
+    d = rep["deadline_latency_us"]
+    assert d["n"] == n["steps"] and d["p99_9"] >= p["p99_9"] and d["max"] >= p["max"]
+    targets = result.report["targets"]
+    assert targets["p99_9_deadline_within_period"] == (d["p99_9"] < dt * 1e6)
+    assert targets["p99_9_tick_latency_within_period"] == (p["p99_9"] < dt * 1e6)
     # the control thread's CPU time per stage: recorded for every tick, positive, and within the
     # wall time the tick took (a thread runs at most as long as the clock between its stamps)
     cpu = rep["cpu"]
@@ -559,6 +568,42 @@ def test_late_ticks_are_given_the_part_of_their_latency_that_grew():
     on_time = {k: v[:2] for k, v in tt.items()}
     none = miss_causes(on_time, dt)
     assert none["events"] == 0 and none["counts"] == {"woke_late": 0, "cpu_work": 0, "off_cpu": 0}
+
+
+def test_every_step_s_deadline_counts_the_skipped_ones():
+    """The target's measure (``deadline_latency``): a ticked step's own latency; a skipped
+    step waits for the next tick's torques in its episode, or, with none left, for the
+    episode's end. Hand-made ticks (dt 1 ms), two episodes: episode 0's steps 3-4 skipped by a
+    stall (tick 5 writes 400 us into its period), its last step 6 skipped too; episode 1 on
+    time. Then 2000 steps, all ticked on time but for 5 skipped: the ticks' p99.9 is within
+    the period, every step's is not (0.25% of the deadlines missed)."""
+    import numpy as np
+
+    from hec_jax.realtime.report import deadline_latency, percentiles
+
+    dt = 1e-3
+    nan = np.nan
+    index = np.array([0, 1, 2, 3, 4, 5, 6, 0, 1])
+    lat_ticked = np.array([300, 300, 2900, nan, nan, 400, nan, 300, 300]) * 1e-6
+    tt = {
+        "index": index,
+        "episode": np.array([0] * 7 + [1] * 2),
+        "t_write": index * dt + lat_ticked,
+    }
+    got = deadline_latency(tt, dt) * 1e6
+    expect = [300, 300, 2900, 2400, 1400, 400, 1000, 300, 300]  # 5.4 ms - 3 ms, - 4 ms; 7 - 6
+    np.testing.assert_allclose(got, expect, atol=1e-6)
+    # 2000 steps, 5 skipped (each followed by a tick on time)
+    n = 2000
+    index = np.arange(n)
+    t_write = index * dt + 300e-6
+    t_write[np.arange(100, 2000, 400)] = nan
+    tt = {"index": index, "episode": np.zeros(n, int), "t_write": t_write}
+    steps = percentiles(deadline_latency(tt, dt), 1e6)
+    ticks = percentiles((t_write - index * dt)[np.isfinite(t_write)], 1e6)
+    assert steps["n"] == n and ticks["n"] == n - 5
+    assert ticks["p99_9"] == pytest.approx(300) and steps["max"] == pytest.approx(1300)
+    assert steps["p99_9"] > dt * 1e6
 
 
 def test_in_contact_follows_the_episode_logs():

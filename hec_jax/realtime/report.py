@@ -1,7 +1,9 @@
 """Deadline report of a real-time run (NumPy boundary): control ticks, the eye, the task.
 
 * Control: per-tick latency from the tick's scheduled start (j dt) to the torques written,
-  percentiles p50/p99/p99.9/max and a histogram; the plant's physics steps split into fresh
+  percentiles p50/p99/p99.9/max and a histogram; the same over every physics step's deadline
+  (:func:`deadline_latency`: a skipped step waits for the next tick's torques), on which the
+  p99.9 target is judged; the plant's physics steps split into fresh
   (torque from their own sample in time), late (torque after the deadline (j + 1) dt: the held
   one was applied) and skipped (no controller call at all: the loop fell behind); missed
   deadlines = late + skipped. The late count is recomputed from the recorded write times and
@@ -65,6 +67,34 @@ def tick_table(run) -> dict[str, np.ndarray]:
     return {k: np.concatenate(v) for k, v in out.items()}
 
 
+def deadline_latency(tt: dict, dt: float) -> np.ndarray:
+    """The latency of every physics step's deadline [s]: from the step's start j dt to the
+    torques that answer it. A ticked step: its own torques written (the tick latency). A
+    skipped step (no tick computed torques from its sample): the torques of the next tick in
+    its episode, and where none came before the episode's end, that end (n dt, a lower bound).
+
+    The issue's target, no missed control deadline at p99.9, is on this (every step, the
+    skipped ones included); the tick latency alone leaves out the steps a stall skipped, so
+    its p99.9 can be under the period while more than 0.1% of the deadlines were missed.
+    """
+    index, episode = np.asarray(tt["index"]), np.asarray(tt["episode"])
+    t_write = np.asarray(tt["t_write"], float)
+    out = t_write - index * dt
+    # the next finite t_write at or after each row, within the row's episode (reverse scan)
+    nxt = np.full(t_write.size, np.nan)
+    later, current = np.nan, None
+    for i in range(t_write.size - 1, -1, -1):
+        if episode[i] != current:  # the last row of an episode (rows are in time order)
+            current, later = episode[i], np.nan
+            end = (index[i] + 1) * dt
+        if np.isfinite(t_write[i]):
+            later = t_write[i]
+        nxt[i] = later if np.isfinite(later) else end
+    skipped = ~np.isfinite(t_write)
+    out[skipped] = nxt[skipped] - index[skipped] * dt
+    return out
+
+
 def deadline_report(run, dt: float, fps: float | None, camera_log=None, eye_log=None) -> dict:
     """The deadline report of a :class:`~hec_jax.realtime.runner.LoopRun` (module docstring).
 
@@ -102,6 +132,8 @@ def deadline_report(run, dt: float, fps: float | None, camera_log=None, eye_log=
         "counts": counts,
         "missed_fraction": counts["missed"] / max(counts["steps"], 1),
         "latency_us": percentiles(lat, 1e6),
+        # every physics step's deadline, the skipped steps included (the target's measure)
+        "deadline_latency_us": percentiles(deadline_latency(tt, dt), 1e6),
         "wake_jitter_us": percentiles((tt["t_wake"] - t_sched)[ticked], 1e6),
         "observe_us": percentiles((tt["t_obs"] - tt["t_wake"])[ticked], 1e6),
         "step_us": percentiles((tt["t_step"] - tt["t_obs"])[ticked], 1e6),
@@ -111,9 +143,13 @@ def deadline_report(run, dt: float, fps: float | None, camera_log=None, eye_log=
     if "cpu_step" in tt:
         control["cpu"] = cpu_report(tt, ticked)
         control["miss_causes"] = miss_causes(tt, dt)
-    p999 = control["latency_us"]["p99_9"]
+    p999 = control["deadline_latency_us"]["p99_9"]
+    p999_ticks = control["latency_us"]["p99_9"]
     targets = {
-        "p99_9_latency_within_period": bool(p999 is not None and p999 < dt * 1e6),
+        # the issue's: over every step's deadline (a skipped step is a missed deadline)
+        "p99_9_deadline_within_period": bool(p999 is not None and p999 < dt * 1e6),
+        # over the ticks alone, as reported up to session 55 (leaves out the skipped steps)
+        "p99_9_tick_latency_within_period": bool(p999_ticks is not None and p999_ticks < dt * 1e6),
         "no_missed_deadline": counts["missed"] == 0,
     }
     report = {"control": control, "targets": targets}
@@ -508,6 +544,10 @@ def deadline_table(report: dict) -> list[str]:
         (
             "tick latency p50 / p99 / p99.9 / max [us]",
             " / ".join(us(lat[k]) for k in ("p50", "p99", "p99_9", "max")),
+        ),
+        (
+            "deadline latency, every step (skipped: to the next torques) p50 / p99 / p99.9 / max [us]",
+            " / ".join(us(c["deadline_latency_us"][k]) for k in ("p50", "p99", "p99_9", "max")),
         ),
         (
             "missed 1 ms deadlines (late + skipped)",
