@@ -274,7 +274,7 @@ def _check_report(result):
     np.testing.assert_array_equal(every[ticked], lat)
     assert np.all(every[~ticked] >= dt)  # the next torques come at (j + 1) dt or later
     d = rep["deadline_latency_us"]
-    assert d["n"] == n["steps"] and d["p99_9"] >= p["p99_9"] and d["max"] >= p["max"]
+    assert d["n"] == n["steps"] and d["max"] >= p["max"]
     targets = result.report["targets"]
     assert targets["p99_9_deadline_within_period"] == (d["p99_9"] < dt * 1e6)
     assert targets["p99_9_tick_latency_within_period"] == (p["p99_9"] < dt * 1e6)
@@ -577,9 +577,11 @@ def test_every_step_s_deadline_counts_the_skipped_ones():
     stall (tick 5 writes 400 us into its period), its last step 6 skipped too; episode 1 on
     time. Then 2000 steps, all ticked on time but for 5 skipped: the ticks' p99.9 is within
     the period, every step's is not (0.25% of the deadlines missed)."""
+    from types import SimpleNamespace
+
     import numpy as np
 
-    from hec_jax.realtime.report import deadline_latency, percentiles
+    from hec_jax.realtime.report import deadline_latency, deadline_report, percentiles
 
     dt = 1e-3
     nan = np.nan
@@ -604,6 +606,20 @@ def test_every_step_s_deadline_counts_the_skipped_ones():
     assert steps["n"] == n and ticks["n"] == n - 5
     assert ticks["p99_9"] == pytest.approx(300) and steps["max"] == pytest.approx(1300)
     assert steps["p99_9"] > dt * 1e6
+    # the report judges the target on every step, and keeps the ticks' reading beside it
+    kind = np.where(np.isfinite(t_write), 0, 2)
+    rec = {"kind": kind, "t_wake": index * dt, "t_obs": index * dt + 1e-4}
+    rec.update(t_step=index * dt + 2e-4, t_write=t_write)
+    rep = deadline_report(SimpleNamespace(ticks=[rec]), dt, None)
+    assert rep["control"]["counts"]["skipped"] == 5 and rep["control"]["counts"]["consistent"]
+    assert rep["control"]["deadline_latency_us"] == steps
+    assert rep["targets"]["p99_9_deadline_within_period"] is False
+    assert rep["targets"]["p99_9_tick_latency_within_period"] is True
+    # a skipped last step of an episode whose length rounds (n dt - j dt < dt in floats)
+    for m in (1500, 3000, 60000):
+        last = {"index": np.arange(m), "episode": np.zeros(m, int)}
+        last["t_write"] = np.where(np.arange(m) < m - 1, np.arange(m) * dt + 3e-4, nan)
+        assert deadline_latency(last, dt)[-1] == dt
 
 
 def test_in_contact_follows_the_episode_logs():
