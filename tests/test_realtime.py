@@ -20,6 +20,7 @@ Oracles:
   (docs/realtime.md).
 """
 
+import dataclasses
 import json
 import os
 
@@ -854,3 +855,29 @@ def test_child_env_xla_flags_are_flags_xla_knows():
     )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip() == "3.0"
+
+
+def test_the_camera_twin_uses_estimates_as_old_as_the_runs():
+    """``twin_camera_latency_s``: with it, the simulated camera loop uses a frame's estimate
+    the run's median latency after the state the frame shows (the loop's own arithmetic:
+    frames end their exposure at ``frame_steps``, show the state ``exposure_offsets`` steps
+    before, and are used ``latency_s`` later), for several exposures; a median shorter than
+    half the exposure gives no latency, never a negative one; bad medians are refused."""
+    from hec_jax.loop.camera_loop import exposure_offsets, frame_steps
+    from hec_jax.realtime.runner import twin_camera_latency_s
+
+    dt = 1e-3
+    for exposure_s in (0.0, 0.004, 0.010):
+        cam = dataclasses.replace(L.CameraConfig.void_perfect(), exposure_s=exposure_s)
+        back = int(exposure_offsets(cam, dt)[-1])  # the frame's state, steps before its end
+        s = int(frame_steps(cam, dt, 400)[5])
+        for p50_ms in (11, 12, 20, 40):
+            latency = twin_camera_latency_s(p50_ms * 1e-3, cam, dt)
+            used, shown = s * dt + latency, (s - back) * dt
+            np.testing.assert_allclose(used - shown, p50_ms * 1e-3, rtol=0, atol=1e-12)
+            assert latency >= 0
+        assert twin_camera_latency_s(0.0, cam, dt) == 0.0
+    with pytest.raises(ValueError, match="latency_p50_s"):
+        twin_camera_latency_s(float("nan"), L.CameraConfig.void_perfect(), dt)
+    with pytest.raises(ValueError, match="twin_latency"):
+        RT.RealtimeConfig(twin_latency="median")

@@ -139,6 +139,13 @@ class RealtimeConfig:
     # MJX episode for truth, the simulated camera loop for camera; the ground-truth MJX episode
     # always), "truth" (MJX episode only), "none"
     twin: Literal["auto", "truth", "none"] = "auto"
+    # the camera twin's eye latency (``CameraConfig.latency_s`` of the simulated camera loop):
+    # "measured", the real-time eye's median latency in this run (exposure -> the tick that
+    # first used the estimate; :func:`~hec_jax.realtime.runner.twin_camera_latency_s`), so
+    # that the twin's controller acts on estimates as old as the run's; "configured", the
+    # camera's own (1/30 s after the exposure's end by default: about 3x the real-time eye's on
+    # the 2-core VM, docs/realtime.md, "The camera twin's eye latency")
+    twin_latency: Literal["measured", "configured"] = "measured"
     startup_timeout_s: float = 600.0  # [s] for the camera and eye processes to be ready
 
     def __post_init__(self):
@@ -164,6 +171,10 @@ class RealtimeConfig:
                 raise ValueError(f"RealtimeConfig.{name} must be an integer in 0..99, got {v}")
             if self.rt_priority and v >= self.rt_priority:
                 raise ValueError(f"RealtimeConfig.{name} must be below rt_priority")
+        if self.twin_latency not in ("measured", "configured"):
+            raise ValueError(
+                f"twin_latency must be 'measured' or 'configured', got {self.twin_latency!r}"
+            )
         if not isinstance(self.eye_on_control_cpu, bool):
             raise ValueError(f"eye_on_control_cpu must be a bool, got {self.eye_on_control_cpu!r}")
         if self.eye_on_control_cpu and (not self.pin_cpus or self.rt_priority <= 0):

@@ -746,6 +746,17 @@ def write_report(folder: Path, result) -> None:
             "realtime": result.metrics,
             "simulated": {k: v["metrics"] for k, v in result.twins.items()},
             "simulated_wall_s": {k: v["wall_s"] for k, v in result.twins.items()},
+            # [s] the camera twin's eye latency after the exposure's end, and whence
+            **(
+                {
+                    "simulated_camera_latency": {
+                        "latency_s": result.twins["camera"]["latency_s"],
+                        "source": result.twins["camera"]["latency_source"],
+                    }
+                }
+                if "camera" in result.twins
+                else {}
+            ),
             "comparison": result.comparison,
             "targets": dict(
                 report["targets"],
@@ -840,6 +851,12 @@ def print_report(result) -> None:
     print("\n".join(deadline_table(result.report)))
     print()
     print("\n".join(comparison_table(result.comparison)))
+    if "camera" in result.twins:
+        twin = result.twins["camera"]
+        print(
+            f"camera twin: its estimates used {1e3 * twin['latency_s']:.0f} ms after the "
+            f"exposure's end ({twin['latency_source']})"
+        )
     print()
     print("targets:", result.report["targets"])
     print("load average (1, 5, 15 min):", result.load)

@@ -758,10 +758,29 @@ def void_camera_experiment(
     return realtime_experiment(PRESETS[preset](camera=cam, eye="camera", seed=seed), rt)
 
 
+def twin_camera_latency_s(latency_p50_s: float, cam: CameraConfig, dt: float) -> float:
+    """[s] The ``CameraConfig.latency_s`` that gives the simulated camera loop the real-time
+    eye's latency.
+
+    ``latency_p50_s`` is the real-time run's median, over the estimates taken after the
+    release, of the time from a frame's exposure (the plant time of the state it shows,
+    mid-exposure) to the tick that first used its estimate (``deadline.json``'s
+    ``eye.latency_ms``). The simulated loop counts its latency from the exposure's end (its
+    estimate is used from ``s dt + latency_s``, the frame showing step ``s - e``, ``e`` half the
+    exposure in whole steps: :func:`hec_jax.loop.camera_loop.exposure_offsets`), so the
+    result is that median, in whole steps, less ``e dt``; at least 0.
+    """
+    if not (math.isfinite(latency_p50_s) and latency_p50_s >= 0):
+        raise ValueError(f"latency_p50_s must be finite and >= 0, got {latency_p50_s}")
+    half_exposure = int(round(0.5 * cam.exposure_s / dt))
+    return max(int(round(latency_p50_s / dt)) - half_exposure, 0) * dt
+
+
 def simulated_twins(exp: ExperimentConfig, loop: Loop, condition: str, which: str, progress=True):
     """The same run in simulated time: {"truth": MJX episodes with the simulator's object
-    state, "camera": the simulated camera loop (``which`` "auto" and a camera run)}, each
-    {"logs", "metrics", "wall_s"}.
+    state, "camera": the simulated camera loop with ``exp.camera`` (``which`` "auto" and a
+    camera run; its entry also holds ``latency_s``, the camera's)}, each {"logs", "metrics",
+    "wall_s"}.
     """
     out = {}
     if which == "none":
@@ -783,6 +802,7 @@ def simulated_twins(exp: ExperimentConfig, loop: Loop, condition: str, which: st
             "logs": logs,
             "metrics": condition_metrics(loop, logs, condition),
             "wall_s": time.perf_counter() - t0,
+            "latency_s": exp.camera.latency_s,
         }
     return out
 
@@ -911,7 +931,14 @@ def run_realtime(
     report["host"] = {"steal_ms_per_cpu": steal or None}
     if not rt.timed:  # no clock: latencies are not wall times, no timing target applies
         report["targets"] = {}
-    twins = simulated_twins(exp, loop, rt.condition, rt.twin, progress)
+    twin_exp = exp
+    measured = (report.get("eye") or {}).get("latency_ms", {})
+    if rt.twin_latency == "measured" and cam is not None and measured.get("n", 0) > 0:
+        latency = twin_camera_latency_s(1e-3 * measured["p50"], cam, plant.dt)
+        twin_exp = dataclasses.replace(exp, camera=dataclasses.replace(cam, latency_s=latency))
+    twins = simulated_twins(twin_exp, loop, rt.condition, rt.twin, progress)
+    if "camera" in twins:
+        twins["camera"]["latency_source"] = "configured" if twin_exp is exp else "measured"
     scales = {"settle_force": task.learner.f_desired}  # [N] F_cd: the settle force's scale
     comparison = {k: compare_metrics(metrics, v["metrics"], 0.2, scales) for k, v in twins.items()}
     return RealtimeResult(
