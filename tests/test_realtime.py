@@ -312,15 +312,25 @@ def test_realtime_run_reports_itself(tmp_path):
 
 
 @pytest.mark.slow
-def test_realtime_camera_run_reports_itself():
-    """The camera and the eye in their processes: frames and estimates add up."""
+def test_realtime_camera_run_reports_itself(monkeypatch):
+    """The camera and the eye in their processes: frames and estimates add up; the camera
+    twin is given the run's measured eye latency (the twins themselves are not run here)."""
+    from hec_jax.realtime import runner
+
+    given = []
+    monkeypatch.setattr(runner, "simulated_twins", lambda exp, *args, **kw: given.append(exp) or {})
     cam = L.CameraConfig.void_perfect(width=320, height=240)
     exp = L.replace(L.catching(eye="camera", camera=cam), swings=1, swing_s=1.5, settle_s=0.3)
     result = RT.run_realtime(
-        exp, RT.RealtimeConfig(twin="none", eye_save_failed=50), progress=False
+        exp, RT.RealtimeConfig(twin="auto", eye_save_failed=50), progress=False
     )
     _check_report(result)
     eye = result.report["eye"]
+    (twin_exp,) = given
+    assert twin_exp.camera.latency_s == runner.twin_camera_latency_s(
+        1e-3 * eye["latency_ms"]["p50"], cam, result.dt
+    )
+    assert dataclasses.replace(twin_exp.camera, latency_s=cam.latency_s) == result.config.camera
     cam_log, eye_log = result.camera_log, result.eye_log
     assert eye["camera"]["frames_rendered"] == len(cam_log["index"]) > 0
     assert np.array_equal(cam_log["index"], np.arange(len(cam_log["index"])))
