@@ -35,6 +35,7 @@ import numpy as np
 
 from hec_jax.cli import command, parse, require, usage_error
 from hec_jax.realtime.clock import (
+    IDLE_FILLERS,
     WallClock,
     cpu_latency_refused,
     cpu_latency_request,
@@ -49,11 +50,8 @@ from hec_jax.runs import run_folder, write_json, write_text
 
 ARMS = ("others idle", "others busy")
 # the other CPUs' load (a child process each): a busy loop, or a stream through 2 x 128 MiB
-LOADS = {
-    "spin": "while True: pass",
-    "memory": "import numpy as np\na = np.ones(1 << 24)\nb = np.empty_like(a)\n"
-    "while True: np.copyto(b, a)",
-}
+# (the real-time run's idle fillers)
+LOADS = IDLE_FILLERS
 
 
 @dataclass(frozen=True)

@@ -23,6 +23,7 @@ Oracles:
 import dataclasses
 import json
 import os
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -891,3 +892,31 @@ def test_the_camera_twin_uses_estimates_as_old_as_the_runs():
         twin_camera_latency_s(float("nan"), L.CameraConfig.void_perfect(), dt)
     with pytest.raises(ValueError, match="twin_latency"):
         RT.RealtimeConfig(twin_latency="median")
+
+
+def test_idle_filler_keeps_the_cpus_busy_at_idle_priority_and_leaves_nothing_behind():
+    """``clock.idle_filler``: one process per CPU, pinned there at ``SCHED_IDLE``, never
+    sleeping (running or runnable: its state "R", also when a busy CPU starves it), killed and
+    reaped on exit; None starts nothing; an unknown kind is refused before anything starts."""
+    import time
+
+    from hec_jax.realtime.clock import idle_filler
+
+    def state(pid):
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+
+    cpu = max(os.sched_getaffinity(0))
+    with idle_filler("spin", {cpu}) as filler:
+        (proc,) = filler.procs
+        assert os.sched_getscheduler(proc.pid) == os.SCHED_IDLE
+        assert os.sched_getaffinity(proc.pid) == {cpu}
+        time.sleep(0.5)  # past the interpreter's start-up, into the loop
+        states = {state(proc.pid) for _ in range(200) if time.sleep(0.005) is None}
+        assert states == {"R"} and proc.poll() is None
+    assert proc.poll() is not None and filler.procs == []
+    with idle_filler(None, {cpu}) as filler:
+        assert filler.procs == []
+    with pytest.raises(ValueError, match="idle filler"):
+        idle_filler("busy", {cpu})
+    with pytest.raises(ValueError, match="idle_filler"):
+        RT.RealtimeConfig(idle_filler="busy")

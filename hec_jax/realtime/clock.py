@@ -408,3 +408,56 @@ def cpu_latency_refused(latency_us: int | None, device: str = CPU_LATENCY_DEVICE
             " it needs Linux's PM QoS interface and root; run without --cpu-latency-us"
         )
     return None
+
+
+# what an idle filler runs (one process per CPU): a busy loop, or a stream through 2 x 128 MiB
+IDLE_FILLERS = {
+    "spin": "while True: pass",
+    "memory": "import numpy as np\na = np.ones(1 << 24)\nb = np.empty_like(a)\n"
+    "while True: np.copyto(b, a)",
+}
+
+
+class idle_filler:
+    """Context manager: one process per CPU of ``cpus`` running ``IDLE_FILLERS[kind]`` at
+    ``SCHED_IDLE`` (Linux), so those CPUs never go idle; any other task on them preempts it at
+    once. Stopped and reaped on exit. ``kind`` None: nothing.
+
+    Why: on the 2-core KVM guest, the jitter probe's ticks on one CPU ended past 1 ms 3-30x more
+    often with the other CPU idle than with it loaded (docs/realtime.md, "The other CPU kept
+    busy"), while the real-time run leaves the second CPU idle about 70% of the time between the
+    camera's and the eye's frames. Start it before taking real-time priority (a child inherits
+    the parent's scheduling).
+
+    Raises:
+        ValueError: an unknown ``kind``.
+    """
+
+    def __init__(self, kind: str | None, cpus):
+        if kind is not None and kind not in IDLE_FILLERS:
+            raise ValueError(f"idle filler must be None or one of {sorted(IDLE_FILLERS)}: {kind!r}")
+        self.kind, self.cpus = kind, sorted(cpus)
+        self.procs: list = []
+
+    def __enter__(self):
+        import subprocess
+        import sys
+
+        if self.kind is None:
+            return self
+        try:
+            for cpu in self.cpus:
+                p = subprocess.Popen([sys.executable, "-c", IDLE_FILLERS[self.kind]])
+                self.procs.append(p)
+                os.sched_setscheduler(p.pid, os.SCHED_IDLE, os.sched_param(0))
+                pin_process(p.pid, {cpu})
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def __exit__(self, *exc):
+        for p in self.procs:
+            p.kill()
+            p.wait()
+        self.procs = []

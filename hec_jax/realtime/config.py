@@ -147,6 +147,12 @@ class RealtimeConfig:
     # the 2-core VM, docs/realtime.md, "The camera twin's eye latency")
     twin_latency: Literal["measured", "configured"] = "measured"
     startup_timeout_s: float = 600.0  # [s] for the camera and eye processes to be ready
+    # while the loop runs (timed, pinned), the CPUs other than the loop's kept busy by one
+    # process each at SCHED_IDLE (``clock.idle_filler``): "spin" a busy loop, "memory" a stream
+    # through 256 MiB; the camera and the eye preempt it at once. None: they idle between
+    # frames. On the 2-core VM the probe's ticks ended past 1 ms 3-30x more often with the other
+    # CPU idle than loaded (docs/realtime.md, "The other CPU kept busy")
+    idle_filler: Literal["spin", "memory"] | None = None
 
     def __post_init__(self):
         if self.duration_s is not None and not (
@@ -174,6 +180,10 @@ class RealtimeConfig:
         if self.twin_latency not in ("measured", "configured"):
             raise ValueError(
                 f"twin_latency must be 'measured' or 'configured', got {self.twin_latency!r}"
+            )
+        if self.idle_filler not in (None, "spin", "memory"):
+            raise ValueError(
+                f"idle_filler must be None, 'spin' or 'memory', got {self.idle_filler!r}"
             )
         if not isinstance(self.eye_on_control_cpu, bool):
             raise ValueError(f"eye_on_control_cpu must be a bool, got {self.eye_on_control_cpu!r}")

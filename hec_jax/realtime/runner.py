@@ -67,6 +67,7 @@ from hec_jax.realtime.clock import (
     WallClock,
     cpu_latency_request,
     host_steal_ms,
+    idle_filler,
     monotonic_s,
     pin_process,
     pinned,
@@ -880,7 +881,9 @@ def run_realtime(
             steal_start = host_steal_ms()
             latency = cpu_latency_request(rt.cpu_latency_us if rt.timed else None)
             priority = realtime_priority(rt.rt_priority if rt.timed else 0)
-            with pinned(control_cpus), priority, latency:
+            others = set(os.sched_getaffinity(0)) - (control_cpus or set())
+            filler = idle_filler(rt.idle_filler if control_cpus else None, others)
+            with filler, pinned(control_cpus), priority, latency:
                 run = run_loop(
                     loop,
                     plant,
@@ -918,6 +921,8 @@ def run_realtime(
         "rt_priority": rt.rt_priority if rt.timed else 0,
         # the CPUs' wake-up latency asked of the kernel while the loop ran (None: nothing)
         "cpu_latency_us": rt.cpu_latency_us if rt.timed else None,
+        # the other CPUs kept busy at SCHED_IDLE while the loop ran (None: not)
+        "idle_filler": rt.idle_filler if control_cpus else None,
         # [s] the control thread's rest before each episode's lead (the real-time budget's)
         "rt_budget_rest_s": max(run.rest_s, default=0.0),
         # JAX's CPU dispatch as configured (it takes effect when JAX creates its CPU client)
