@@ -26,7 +26,6 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -35,10 +34,10 @@ import numpy as np
 
 from hec_jax.cli import command, parse, require, usage_error
 from hec_jax.realtime.clock import (
-    IDLE_FILLERS,
     WallClock,
     cpu_latency_refused,
     cpu_latency_request,
+    filler_command,
     host_steal_ms,
     monotonic_s,
     pin_process,
@@ -49,9 +48,6 @@ from hec_jax.realtime.clock import (
 from hec_jax.runs import run_folder, write_json, write_text
 
 ARMS = ("others idle", "others busy")
-# the other CPUs' load (a child process each): a busy loop, or a stream through 2 x 128 MiB
-# (the real-time run's idle fillers)
-LOADS = IDLE_FILLERS
 
 
 @dataclass(frozen=True)
@@ -71,7 +67,7 @@ class JitterProbe:
     work: Literal["spin", "memory"] = "spin"
     work_kib: int = 512  # [KiB] the memory work's working set
     # the other CPUs' load in its arm: "spin" a busy loop (no memory traffic), "memory" a
-    # stream through 256 MiB (a frame's worth of image work, without end)
+    # stream through 256 MiB (a frame's worth of image work, without end): ``clock.IDLE_FILLERS``
     load: Literal["spin", "memory"] = "spin"
     out: Path = Path("runs/realtime_jitter")  # run folder
     overwrite: bool = False  # replace an existing non-empty out
@@ -170,7 +166,7 @@ def main(argv=None) -> dict:
         got = {arm: {"wake": [], "end": [], "steal": []} for arm in ARMS}
         # the load: one process per other CPU at normal priority, started before the
         # loop takes real-time priority (a child inherits it), stopped between its blocks
-        load = [subprocess.Popen([sys.executable, "-c", LOADS[a.load]]) for _ in cpus[1:]]
+        load = [subprocess.Popen(filler_command(a.load)) for _ in cpus[1:]]
         try:
             for p, cpu in zip(load, cpus[1:], strict=True):
                 pin_process(p.pid, {cpu})

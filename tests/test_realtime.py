@@ -328,9 +328,13 @@ def test_realtime_camera_run_reports_itself(monkeypatch):
     _check_report(result)
     eye = result.report["eye"]
     (twin_exp,) = given
-    assert twin_exp.camera.latency_s == runner.twin_camera_latency_s(
-        1e-3 * eye["latency_ms"]["p50"], cam, result.dt
+    measured = eye["latency_ms"]
+    expected = (  # with no estimate seen after the release, the camera's own
+        cam.latency_s
+        if measured["n"] == 0
+        else runner.twin_camera_latency_s(1e-3 * measured["p50"], cam, result.dt)
     )
+    assert twin_exp.camera.latency_s == expected
     assert dataclasses.replace(twin_exp.camera, latency_s=cam.latency_s) == result.config.camera
     cam_log, eye_log = result.camera_log, result.eye_log
     assert eye["camera"]["frames_rendered"] == len(cam_log["index"]) > 0
@@ -869,24 +873,39 @@ def test_child_env_xla_flags_are_flags_xla_knows():
 
 
 def test_the_camera_twin_uses_estimates_as_old_as_the_runs():
-    """``twin_camera_latency_s``: with it, the simulated camera loop uses a frame's estimate
-    the run's median latency after the state the frame shows (the loop's own arithmetic:
-    frames end their exposure at ``frame_steps``, show the state ``exposure_offsets`` steps
-    before, and are used ``latency_s`` later), for several exposures; a median shorter than
-    half the exposure gives no latency, never a negative one; bad medians are refused."""
-    from hec_jax.loop.camera_loop import exposure_offsets, frame_steps
+    """``twin_camera_latency_s``: with it, the simulated camera loop first uses a frame's
+    estimate the run's median latency (in whole steps) after the state the frame shows. Checked
+    through the loop's own machinery: its frame grid (``frame_steps``, ``exposure_offsets``), the
+    estimate queue (``_eye_input``) and the switch inside a segment (``eye_object_state``) on a
+    time that is a running float64 sum of steps, as MJX's, for three exposures and frames all
+    over a swing; a median shorter than half the exposure gives no latency; bad medians are
+    refused."""
+    from hec_jax.loop.camera_loop import _Estimate, _eye_input, exposure_offsets, frame_steps
+    from hec_jax.loop.object_state import eye_object_state
     from hec_jax.realtime.runner import twin_camera_latency_s
 
-    dt = 1e-3
+    dt, z = 1e-3, np.zeros(2)
     for exposure_s in (0.0, 0.004, 0.010):
         cam = dataclasses.replace(L.CameraConfig.void_perfect(), exposure_s=exposure_s)
         back = int(exposure_offsets(cam, dt)[-1])  # the frame's state, steps before its end
-        s = int(frame_steps(cam, dt, 400)[5])
-        for p50_ms in (11, 12, 20, 40):
+        fs = frame_steps(cam, dt, 3000)
+        times = np.cumsum(np.full(3000, dt)) - dt  # the loop's time: a running sum of steps
+        for p50_ms in (6, 11, 12, 20, 40):
             latency = twin_camera_latency_s(p50_ms * 1e-3, cam, dt)
-            used, shown = s * dt + latency, (s - back) * dt
-            np.testing.assert_allclose(used - shown, p50_ms * 1e-3, rtol=0, atol=1e-12)
-            assert latency >= 0
+            for j in range(1, len(fs) - 2, 7):
+                s = int(fs[j])
+                old = _Estimate(0.0, 0.0, z, z, z)
+                new = _Estimate(s * dt + latency, (s - back) * dt, z + 1.0, z, z)
+                used = None
+                for k in range(s, int(fs[j + 2])):  # the segments of frames j and j + 1
+                    seg = int(fs[j] if k < fs[j + 1] else fs[j + 1])
+                    nxt = int(fs[j + 1] if k < fs[j + 1] else fs[j + 2])
+                    eye = _eye_input([old, new], times[seg], times[nxt], 0.0, 0.0)
+                    x, _, _ = eye_object_state(jax.tree_util.tree_map(jnp.asarray, eye), times[k])
+                    if float(x[0]) == 1.0:
+                        used = k
+                        break
+                assert used is not None and used - (s - back) == max(p50_ms, back), (p50_ms, j)
         assert twin_camera_latency_s(0.0, cam, dt) == 0.0
     with pytest.raises(ValueError, match="latency_p50_s"):
         twin_camera_latency_s(float("nan"), L.CameraConfig.void_perfect(), dt)
@@ -898,6 +917,8 @@ def test_idle_filler_keeps_the_cpus_busy_at_idle_priority_and_leaves_nothing_beh
     """``clock.idle_filler``: one process per CPU, pinned there at ``SCHED_IDLE``, never
     sleeping (running or runnable: its state "R", also when a busy CPU starves it), killed and
     reaped on exit; None starts nothing; an unknown kind is refused before anything starts."""
+    import subprocess
+    import sys
     import time
 
     from hec_jax.realtime.clock import idle_filler
@@ -910,10 +931,32 @@ def test_idle_filler_keeps_the_cpus_busy_at_idle_priority_and_leaves_nothing_beh
         (proc,) = filler.procs
         assert os.sched_getscheduler(proc.pid) == os.SCHED_IDLE
         assert os.sched_getaffinity(proc.pid) == {cpu}
-        time.sleep(0.5)  # past the interpreter's start-up, into the loop
+        time.sleep(0.5)  # past the interpreter's start-up (a starved filler reads "R" too)
         states = {state(proc.pid) for _ in range(200) if time.sleep(0.005) is None}
         assert states == {"R"} and proc.poll() is None
     assert proc.poll() is not None and filler.procs == []
+    # a parent killed without its clean-up takes its fillers with it
+    parent = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import time\nfrom hec_jax.realtime.clock import idle_filler\n"
+            f"with idle_filler('spin', {{{cpu}}}) as f:\n"
+            "    print(f.procs[0].pid, flush=True)\n    time.sleep(60)\n",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    orphan = int(parent.stdout.readline())
+    time.sleep(0.5)  # past the filler's start-up (which exits if its parent is gone)
+    assert state(orphan) == "R"
+    parent.kill()
+    parent.wait()
+    for _ in range(200):  # gone, or a zombie waiting for its new parent to reap it
+        if not Path(f"/proc/{orphan}").exists() or state(orphan) in ("Z", "X"):
+            break
+        time.sleep(0.01)
+    assert not Path(f"/proc/{orphan}").exists() or state(orphan) in ("Z", "X")
     with idle_filler(None, {cpu}) as filler:
         assert filler.procs == []
     with pytest.raises(ValueError, match="idle filler"):

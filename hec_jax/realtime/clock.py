@@ -14,6 +14,8 @@ from __future__ import annotations
 import contextlib
 import os
 import struct
+import subprocess
+import sys
 import threading
 import time
 from typing import Protocol
@@ -418,16 +420,35 @@ IDLE_FILLERS = {
 }
 
 
+# the first lines of every filler: it dies with the thread that started it (Linux's
+# PR_SET_PDEATHSIG, SIGKILL), and exits at once if its parent is already gone, so a run that is
+# killed leaves no filler behind
+_DIE_WITH_PARENT = (
+    "import ctypes, os, signal\n"
+    "ctypes.CDLL(None).prctl(1, signal.SIGKILL)\n"
+    "if os.getppid() != {parent}:\n"
+    "    os._exit(0)\n"
+)
+
+
+def filler_command(kind: str) -> list[str]:
+    """The command of one ``IDLE_FILLERS[kind]`` process (this Python), which dies with the
+    calling thread (start it from a thread that lives as long as it should).
+    """
+    return [sys.executable, "-c", _DIE_WITH_PARENT.format(parent=os.getpid()) + IDLE_FILLERS[kind]]
+
+
 class idle_filler:
     """Context manager: one process per CPU of ``cpus`` running ``IDLE_FILLERS[kind]`` at
     ``SCHED_IDLE`` (Linux), so those CPUs never go idle; any other task on them preempts it at
-    once. Stopped and reaped on exit. ``kind`` None: nothing.
+    once. Stopped and reaped on exit; killed with the calling thread if that dies first
+    (:func:`filler_command`). ``kind`` None: nothing.
 
-    Why: on the 2-core KVM guest, the jitter probe's ticks on one CPU ended past 1 ms 3-30x more
-    often with the other CPU idle than with it loaded (docs/realtime.md, "The other CPU kept
-    busy"), while the real-time run leaves the second CPU idle about 70% of the time between the
-    camera's and the eye's frames. Start it before taking real-time priority (a child inherits
-    the parent's scheduling).
+    Why: on the 2-core KVM guest the jitter probe's ticks on one CPU end past 1 ms more often
+    with the other CPU idle than with it loaded, while the real-time run leaves the second CPU
+    idle most of each frame period; in the real-time runs it was not shown to help
+    (docs/realtime.md, "The other CPU kept busy"). Start it before taking real-time priority (a
+    child inherits the parent's scheduling).
 
     Raises:
         ValueError: an unknown ``kind``.
@@ -440,14 +461,11 @@ class idle_filler:
         self.procs: list = []
 
     def __enter__(self):
-        import subprocess
-        import sys
-
         if self.kind is None:
             return self
         try:
             for cpu in self.cpus:
-                p = subprocess.Popen([sys.executable, "-c", IDLE_FILLERS[self.kind]])
+                p = subprocess.Popen(filler_command(self.kind))
                 self.procs.append(p)
                 os.sched_setscheduler(p.pid, os.SCHED_IDLE, os.sched_param(0))
                 pin_process(p.pid, {cpu})

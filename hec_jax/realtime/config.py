@@ -150,8 +150,7 @@ class RealtimeConfig:
     # while the loop runs (timed, pinned), the CPUs other than the loop's kept busy by one
     # process each at SCHED_IDLE (``clock.idle_filler``): "spin" a busy loop, "memory" a stream
     # through 256 MiB; the camera and the eye preempt it at once. None: they idle between
-    # frames. On the 2-core VM the probe's ticks ended past 1 ms 3-30x more often with the other
-    # CPU idle than loaded (docs/realtime.md, "The other CPU kept busy")
+    # frames (docs/realtime.md, "The other CPU kept busy": not shown to help the loop)
     idle_filler: Literal["spin", "memory"] | None = None
 
     def __post_init__(self):

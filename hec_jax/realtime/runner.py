@@ -767,14 +767,18 @@ def twin_camera_latency_s(latency_p50_s: float, cam: CameraConfig, dt: float) ->
     release, of the time from a frame's exposure (the plant time of the state it shows,
     mid-exposure) to the tick that first used its estimate (``deadline.json``'s
     ``eye.latency_ms``). The simulated loop counts its latency from the exposure's end (its
-    estimate is used from ``s dt + latency_s``, the frame showing step ``s - e``, ``e`` half the
-    exposure in whole steps: :func:`hec_jax.loop.camera_loop.exposure_offsets`), so the
-    result is that median, in whole steps, less ``e dt``; at least 0.
+    estimate is used from the first control step at or after ``s dt + latency_s``, the frame
+    showing step ``s - e``, ``e`` half the exposure in whole steps:
+    :func:`hec_jax.loop.camera_loop.exposure_offsets`). So the median is taken in whole steps
+    (halves up), ``e`` is subtracted, and the latency is set half a step short of that step
+    (at least 0): the loop's time is a running sum of steps, and an arrival exactly on a step
+    would be used at that step or the next by its round-off.
     """
     if not (math.isfinite(latency_p50_s) and latency_p50_s >= 0):
         raise ValueError(f"latency_p50_s must be finite and >= 0, got {latency_p50_s}")
     half_exposure = int(round(0.5 * cam.exposure_s / dt))
-    return max(int(round(latency_p50_s / dt)) - half_exposure, 0) * dt
+    steps = int(math.floor(latency_p50_s / dt + 0.5)) - half_exposure
+    return max(steps - 0.5, 0.0) * dt
 
 
 def simulated_twins(exp: ExperimentConfig, loop: Loop, condition: str, which: str, progress=True):
@@ -939,11 +943,18 @@ def run_realtime(
     twin_exp = exp
     measured = (report.get("eye") or {}).get("latency_ms", {})
     if rt.twin_latency == "measured" and cam is not None and measured.get("n", 0) > 0:
-        latency = twin_camera_latency_s(1e-3 * measured["p50"], cam, plant.dt)
-        twin_exp = dataclasses.replace(exp, camera=dataclasses.replace(cam, latency_s=latency))
+        twin_latency_s = twin_camera_latency_s(1e-3 * measured["p50"], cam, plant.dt)
+        twin_cam = dataclasses.replace(cam, latency_s=twin_latency_s)
+        twin_exp = dataclasses.replace(exp, camera=twin_cam)
     twins = simulated_twins(twin_exp, loop, rt.condition, rt.twin, progress)
     if "camera" in twins:
-        twins["camera"]["latency_source"] = "configured" if twin_exp is exp else "measured"
+        twins["camera"]["latency_source"] = (
+            "measured"
+            if twin_exp is not exp
+            else "configured (no estimate measured)"
+            if rt.twin_latency == "measured"
+            else "configured"
+        )
     scales = {"settle_force": task.learner.f_desired}  # [N] F_cd: the settle force's scale
     comparison = {k: compare_metrics(metrics, v["metrics"], 0.2, scales) for k, v in twins.items()}
     return RealtimeResult(
