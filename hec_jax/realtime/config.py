@@ -144,7 +144,7 @@ class RealtimeConfig:
     # first used the estimate; :func:`~hec_jax.realtime.runner.twin_camera_latency_s`), so
     # that the twin's controller acts on estimates as old as the run's; "configured", the
     # camera's own (1/30 s after the exposure's end by default: about 3x the real-time eye's on
-    # the 2-core VM, docs/realtime.md, "The camera twin's eye latency")
+    # the 2-core VM, docs/realtime.md, "Why the camera twin did not hold the cube")
     twin_latency: Literal["measured", "configured"] = "measured"
     startup_timeout_s: float = 600.0  # [s] for the camera and eye processes to be ready
     # while the loop runs (timed, pinned), the CPUs other than the loop's kept busy by one
