@@ -83,9 +83,9 @@ def test_eye_object_state_is_the_constant_acceleration_prediction():
 def test_touch_over_vision_and_the_guard_after_contact():
     """In contact the object sits TOUCH_DISTANCE from the hand along the contact normal (against
     the force on it), where the eye puts it across the normal, and moves with the hand; after the
-    contact, an estimate from a frame exposed before the last touch (+
-    guard) is replaced by the last touch extrapolated at constant velocity; a later frame's
-    estimate is used as is."""
+    contact, an estimate from a frame exposed before the last touch (+ guard) is replaced by the
+    last touch extrapolated (along the normal at the hand's velocity then, across it with the
+    hand); a later frame's estimate is used as is."""
     d = tl.TOUCH_DISTANCE
     x_eye = jnp.array([[0.40, 0.40], [0.42, 0.41]])  # (estimate, axis) [m], well off the hand
     eye = tl.EyeInput(
@@ -114,12 +114,13 @@ def test_touch_over_vision_and_the_guard_after_contact():
     np.testing.assert_allclose(xdd, xdd_e, rtol=0)
     assert float(mem.t) == pytest.approx(0.12) and bool(known)
     # 40 ms after the contact, still on the old estimate (frame at 0.100 < 0.12 + 0.05): the
-    # memory moves away from the (now fixed) hand
+    # memory moves away from the (now fixed) hand along n at the hand's velocity along n then
+    along = (n @ np.asarray(xd_e)) * n
     x, xd, xdd, known2, mem2 = tl.touch_object_state(
         eye, mem, jnp.asarray(0.16), x_e, jnp.zeros(2), xdd_e, jnp.zeros(2), False, d
     )
-    np.testing.assert_allclose(x, mem.x + 0.04 * xd_e, atol=1e-12)
-    np.testing.assert_allclose(xd, xd_e, rtol=0)
+    np.testing.assert_allclose(x, mem.x + 0.04 * along, atol=1e-12)
+    np.testing.assert_allclose(xd, along, atol=1e-15)
     np.testing.assert_allclose(xdd, 0.0, atol=0)
     assert float(mem2.t) == pytest.approx(0.12) and bool(known2)  # out of contact: kept
     # the eye has lost the object: the touch stands in for touch_memory = 0.1 s, then unseen
@@ -128,7 +129,8 @@ def test_touch_over_vision_and_the_guard_after_contact():
         tl.touch_object_state(lost, mem, jnp.asarray(t), *args, jnp.zeros(2), False, d)
         for t in (0.21, 0.23)
     ]
-    np.testing.assert_allclose(out[0][0], mem.x + 0.09 * xd_e, atol=1e-12)
+    np.testing.assert_allclose(out[0][0], mem.x + 0.09 * along, atol=1e-12)
+    np.testing.assert_allclose(out[0][1], xd_e, atol=1e-15)  # across n the hand's
     assert bool(out[0][3]) and not bool(out[1][3])
     # the new estimate (frame at 0.200 >= 0.17) from t_switch on: the eye's prediction
     x, xd, _, _, _ = tl.touch_object_state(
@@ -153,6 +155,53 @@ def test_touch_over_vision_and_the_guard_after_contact():
         eye, tl.no_touch(), jnp.asarray(0.16), *args, jnp.zeros(2), jnp.asarray(False), d
     )
     np.testing.assert_allclose(x, x_eye[0] + 0.06 * 1.0, atol=1e-12)
+
+
+def test_after_a_touch_the_object_keeps_its_offset_from_the_hand_across_the_normal():
+    """The hand slides up the cube's face (normal +x) at 0.5 m/s when the contact ends, then
+    turns down. With the old frame still in force, the memory moves along the normal at the hand's
+    normal velocity at the touch, and across it keeps its offset from the hand whatever the
+    hand's speed at the touch ("follow_hand"); "hand_velocity" (the earlier rule) moves it on at
+    that speed, 25 mm in 50 ms, while a frictionless hand never passed it to the cube."""
+    d = tl.TOUCH_DISTANCE
+    x_eye = jnp.array([[0.60, 0.40], [0.60, 0.40]])
+    eye = tl.EyeInput(
+        use=jnp.asarray(1.0),
+        seen=jnp.asarray(1.0),
+        t_stamp=jnp.array([0.100, 0.100]),
+        t_switch=jnp.asarray(jnp.inf),
+        x=x_eye,
+        xd=jnp.zeros((2, 2)),
+        xdd=jnp.zeros((2, 2)),
+        touch_guard=jnp.asarray(0.066),
+        touch_memory=jnp.asarray(0.150),
+    )
+    f_int = jnp.array([-5.0, 0.0])  # [N] on the hand: the object lies along +x
+    x_e, xd_e = jnp.array([0.60 - d, 0.41]), jnp.array([0.1, 0.5])
+    x_e2, xd_e2 = x_e + jnp.array([-0.01, 0.03]), jnp.array([0.0, -0.2])  # 50 ms later
+    out = {}
+    for across in ("follow_hand", "hand_velocity"):
+        _, _, _, _, mem = tl.touch_object_state(
+            eye, tl.no_touch(), 0.12, x_e, xd_e, jnp.zeros(2), f_int, True, d, across
+        )
+        x, xd, _, known, _ = tl.touch_object_state(
+            eye, mem, 0.17, x_e2, xd_e2, jnp.zeros(2), jnp.zeros(2), False, d, across
+        )
+        assert bool(known)
+        out[across] = (np.asarray(mem.x), np.asarray(x), np.asarray(xd))
+    x_touch, x, xd = out["follow_hand"]
+    np.testing.assert_allclose(x_touch, [0.60, 0.40], atol=1e-12)  # d along x, the eye across
+    np.testing.assert_allclose(x, x_touch + [0.1 * 0.05, 0.03], atol=1e-12)
+    np.testing.assert_allclose(xd, [0.1, -0.2], atol=1e-15)
+    # across the normal the offset from the hand is the touch's
+    np.testing.assert_allclose(x[1] - x_e2[1], x_touch[1] - x_e[1], atol=1e-12)
+    _, x_old, xd_old = out["hand_velocity"]
+    np.testing.assert_allclose(x_old, x_touch + 0.05 * np.asarray(xd_e), atol=1e-12)
+    np.testing.assert_allclose(xd_old, xd_e, atol=0)
+    with pytest.raises(ValueError, match="across"):
+        tl.touch_object_state(eye, mem, 0.17, x_e2, xd_e2, x_e2, f_int, False, d, "eye")
+    with pytest.raises(ValueError, match="touch_memory_across"):
+        tl.TaskConfig(touch_memory_across="eye")
 
 
 def test_estimate_inside_the_hand_is_projected_out_without_contact():

@@ -295,7 +295,30 @@ def _check_report(result):
     print("\n".join(RT.report.deadline_table(result.report)))
 
 
-def test_realtime_run_reports_itself(tmp_path):
+def _check_camera_twin_report(folder, run, capsys):
+    """``write_report`` and ``print_report`` with a camera twin: its entry filled from the run's
+    own logs (the report's plumbing, not the twin)."""
+    logs = dict(run.logs, x_e=np.asarray(run.logs["x_e"]) + 0.5)  # the twin's told apart
+    twin = dict(
+        logs=logs, metrics=run.metrics, wall_s=1.0, latency_s=0.0085, latency_source="measured"
+    )
+    comparison = {"camera": RT.report.compare_metrics(run.metrics, run.metrics, 0.2, {})}
+    result = dataclasses.replace(run, twins={"camera": twin}, comparison=comparison)
+    RT.write_report(folder, result)
+    saved = json.loads((folder / "metrics.json").read_text())
+    assert saved["simulated_camera_latency"] == {"latency_s": 0.0085, "source": "measured"}
+    assert saved["targets"]["task_metrics_within_20pct_of_camera"] is True
+    with np.load(folder / "trajectory_simulated_camera.npz") as z:
+        np.testing.assert_array_equal(z["x_e"], logs["x_e"])
+    with np.load(folder / "trajectory_realtime.npz") as z:
+        np.testing.assert_array_equal(z["x_e"], run.logs["x_e"])
+    capsys.readouterr()
+    RT.print_report(result)
+    out = capsys.readouterr().out
+    assert "its estimates used 8.5 ms after the exposure's end (measured)" in out
+
+
+def test_realtime_run_reports_itself(tmp_path, capsys):
     exp = L.replace(L.catching(eye="truth"), swings=1, swing_s=1.0, settle_s=0.3)
     result = RT.run_realtime(exp, RT.RealtimeConfig(twin="none"), progress=False)
     _check_report(result)
@@ -310,6 +333,8 @@ def test_realtime_run_reports_itself(tmp_path):
     saved = json.loads((tmp_path / "deadline.json").read_text())
     assert saved["control"]["counts"] == result.report["control"]["counts"]
     assert (tmp_path / "deadline_histogram.png").stat().st_size > 0
+    (tmp_path / "camera_twin").mkdir()
+    _check_camera_twin_report(tmp_path / "camera_twin", result, capsys)
 
 
 @pytest.mark.slow

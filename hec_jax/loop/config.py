@@ -29,6 +29,7 @@ from hec_jax.nets import LearnerConfig, NetConfig
 # ``geometry.PaperEye``: Eqs. 1-38 on a pair of parallel cube edges in consecutive frames).
 EyeSource = Literal["truth", "camera", "paper"]
 EYE_SOURCES = ("truth", "camera", "paper")
+TOUCH_MEMORY_ACROSS = ("follow_hand", "hand_velocity")  # TaskConfig.touch_memory_across
 
 
 def _positive(obj, *names: str, allow_zero: bool = False) -> None:
@@ -80,6 +81,12 @@ class TaskConfig:
     final_s: float = 0.0  # [s] one continuous run after the swings (weights carried over); 0: none
     settle_s: float = 0.5  # [s] the settle force is the mean |F_int| over a swing's last settle_s
     contact_threshold: float = 1e-3  # [N] |F_int| above this counts as contact
+    # Camera runs, after a contact while the eye's estimate predates it (``TouchMemory``): across
+    # the last contact normal the object keeps its offset from the hand ("follow_hand"), or moves
+    # on at the hand's velocity at the last touch ("hand_velocity", the rule until 2026-12-03;
+    # ``object_state.touch_object_state`` says why it changed). Along the normal both extrapolate
+    # the hand's velocity at the last touch.
+    touch_memory_across: Literal["follow_hand", "hand_velocity"] = "follow_hand"
     # [s] time constant of a first-order low-pass on the object's acceleration X_o'' when the
     # object state is the simulator's (camera runs take the eye filter's estimate); 0: X_o'' is
     # the 1 kHz backward difference of X_o' (impact-dominated in contact, see VIN_NOTE).
@@ -108,6 +115,11 @@ class TaskConfig:
             raise ValueError(f"settle_s ({self.settle_s}) must not exceed swing_s ({self.swing_s})")
         if self.home not in ("hold_point", "rest_touch"):
             raise ValueError(f"home must be 'hold_point' or 'rest_touch', got {self.home!r}")
+        if self.touch_memory_across not in TOUCH_MEMORY_ACROSS:
+            raise ValueError(
+                f"touch_memory_across must be one of {TOUCH_MEMORY_ACROSS}, "
+                f"got {self.touch_memory_across!r}"
+            )
         if self.x_home is not None and (
             len(self.x_home) != 2 or not all(math.isfinite(v) for v in self.x_home)
         ):

@@ -68,30 +68,46 @@ class TouchMemory(NamedTuple):
     taken to be ``TOUCH_DISTANCE`` from the hand's centre against the measured force (F_int acts ON
     the hand, so the object lies along -F_int), moving with the hand along that normal (the eye
     gives the motion across it: :func:`touch_object_state`). After the contact ends, the
-    object is extrapolated from that last touch at constant velocity until the eye delivers an
-    estimate from a frame exposed at least ``EyeInput.touch_guard`` after it: a 30 fps eye with
-    33 ms latency still reports the pre-impact motion (into the hand) for several frames after an
-    impact, and its filter needs a few post-impact frames for the new velocity.
+    object is extrapolated from that last touch until the eye delivers an estimate from a frame
+    exposed at least ``EyeInput.touch_guard`` after it: a 30 fps eye with 33 ms latency still
+    reports the pre-impact motion (into the hand) for several frames after an impact, and its
+    filter needs a few post-impact frames for the new velocity. Along the last contact normal the
+    extrapolation is at the hand's velocity at the last touch (a frictionless contact sets the
+    object's velocity along the normal only); across it, as ``across`` in
+    :func:`touch_object_state` says.
 
     Attributes:
         t: [s] () time of the last sample in contact (-inf: never).
         x: [m] (2,) object centre at that sample (world task plane).
         xd: [m/s] (2,) object velocity at that sample (the hand's).
+        normal: (2,) unit contact normal at that sample, hand -> object.
+        x_hand: [m] (2,) the hand's centre at that sample.
     """
 
     t: jax.Array
     x: jax.Array
     xd: jax.Array
+    normal: jax.Array
+    x_hand: jax.Array
 
 
 def no_touch(dtype=None) -> TouchMemory:
     """The memory before any contact."""
     z = jnp.zeros(2, dtype)
-    return TouchMemory(jnp.asarray(-jnp.inf, dtype), z, z)
+    return TouchMemory(jnp.asarray(-jnp.inf, dtype), z, z, z, z)
 
 
 def touch_object_state(
-    eye: EyeInput, touch: TouchMemory, t, x_e, xd_e, xdd_e, f_int, in_contact, distance: float
+    eye: EyeInput,
+    touch: TouchMemory,
+    t,
+    x_e,
+    xd_e,
+    xdd_e,
+    f_int,
+    in_contact,
+    distance: float,
+    across: str = "follow_hand",
 ):
     """(X_o, X_o', X_o'', known, memory) of a camera run at time ``t``: touch in contact, the last
     touch extrapolated while the eye's estimate predates it (+ guard) or is lost, the eye
@@ -110,6 +126,13 @@ def touch_object_state(
       While the eye has nothing (``eye.seen`` 0, e.g. the paper's eye with the hand hiding a
       side of the face) the position across n is the last touch's, or on the hand's normal line
       before any touch (the eye's zeros would put the object metres away).
+    * After a contact, while the eye's estimate predates the last touch (+ guard) or is lost:
+      along the last touch's normal n the object moves on at the hand's velocity then. Across n,
+      with ``across`` (static) "follow_hand" it keeps its offset from the hand as at the last
+      touch (position and velocity follow the hand's, as in contact: the contact says nothing
+      more across n); with "hand_velocity" it moves on at the hand's velocity then, which can
+      feed the hand's sideways motion back through the virtual force and lose a held cube
+      (``docs/realtime.md``: the held cube's sideways runaway).
     * Out of contact the force sensor says the object does not touch the hand, so an estimate
       closer than ``distance`` contradicts it: the position is moved out to ``distance`` along the
       same direction (projected onto what the sensor allows). Near X_r = 0 the sphere geometry of
@@ -120,8 +143,11 @@ def touch_object_state(
       run, against 4-9% below with the velocity kept).
 
     Args: ``x_e``, ``xd_e``, ``xdd_e`` [m, m/s, m/s^2] (2,) the hand; ``f_int`` [N] (2,) force on
-    the hand; ``in_contact`` () bool; ``distance`` [m] hand centre to object centre in contact.
+    the hand; ``in_contact`` () bool; ``distance`` [m] hand centre to object centre in contact;
+    ``across`` "follow_hand" or "hand_velocity" (``TaskConfig.touch_memory_across``).
     """
+    if across not in ("follow_hand", "hand_velocity"):
+        raise ValueError(f"across must be 'follow_hand' or 'hand_velocity', got {across!r}")
     f_sq = jnp.sum(f_int**2)
     pos = f_sq > 0.0
     inv = jnp.where(pos, 1.0 / jnp.sqrt(jnp.where(pos, f_sq, 1.0)), 0.0)
@@ -136,7 +162,7 @@ def touch_object_state(
     x_touch = x_across + n * jnp.dot(n, x_e + distance * n - x_across)
     touch = jax.tree_util.tree_map(
         lambda new, old: jnp.where(in_contact, new, old),
-        TouchMemory(jnp.asarray(t, touch.t.dtype), x_touch, xd_e),
+        TouchMemory(jnp.asarray(t, touch.t.dtype), x_touch, xd_e, n, x_e),
         touch,
     )
     i = (t >= eye.t_switch).astype(jnp.int32)
@@ -144,8 +170,16 @@ def touch_object_state(
     since = t - jnp.where(jnp.isfinite(touch.t), touch.t, t)
     stale = stale | ((eye.seen <= 0) & jnp.isfinite(touch.t))  # the eye lost it: touch if recent
     known = in_contact | jnp.where(stale, since <= eye.touch_memory, eye.seen > 0)
-    x_free = jnp.where(stale, touch.x + touch.xd * since, x_eye)
-    xd_free = jnp.where(stale, touch.xd, xd_eye)
+    if across == "follow_hand":  # along n the last touch's velocity, across n the hand's offset
+        n_last = touch.normal
+        xd_along = n_last * jnp.dot(n_last, touch.xd)
+        moved = x_e - touch.x_hand  # the hand since the last touch
+        x_mem = touch.x + xd_along * since + moved - n_last * jnp.dot(n_last, moved)
+        xd_mem = xd_along + xd_e - n_last * jnp.dot(n_last, xd_e)
+    else:
+        x_mem, xd_mem = touch.x + touch.xd * since, touch.xd
+    x_free = jnp.where(stale, x_mem, x_eye)
+    xd_free = jnp.where(stale, xd_mem, xd_eye)
     xdd_free = jnp.where(stale, jnp.zeros(2), xdd_eye)
     # out of contact: not inside the hand (the position projected onto what the sensor allows)
     r = x_free - x_e

@@ -246,7 +246,16 @@ def build_loop(config: TaskConfig) -> Loop:
         # learns of an impact only some frames after it.
         use_eye = sw.eye.use > 0
         x_eye, xd_eye, xdd_eye, known, touch_new = touch_object_state(
-            sw.eye, touch, t, obs.x_e, obs.xd_e, xdd_e, obs.f_int, in_contact, TOUCH_DISTANCE
+            sw.eye,
+            touch,
+            t,
+            obs.x_e,
+            obs.xd_e,
+            xdd_e,
+            obs.f_int,
+            in_contact,
+            TOUCH_DISTANCE,
+            config.touch_memory_across,
         )
         touch = jax.tree_util.tree_map(
             lambda new, old: jnp.where(use_eye, new, old), touch_new, touch

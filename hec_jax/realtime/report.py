@@ -854,7 +854,7 @@ def print_report(result) -> None:
     if "camera" in result.twins:
         twin = result.twins["camera"]
         print(
-            f"camera twin: its estimates used {1e3 * twin['latency_s']:.0f} ms after the "
+            f"camera twin: its estimates used {1e3 * twin['latency_s']:.1f} ms after the "
             f"exposure's end ({twin['latency_source']})"
         )
     print()
