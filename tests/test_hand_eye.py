@@ -125,12 +125,18 @@ def test_touch_over_vision_and_the_guard_after_contact():
     assert float(mem2.t) == pytest.approx(0.12) and bool(known2)  # out of contact: kept
     # the eye has lost the object: the touch stands in for touch_memory = 0.1 s, then unseen
     lost = eye._replace(seen=jnp.asarray(0.0))
+    moved, xd_now = np.array([0.01, -0.02]), np.array([0.4, -0.3])  # the hand since the touch
     out = [
-        tl.touch_object_state(lost, mem, jnp.asarray(t), *args, jnp.zeros(2), False, d)
+        tl.touch_object_state(
+            lost, mem, jnp.asarray(t), x_e + moved, xd_now, xdd_e, jnp.zeros(2), False, d
+        )
         for t in (0.21, 0.23)
     ]
-    np.testing.assert_allclose(out[0][0], mem.x + 0.09 * along, atol=1e-12)
-    np.testing.assert_allclose(out[0][1], xd_e, atol=1e-15)  # across n the hand's
+    # along n the touch's velocity, across n the hand's motion (the slanted normal's tangent)
+    np.testing.assert_allclose(
+        out[0][0], mem.x + 0.09 * along + (tangent @ moved) * tangent, atol=1e-12
+    )
+    np.testing.assert_allclose(out[0][1], along + (tangent @ xd_now) * tangent, atol=1e-15)
     assert bool(out[0][3]) and not bool(out[1][3])
     # the new estimate (frame at 0.200 >= 0.17) from t_switch on: the eye's prediction
     x, xd, _, _, _ = tl.touch_object_state(

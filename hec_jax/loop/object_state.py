@@ -132,7 +132,9 @@ def touch_object_state(
       touch (position and velocity follow the hand's, as in contact: the contact says nothing
       more across n); with "hand_velocity" it moves on at the hand's velocity then, which can
       feed the hand's sideways motion back through the virtual force and lose a held cube
-      (``docs/realtime.md``: the held cube's sideways runaway).
+      (``docs/realtime.md``: the held cube's sideways runaway). Under both rules the memory's
+      acceleration is zero (with "follow_hand" the relative acceleration across n is then
+      minus the hand's, which the virtual inertia term sees).
     * Out of contact the force sensor says the object does not touch the hand, so an estimate
       closer than ``distance`` contradicts it: the position is moved out to ``distance`` along the
       same direction (projected onto what the sensor allows). Near X_r = 0 the sphere geometry of
