@@ -85,7 +85,7 @@ def test_touch_over_vision_and_the_guard_after_contact():
     the force on it), where the eye puts it across the normal, and moves with the hand; after the
     contact, an estimate from a frame exposed before the last touch (+ guard) is replaced by the
     last touch extrapolated (along the normal at the hand's velocity then, across it with the
-    hand); a later frame's estimate is used as is."""
+    hand, its acceleration included); a later frame's estimate is used as is."""
     d = tl.TOUCH_DISTANCE
     x_eye = jnp.array([[0.40, 0.40], [0.42, 0.41]])  # (estimate, axis) [m], well off the hand
     eye = tl.EyeInput(
@@ -121,7 +121,8 @@ def test_touch_over_vision_and_the_guard_after_contact():
     )
     np.testing.assert_allclose(x, mem.x + 0.04 * along, atol=1e-12)
     np.testing.assert_allclose(xd, along, atol=1e-15)
-    np.testing.assert_allclose(xdd, 0.0, atol=0)
+    # its acceleration: the hand's across n (the tangent's share of (2, 1): 2.2), none along n
+    np.testing.assert_allclose(xdd, 2.2 * tangent, atol=1e-12)
     assert float(mem2.t) == pytest.approx(0.12) and bool(known2)  # out of contact: kept
     # the eye has lost the object: the touch stands in for touch_memory = 0.1 s, then unseen
     lost = eye._replace(seen=jnp.asarray(0.0))
@@ -168,7 +169,9 @@ def test_after_a_touch_the_object_keeps_its_offset_from_the_hand_across_the_norm
     turns down. With the old frame still in force, the memory moves along the normal at the hand's
     normal velocity at the touch, and across it keeps its offset from the hand whatever the
     hand's speed at the touch ("follow_hand"); "hand_velocity" (the earlier rule) moves it on at
-    that speed, 25 mm in 50 ms, while a frictionless hand never passed it to the cube."""
+    that speed, 25 mm in 50 ms, while a frictionless hand never passed it to the cube. The
+    memory's acceleration is the hand's across the normal and zero along it ("follow_hand"), zero
+    under "hand_velocity"."""
     d = tl.TOUCH_DISTANCE
     x_eye = jnp.array([[0.60, 0.40], [0.60, 0.40]])
     eye = tl.EyeInput(
@@ -185,25 +188,28 @@ def test_after_a_touch_the_object_keeps_its_offset_from_the_hand_across_the_norm
     f_int = jnp.array([-5.0, 0.0])  # [N] on the hand: the object lies along +x
     x_e, xd_e = jnp.array([0.60 - d, 0.41]), jnp.array([0.1, 0.5])
     x_e2, xd_e2 = x_e + jnp.array([-0.01, 0.03]), jnp.array([0.0, -0.2])  # 50 ms later
+    xdd_e2 = jnp.array([-3.0, 4.0])  # [m/s^2] the hand's acceleration then
     out = {}
     for across in ("follow_hand", "hand_velocity"):
         _, _, _, _, mem = tl.touch_object_state(
             eye, tl.no_touch(), 0.12, x_e, xd_e, jnp.zeros(2), f_int, True, d, across
         )
-        x, xd, _, known, _ = tl.touch_object_state(
-            eye, mem, 0.17, x_e2, xd_e2, jnp.zeros(2), jnp.zeros(2), False, d, across
+        x, xd, xdd, known, _ = tl.touch_object_state(
+            eye, mem, 0.17, x_e2, xd_e2, xdd_e2, jnp.zeros(2), False, d, across
         )
         assert bool(known)
-        out[across] = (np.asarray(mem.x), np.asarray(x), np.asarray(xd))
-    x_touch, x, xd = out["follow_hand"]
+        out[across] = (np.asarray(mem.x), np.asarray(x), np.asarray(xd), np.asarray(xdd))
+    x_touch, x, xd, xdd = out["follow_hand"]
     np.testing.assert_allclose(x_touch, [0.60, 0.40], atol=1e-12)  # d along x, the eye across
     np.testing.assert_allclose(x, x_touch + [0.1 * 0.05, 0.03], atol=1e-12)
     np.testing.assert_allclose(xd, [0.1, -0.2], atol=1e-15)
+    np.testing.assert_allclose(xdd, [0.0, 4.0], atol=1e-15)
     # across the normal the offset from the hand is the touch's
     np.testing.assert_allclose(x[1] - x_e2[1], x_touch[1] - x_e[1], atol=1e-12)
-    _, x_old, xd_old = out["hand_velocity"]
+    _, x_old, xd_old, xdd_old = out["hand_velocity"]
     np.testing.assert_allclose(x_old, x_touch + 0.05 * np.asarray(xd_e), atol=1e-12)
     np.testing.assert_allclose(xd_old, xd_e, atol=0)
+    np.testing.assert_array_equal(xdd_old, np.zeros(2))
     with pytest.raises(ValueError, match="across"):
         tl.touch_object_state(eye, mem, 0.17, x_e2, xd_e2, x_e2, f_int, False, d, "eye")
     with pytest.raises(ValueError, match="touch_memory_across"):

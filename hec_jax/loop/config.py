@@ -82,10 +82,10 @@ class TaskConfig:
     settle_s: float = 0.5  # [s] the settle force is the mean |F_int| over a swing's last settle_s
     contact_threshold: float = 1e-3  # [N] |F_int| above this counts as contact
     # Camera runs, after a contact while the eye's estimate predates it (``TouchMemory``): across
-    # the last contact normal the object keeps its offset from the hand ("follow_hand"), or moves
-    # on at the hand's velocity at the last touch ("hand_velocity", the rule until 2026-12-03;
-    # ``object_state.touch_object_state`` says why it changed). Along the normal both extrapolate
-    # the hand's velocity at the last touch.
+    # the last contact normal the object keeps its offset from the hand ("follow_hand": position,
+    # velocity and acceleration follow the hand's), or moves on at the hand's velocity at the last
+    # touch ("hand_velocity", the rule until 2026-12-03; ``object_state.touch_object_state`` says
+    # why it changed). Along the normal both extrapolate the hand's velocity at the last touch.
     touch_memory_across: Literal["follow_hand", "hand_velocity"] = "follow_hand"
     # [s] time constant of a first-order low-pass on the object's acceleration X_o'' when the
     # object state is the simulator's (camera runs take the eye filter's estimate); 0: X_o'' is

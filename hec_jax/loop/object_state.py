@@ -129,12 +129,12 @@ def touch_object_state(
     * After a contact, while the eye's estimate predates the last touch (+ guard) or is lost:
       along the last touch's normal n the object moves on at the hand's velocity then. Across n,
       with ``across`` (static) "follow_hand" it keeps its offset from the hand as at the last
-      touch (position and velocity follow the hand's, as in contact: the contact says nothing
-      more across n); with "hand_velocity" it moves on at the hand's velocity then, which can
+      touch (position, velocity and acceleration follow the hand's, as in contact: the contact
+      says nothing more across n; along n the acceleration is zero), so the relative state
+      across n that the virtual force of Eqs. 45-47 sees stays that of the last touch; with
+      "hand_velocity" it moves on at the hand's velocity then, with zero acceleration, which can
       feed the hand's sideways motion back through the virtual force and lose a held cube
-      (``docs/realtime.md``: the held cube's sideways runaway). Under both rules the memory's
-      acceleration is zero (with "follow_hand" the relative acceleration across n is then
-      minus the hand's, which the virtual inertia term sees).
+      (``docs/realtime.md``: the held cube's sideways runaway).
     * Out of contact the force sensor says the object does not touch the hand, so an estimate
       closer than ``distance`` contradicts it: the position is moved out to ``distance`` along the
       same direction (projected onto what the sensor allows). Near X_r = 0 the sphere geometry of
@@ -178,11 +178,12 @@ def touch_object_state(
         moved = x_e - touch.x_hand  # the hand since the last touch
         x_mem = touch.x + xd_along * since + moved - n_last * jnp.dot(n_last, moved)
         xd_mem = xd_along + xd_e - n_last * jnp.dot(n_last, xd_e)
+        xdd_mem = xdd_e - n_last * jnp.dot(n_last, xdd_e)
     else:
-        x_mem, xd_mem = touch.x + touch.xd * since, touch.xd
+        x_mem, xd_mem, xdd_mem = touch.x + touch.xd * since, touch.xd, jnp.zeros(2)
     x_free = jnp.where(stale, x_mem, x_eye)
     xd_free = jnp.where(stale, xd_mem, xd_eye)
-    xdd_free = jnp.where(stale, jnp.zeros(2), xdd_eye)
+    xdd_free = jnp.where(stale, xdd_mem, xdd_eye)
     # out of contact: not inside the hand (the position projected onto what the sensor allows)
     r = x_free - x_e
     rho_sq = jnp.sum(r**2)
