@@ -138,6 +138,7 @@ def test_touch_over_vision_and_the_guard_after_contact():
         out[0][0], mem.x + 0.09 * along + (tangent @ moved) * tangent, atol=1e-12
     )
     np.testing.assert_allclose(out[0][1], along + (tangent @ xd_now) * tangent, atol=1e-15)
+    np.testing.assert_allclose(out[0][2], 2.2 * tangent, atol=1e-12)  # the hand's across n
     assert bool(out[0][3]) and not bool(out[1][3])
     # the new estimate (frame at 0.200 >= 0.17) from t_switch on: the eye's prediction
     x, xd, _, _, _ = tl.touch_object_state(
