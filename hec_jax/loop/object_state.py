@@ -15,6 +15,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from hec_jax.loop.config import TOUCH_MEMORY_ACROSS
 from hec_jax.mjx_scene import CUBE_EDGE, HAND_RADIUS
 
 # [m] hand centre to object centre while they touch: the hand sphere's radius plus half the cube's
@@ -148,8 +149,8 @@ def touch_object_state(
     the hand; ``in_contact`` () bool; ``distance`` [m] hand centre to object centre in contact;
     ``across`` "follow_hand" or "hand_velocity" (``TaskConfig.touch_memory_across``).
     """
-    if across not in ("follow_hand", "hand_velocity"):
-        raise ValueError(f"across must be 'follow_hand' or 'hand_velocity', got {across!r}")
+    if across not in TOUCH_MEMORY_ACROSS:
+        raise ValueError(f"across must be one of {TOUCH_MEMORY_ACROSS}, got {across!r}")
     f_sq = jnp.sum(f_int**2)
     pos = f_sq > 0.0
     inv = jnp.where(pos, 1.0 / jnp.sqrt(jnp.where(pos, f_sq, 1.0)), 0.0)
