@@ -34,17 +34,11 @@ import pytest  # noqa: E402
 
 @pytest.fixture(autouse=True, scope="module")
 def _clear_jax_caches():
-    """With ``HEC_TEST_CLEAR_JAX_CACHES=1``: drop the in-memory compiled executables and traces
-    after each test module (the persistent cache on disk stays), as the suite did from 2026-11-27
-    to 2026-12-03.
-
-    It was added for a segmentation fault in jaxlib 0.10.2: one process that ran
-    tests/test_eye_randomized.py, tests/test_eye_tracker.py and then tests/test_gradients.py
-    crashed while compiling or caching the float32 gradient test's executable. On 2026-12-03 the
-    same three files in one process (float32 gradient tests included, cold and warm compile
-    cache) and the whole default suite ran without it and passed; without it the modules that
-    share the eye's tracker no longer trace and load it again each (the time saved:
-    docs/testing.md). Off by default; the variable brings it back.
+    """With ``HEC_TEST_CLEAR_JAX_CACHES=1``, drop JAX's in-memory executables and traces after
+    each test module (the persistent cache on disk stays). Off by default: the modules that share
+    the eye's tracker then trace and load it once per worker process, not once per module. It was
+    on for a jaxlib segfault that no longer reproduces (docs/testing.md, "JAX's caches kept
+    across test modules").
     """
     yield
     if os.environ.get("HEC_TEST_CLEAR_JAX_CACHES") == "1":
