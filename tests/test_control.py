@@ -348,3 +348,32 @@ def test_a_non_finite_object_estimate_gives_no_virtual_force(field, bad):
     np.testing.assert_array_equal(info.f_o, 0.0)
     assert np.all(np.isfinite(tau))
     np.testing.assert_allclose(tau, tau_plain, rtol=1e-12)
+
+
+def test_dt_elapsed_spans_the_backward_differences():
+    """``dt_elapsed``: X_e'' and X_o'' (differenced when the observation has no X_o'') over the
+    time since the previous call, hand-computed; None is ``dt`` bit for bit."""
+    init, apply = C.make_impedance_controller(DT, TORQUE_LIMIT)
+    rng = np.random.default_rng(9)
+    obs = _random_obs(rng)
+    obs = obs._replace(x_o=obs.x_e + jnp.array([0.1, 0.05]))  # inside the sphere
+    st0 = init(obs)._replace(
+        xd_e_prev=obs.xd_e - jnp.array([0.02, -0.01]), xd_o_prev=obs.xd_o - jnp.array([0.03, 0.04])
+    )
+    p = C.impedance_params(1.0, 40.0, 400.0)
+    vp = C.virtual_params(0.2, 5.0, 100.0, 0.25)
+    tgt = C.fixed_target([0.0, 0.0])
+    _, _, info = apply(p, vp, tgt, st0, obs, 4 * DT)
+    np.testing.assert_allclose(info.xdd_e, np.array([0.02, -0.01]) / (4 * DT), rtol=1e-12)
+    # X_o'' too: the one-step call from velocities a quarter of the way back gives the same F_o
+    quarter = st0._replace(
+        xd_e_prev=obs.xd_e - jnp.array([0.02, -0.01]) / 4,
+        xd_o_prev=obs.xd_o - jnp.array([0.03, 0.04]) / 4,
+    )
+    _, _, info_quarter = apply(p, vp, tgt, quarter, obs)
+    np.testing.assert_allclose(info.f_o, info_quarter.f_o, rtol=1e-9)
+    one = apply(p, vp, tgt, st0, obs)
+    same = apply(p, vp, tgt, st0, obs, DT)
+    for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(same), strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert np.all(np.asarray(one[2].f_o) != np.asarray(info.f_o))

@@ -35,6 +35,7 @@ from hec_jax import realtime as RT
 from hec_jax.loop.observation import observe_c
 from hec_jax.mjx_scene import c_quantities, make_data_c, rollout_c
 from hec_jax.realtime.report import tick_table
+from hec_jax.realtime.runner import float_dtype
 from hec_jax.realtime.shared import Board, FrameRing
 
 SWINGS, SWING_S = 2, 0.5  # the cube touches the hand at ~0.34 s of each swing
@@ -89,6 +90,78 @@ def test_untimed_loop_is_the_simulated_c_loop(untimed):
         assert run.counts[swing] == (loop.swing_steps, loop.swing_steps, 0, 0)
     assert peak > 50.0  # the comparison covers contact
     assert np.any(run.logs[1]["learning"])  # ... and learning, weights carried over
+
+
+def test_a_gap_of_steps_spans_the_accelerations_and_not_the_learning_step(untimed):
+    """After skipped steps the policy's and the controller's backward differences (X_e'', X_o'')
+    span the gap: the policy over a gap of 3 steps equals the one-step policy from a state whose
+    previous velocities lie a third of the way back (the same accelerations, by construction);
+    the learner's sampling interval stays one step in both. The state: the release, the cube
+    inside the virtual sphere (F_o has a mass term); the velocities 3 steps on are made up."""
+    exp, loop, key, _ = untimed
+    ids, c = loop.ids, exp.task.pendulum.conditions()
+    m = RT.plant_model(exp.task)
+    d = make_data_c(m, ids, c, np.asarray(loop.q_home))
+    obs0 = observe_c(ids, d.qpos, d.qvel, c_quantities(m, d, ids), np.zeros(3))
+    ls = loop.learner_init(key, jnp.float64)
+    ps = jax.jit(loop.initial_policy_state_obs)(obs0, ls, L.switches("learned"))
+    toward = (obs0.x_e - obs0.x_o) / jnp.linalg.norm(obs0.x_e - obs0.x_o)  # the cube approaching
+    obs = obs0._replace(
+        xd_e=obs0.xd_e + jnp.array([0.03, -0.02]),
+        xd_o=obs0.xd_o + 0.06 * toward + jnp.array([0.01, -0.02]),
+    )
+    policy = jax.jit(loop.policy_obs)
+    tau3, ps3, aux3 = policy(ps, obs, 3e-3, jnp.asarray(3.0))
+    cs = ps.controller
+    third = cs._replace(
+        xd_e_prev=obs.xd_e - (obs.xd_e - cs.xd_e_prev) / 3.0,
+        xd_o_prev=obs.xd_o - (obs.xd_o - cs.xd_o_prev) / 3.0,
+    )
+    tau1, ps1, aux1 = policy(ps._replace(controller=third), obs, 3e-3)
+    assert bool(aux1["inside"]) and bool(aux1["learning"])  # the case covers the learning step
+    np.testing.assert_allclose(tau3, tau1, rtol=1e-9, atol=1e-12)
+    for name in ("f_o", "k_o", "b_o", "m_o", "energy"):
+        np.testing.assert_allclose(aux3[name], aux1[name], rtol=1e-9, atol=1e-12, err_msg=name)
+    for a, b in zip(jax.tree.leaves(ps3.learner), jax.tree.leaves(ps1.learner), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+    # the gap matters here: the same state read as one step gives another virtual force
+    _, _, aux_one = policy(ps, obs, 3e-3)
+    assert np.max(np.abs(np.asarray(aux_one["f_o"]) - np.asarray(aux3["f_o"]))) > 1e-3
+
+
+class _StallingClock(RT.FreeClock):
+    """Un-timed, but the wait for ``at`` [s] returns at ``until`` [s] (a stall of the loop)."""
+
+    def __init__(self, at, until):
+        super().__init__()
+        self.at, self.until = at, until
+
+    def wait_until(self, t):
+        return super().wait_until(self.until if abs(t - self.at) < 1e-9 else t)
+
+
+def test_the_loop_gives_the_policy_the_steps_a_stall_skipped():
+    """A stall from tick 5 to 8.1 ms: the plant integrates steps 5-7 with the held torques and
+    the loop's next call (step 8) is told 4 steps passed; every other call, 1."""
+    exp = _task()
+    loop = L.build_loop(exp.task)
+    key = jax.random.split(jax.random.PRNGKey(0), 1)[0]
+    plant = RT.MujocoPlant(exp.task, loop.q_home)
+    arm = RT.ArmModel(RT.plant_model(exp.task), loop.ids)
+    sw = L.switches("learned")
+    fns = RT.make_step_fns(loop, loop.learner_init(key, float_dtype()), sw)
+    gaps = []
+
+    def step(ps_vec, sw_vec, obs_vec, steps_elapsed):
+        gaps.append(float(steps_elapsed))
+        return fns.step(ps_vec, sw_vec, obs_vec, steps_elapsed)
+
+    clock = _StallingClock(5e-3, 8.1e-3)
+    run = RT.run_loop(loop, plant, clock, key, "learned", [20], arm, fns=fns._replace(step=step))
+    ticks = gaps[-(20 - 3) :]  # the last 17 calls: the ticks (before them, the warm-up's)
+    assert ticks == [1.0] * 5 + [4.0] + [1.0] * 11
+    np.testing.assert_array_equal(run.ticks[0]["kind"][5:8], 2)  # skipped
+    assert run.counts[0].skipped == 3
 
 
 @pytest.mark.slow

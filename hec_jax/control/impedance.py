@@ -313,9 +313,12 @@ def make_impedance_controller(
         torque_limit: [N m] (3,) symmetric saturation (the actuators' ctrlrange).
         cfg: controller settings (default ``ControllerConfig()``).
 
-    ``apply(params, vparams, target, state, obs) -> (tau, state, info)``; shapes are checked at
-    trace time (ValueError); values are not (use ``impedance_params``/``virtual_params``).
-    Setting ``vparams`` to zeros gives plain impedance control (F_o = 0).
+    ``apply(params, vparams, target, state, obs, dt_elapsed=None) -> (tau, state, info)``;
+    shapes are checked at trace time (ValueError); values are not (use
+    ``impedance_params``/``virtual_params``). Setting ``vparams`` to zeros gives plain impedance
+    control (F_o = 0). ``dt_elapsed`` [s]: the time since the previous call, where it is not
+    ``dt`` (a wall-clock loop that skipped steps: the backward differences span the gap); None:
+    ``dt``, and the traced program is the one without the argument.
     """
     if not (np.isfinite(dt) and dt > 0):
         raise ValueError(f"dt must be finite and > 0, got {dt}")
@@ -329,11 +332,12 @@ def make_impedance_controller(
         _check_obs_shapes(obs)
         return ControllerState(q_posture=obs.q, xd_e_prev=obs.xd_e, xd_o_prev=obs.xd_o)
 
-    def apply(params, vparams, target, state, obs):
+    def apply(params, vparams, target, state, obs, dt_elapsed=None):
         _check_obs_shapes(obs)
-        xdd_e = (obs.xd_e - state.xd_e_prev) / dt  # [m/s^2], one sample old
+        h = dt if dt_elapsed is None else dt_elapsed  # [s] since the previous call
+        xdd_e = (obs.xd_e - state.xd_e_prev) / h  # [m/s^2], one sample old
         if obs.xdd_o is None:
-            xdd_o = (obs.xd_o - state.xd_o_prev) / dt
+            xdd_o = (obs.xd_o - state.xd_o_prev) / h
         else:  # from an estimator (a piecewise prediction would spike under differencing)
             xdd_o = obs.xdd_o
         sk = sphere_kinematics(obs.x_o - obs.x_e, obs.xd_o - obs.xd_e, xdd_o - xdd_e, vparams.r)

@@ -116,10 +116,11 @@ class Loop(NamedTuple):
         policy: ``(policy_state, m, SimStep) -> (tau, policy_state, aux)``.
         initial_policy_state: ``(m, data, learner_state, switches) -> PolicyState``.
         learner_init: ``(key, dtype) -> LearnerState``.
-        policy_obs: ``(policy_state, TaskObs, t) -> (tau, policy_state, aux)``: ``policy`` on an
-            observation however computed (``policy`` is ``observe`` (MJX) then this; the
-            real-time loop computes it with MuJoCo C from a plant's joint state,
-            :mod:`hec_jax.realtime`); ``t`` [s] the observation's time.
+        policy_obs: ``(policy_state, TaskObs, t[, steps_elapsed]) -> (tau, policy_state, aux)``:
+            ``policy`` on an observation however computed (``policy`` is ``observe`` (MJX) then
+            this; the real-time loop computes it with MuJoCo C from a plant's joint state,
+            :mod:`hec_jax.realtime`); ``t`` [s] the observation's time; ``steps_elapsed``:
+            control steps since the previous call (None: one).
         initial_policy_state_obs: ``(TaskObs, learner_state, switches) -> PolicyState``.
     """
 
@@ -232,13 +233,22 @@ def build_loop(config: TaskConfig) -> Loop:
     def policy(ps: PolicyState, m, step: SimStep):
         return policy_obs(ps, observe(m, ids, step), step.t)
 
-    def policy_obs(ps: PolicyState, obs: TaskObs, t):
+    def policy_obs(ps: PolicyState, obs: TaskObs, t, steps_elapsed=None):
+        # steps_elapsed: control steps since the previous call (a wall-clock loop that skipped
+        # steps, hec_jax.realtime); the accelerations' backward differences and the low-pass
+        # span them. The learner's sampling interval (Eqs. 54-58) stays one step: dE/dF_act
+        # scales with its square, so a 30-step stall would scale one learning step 900x.
+        # None: one step, and the traced program is the one without the argument.
         cs, ls, sw, touch, xdd_o_lowpass = ps
         x_o_true, xd_o_true = obs.x_o, obs.xd_o
-        xdd_e = (obs.xd_e - cs.xd_e_prev) / dt  # one sample old, as the controller's
-        xdd_o = (obs.xd_o - cs.xd_o_prev) / dt
+        h = dt if steps_elapsed is None else dt * steps_elapsed  # [s] since the previous call
+        xdd_e = (obs.xd_e - cs.xd_e_prev) / h  # one sample old, as the controller's
+        xdd_o = (obs.xd_o - cs.xd_o_prev) / h
         if xdd_o_lowpass is not None:  # first-order low-pass, time constant object_accel_tau_s
-            xdd_o_lowpass = accel_decay * xdd_o_lowpass + (1.0 - accel_decay) * xdd_o
+            decay = accel_decay
+            if steps_elapsed is not None:  # exactly the one-step decay at one step
+                decay = jnp.where(steps_elapsed == 1, decay, decay**steps_elapsed)
+            xdd_o_lowpass = decay * xdd_o_lowpass + (1.0 - decay) * xdd_o
             xdd_o = xdd_o_lowpass
         in_contact = jnp.sqrt(jnp.sum(obs.f_int**2)) > config.contact_threshold
         # the object as the eye sees it (camera runs) or as simulated (sw.eye.use == 0), with
@@ -285,7 +295,7 @@ def build_loop(config: TaskConfig) -> Loop:
         o = out.impedance if sw.fixed is None else sw.fixed.astype(out.impedance.dtype)
         o = o * (sw.use_virtual * seen)  # (2, 3): K_o, B_o, M_o per axis
         vp = VirtualParams(m_o=o[:, 2], b_o=o[:, 1], k_o=o[:, 0], r=jnp.asarray(lc.radius))
-        tau, cs, info = c_apply(params, vp, target, cs, obs)
+        tau, cs, info = c_apply(params, vp, target, cs, obs, None if steps_elapsed is None else h)
         aux = dict(
             x_e=obs.x_e,
             xd_e=obs.xd_e,

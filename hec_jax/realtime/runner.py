@@ -243,9 +243,11 @@ class StepFns(NamedTuple):
     """The jitted functions of the control path and the layouts of their flat vectors.
 
     Attributes:
-        step: ``(ps_vec, sw_vec, obs_vec) -> (ps_vec, out_vec)``; ``out_vec`` is the torques
-            [N m] (3,) followed by the policy's logged signals (``aux``). ``ps_vec`` is donated
-            (invalid after the call: use the returned one).
+        step: ``(ps_vec, sw_vec, obs_vec, steps_elapsed) -> (ps_vec, out_vec)``; ``out_vec``
+            is the torques [N m] (3,) followed by the policy's logged signals (``aux``).
+            ``ps_vec`` is donated (invalid after the call: use the returned one).
+            ``steps_elapsed`` (a scalar of ``dtype``): physics steps since the previous call, 1
+            but after skipped steps (``policy_obs``).
         init: ``(obs_vec, learner_state, switches) -> PolicyState`` at a release.
         ps: layout of the policy state without its switches.
         sw: layout of the :class:`~hec_jax.loop.policy.Switches`.
@@ -276,18 +278,22 @@ def make_step_fns(loop: Loop, learner_state, sw) -> StepFns:
     flat_ps = Flat(ps0._replace(switches=None))
     flat_sw = Flat(sw)
 
-    def policy(ps_vec, sw_vec, obs_vec):
+    def policy(ps_vec, sw_vec, obs_vec, steps_elapsed):
         obs, t = unpack_observation(obs_vec.astype(dtype))
         ps = flat_ps.unpack(ps_vec)._replace(switches=flat_sw.unpack(sw_vec))
-        return loop.policy_obs(ps, obs, t)
+        return loop.policy_obs(ps, obs, t, steps_elapsed.astype(dtype))
 
     _, _, aux0 = jax.eval_shape(
-        policy, jnp.zeros(flat_ps.size, dtype), jnp.zeros(flat_sw.size, dtype), obs0
+        policy,
+        jnp.zeros(flat_ps.size, dtype),
+        jnp.zeros(flat_sw.size, dtype),
+        obs0,
+        jnp.ones((), dtype),
     )
     flat_aux = Flat(aux0)
 
-    def step(ps_vec, sw_vec, obs_vec):
-        tau, ps, aux = policy(ps_vec, sw_vec, obs_vec)
+    def step(ps_vec, sw_vec, obs_vec, steps_elapsed):
+        tau, ps, aux = policy(ps_vec, sw_vec, obs_vec, steps_elapsed)
         ps_vec = flat_ps.pack(ps._replace(switches=None), dtype)
         return ps_vec, jnp.concatenate([tau.astype(dtype), flat_aux.pack(aux, dtype)])
 
@@ -451,11 +457,12 @@ def run_loop(
         # step takes it as it takes the observation (no extra cost per call), and an arrival
         # costs no device array (measured: 40 us hot, 3x that cold, on every 33rd tick)
         sw_np_dtype = np.dtype(fns.dtype)
+        one_step = np.asarray(1.0, sw_np_dtype)
         sw_vec = fns.sw.pack_np(sw, sw_np_dtype)
         ps = fns.init(jnp.asarray(obs_np), ls, sw)
         ps_vec = jnp.asarray(fns.ps.pack_np(ps._replace(switches=None)), fns.dtype)
         for _ in range(20):  # compiled and warm before the clock runs (on copies: donated)
-            np.asarray(fns.step(jnp.array(ps_vec), sw_vec, obs_np.copy())[1])
+            np.asarray(fns.step(jnp.array(ps_vec), sw_vec, obs_np.copy(), one_step)[1])
         warm_obs = obs_np.copy()
         warm_views = arm_views(warm_obs)
         rec = {k: np.full(n, np.nan) for k in (*TICK_TIMES, *TICK_CPU)}
@@ -489,9 +496,9 @@ def run_loop(
         # The plant, the policy state and the learning are not touched; un-timed: none.
         while clock.now() < -WARM_UNTIL_S:
             arm.observe(s0.q, s0.qd, warm_views)
-            np.asarray(fns.step(jnp.array(ps_vec), sw_vec, warm_obs.copy())[1])
+            np.asarray(fns.step(jnp.array(ps_vec), sw_vec, warm_obs.copy(), one_step)[1])
         try:
-            j = 0
+            j = j_last = 0  # the policy state's previous sample: the release's, step 0
             while j < n:
                 t_wake = clock.wait_until(j * dt)
                 c0, p0, u0 = _thread_ns(), _process_ns(), _rusage(_THREAD)
@@ -525,7 +532,10 @@ def run_loop(
                 fill_sample(obs_np, s)
                 t_obs = clock.now()
                 c2 = _thread_ns()
-                ps_vec, row = fns.step(ps_vec, sw_vec, obs_np.copy())
+                # after skipped steps the accelerations' differences span the gap
+                gap = one_step if j <= j_last + 1 else np.asarray(j - j_last, sw_np_dtype)
+                ps_vec, row = fns.step(ps_vec, sw_vec, obs_np.copy(), gap)
+                j_last = j
                 row = np.asarray(row)
                 t_step = clock.now()
                 c3 = _thread_ns()
