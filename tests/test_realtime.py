@@ -124,6 +124,12 @@ def test_a_gap_of_steps_spans_the_accelerations_and_not_the_learning_step(untime
         np.testing.assert_allclose(aux3[name], aux1[name], rtol=1e-9, atol=1e-12, err_msg=name)
     for a, b in zip(jax.tree.leaves(ps3.learner), jax.tree.leaves(ps1.learner), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12)
+    after, before = jax.tree.leaves(ps1.learner.params), jax.tree.leaves(ps.learner.params)
+    moved = max(  # the learning step moved the weights well past that tolerance
+        float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+        for a, b in zip(after, before, strict=True)
+    )
+    assert moved > 1e-8, moved
     # the gap matters here: the same state read as one step gives another virtual force
     _, _, aux_one = policy(ps, obs, 3e-3)
     assert np.max(np.abs(np.asarray(aux_one["f_o"]) - np.asarray(aux3["f_o"]))) > 1e-3

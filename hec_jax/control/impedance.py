@@ -303,6 +303,16 @@ def _check_obs_shapes(obs: TaskObs) -> None:
             raise ValueError(f"TaskObs.{k} must have shape {s}, got {got}")
 
 
+def difference_over_elapsed(one_step, dt, dt_elapsed):
+    """A one-step backward difference ``one_step`` (over ``dt``) as the mean over ``dt_elapsed``
+    [s] (None: unchanged). Selected, not rescaled, at ``dt_elapsed == dt``: XLA may compile a
+    division by the constant ``dt`` differently from one by a traced value.
+    """
+    if dt_elapsed is None:
+        return one_step
+    return jnp.where(dt_elapsed == dt, one_step, one_step * (dt / dt_elapsed))
+
+
 def make_impedance_controller(
     dt: float, torque_limit, cfg: ControllerConfig | None = None
 ) -> tuple[Init, Apply]:
@@ -334,10 +344,11 @@ def make_impedance_controller(
 
     def apply(params, vparams, target, state, obs, dt_elapsed=None):
         _check_obs_shapes(obs)
-        h = dt if dt_elapsed is None else dt_elapsed  # [s] since the previous call
-        xdd_e = (obs.xd_e - state.xd_e_prev) / h  # [m/s^2], one sample old
+        # [m/s^2], one sample old; over a longer time since the previous call, its mean (the
+        # one-step difference itself, bit for bit, where dt_elapsed is dt)
+        xdd_e = difference_over_elapsed((obs.xd_e - state.xd_e_prev) / dt, dt, dt_elapsed)
         if obs.xdd_o is None:
-            xdd_o = (obs.xd_o - state.xd_o_prev) / h
+            xdd_o = difference_over_elapsed((obs.xd_o - state.xd_o_prev) / dt, dt, dt_elapsed)
         else:  # from an estimator (a piecewise prediction would spike under differencing)
             xdd_o = obs.xdd_o
         sk = sphere_kinematics(obs.x_o - obs.x_e, obs.xd_o - obs.xd_e, xdd_o - xdd_e, vparams.r)

@@ -21,6 +21,7 @@ from hec_jax.control import (
     Target,
     TaskObs,
     VirtualParams,
+    difference_over_elapsed,
     make_impedance_controller,
     sphere_kinematics,
 )
@@ -236,14 +237,17 @@ def build_loop(config: TaskConfig) -> Loop:
     def policy_obs(ps: PolicyState, obs: TaskObs, t, steps_elapsed=None):
         # steps_elapsed: control steps since the previous call (a wall-clock loop that skipped
         # steps, hec_jax.realtime); the accelerations' backward differences and the low-pass
-        # span them. The learner's sampling interval (Eqs. 54-58) stays one step: dE/dF_act
-        # scales with its square, so a 30-step stall would scale one learning step 900x.
-        # None: one step, and the traced program is the one without the argument.
+        # span them (the one-step difference itself, bit for bit, at one step). The
+        # learner's sampling interval (Eqs. 54-58) stays one step: dE/dF_act is the effect of
+        # the force applied from this sample on the next sample, which the gap just past says
+        # nothing about. None: one step, and the traced program is the one without it.
         cs, ls, sw, touch, xdd_o_lowpass = ps
         x_o_true, xd_o_true = obs.x_o, obs.xd_o
-        h = dt if steps_elapsed is None else dt * steps_elapsed  # [s] since the previous call
-        xdd_e = (obs.xd_e - cs.xd_e_prev) / h  # one sample old, as the controller's
-        xdd_o = (obs.xd_o - cs.xd_o_prev) / h
+        xdd_e = (obs.xd_e - cs.xd_e_prev) / dt  # one sample old, as the controller's
+        xdd_o = (obs.xd_o - cs.xd_o_prev) / dt
+        dt_elapsed = None if steps_elapsed is None else dt * steps_elapsed
+        xdd_e = difference_over_elapsed(xdd_e, dt, dt_elapsed)  # the mean acceleration over the gap
+        xdd_o = difference_over_elapsed(xdd_o, dt, dt_elapsed)
         if xdd_o_lowpass is not None:  # first-order low-pass, time constant object_accel_tau_s
             decay = accel_decay
             if steps_elapsed is not None:  # exactly the one-step decay at one step
@@ -295,7 +299,7 @@ def build_loop(config: TaskConfig) -> Loop:
         o = out.impedance if sw.fixed is None else sw.fixed.astype(out.impedance.dtype)
         o = o * (sw.use_virtual * seen)  # (2, 3): K_o, B_o, M_o per axis
         vp = VirtualParams(m_o=o[:, 2], b_o=o[:, 1], k_o=o[:, 0], r=jnp.asarray(lc.radius))
-        tau, cs, info = c_apply(params, vp, target, cs, obs, None if steps_elapsed is None else h)
+        tau, cs, info = c_apply(params, vp, target, cs, obs, dt_elapsed)
         aux = dict(
             x_e=obs.x_e,
             xd_e=obs.xd_e,

@@ -12,7 +12,7 @@ Per tick j (plant time j dt, :class:`~hec_jax.realtime.clock.WallClock`):
    loops run after their MJX observation (object state from eye and touch, online learning of
    Eqs. 50-66, impedance law of Eqs. 41-49), on flat vectors (policy state, switches,
    observation in; policy state, torques and the logged signals out), so each call passes
-   three arrays;
+   three arrays and the steps since the previous call;
 5. write the torques; the plant applies them to step j if they came before its deadline
    ((j + 1) dt), else holds the previous ones (:class:`~hec_jax.realtime.plant.MujocoPlant`).
 
