@@ -455,3 +455,49 @@ def test_jump_test_rejects_bad_settings():
     for bad in ({"max_speed_m_s": 0.0}, {"max_speed_m_s": -1.0}, {"jump_slack_m": -0.1}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             smooth_track(*args, dataclasses.replace(JUMP_BASE, **bad))
+
+
+def test_settings_differing_in_numbers_share_one_compilation_and_each_number_acts():
+    """The real-valued settings enter the jitted fits as arguments: settings that differ only in
+    them reuse one compiled program (a sweep over them compiles once per length), every one of
+    them changes the result, and the per-segment result is the one with the numbers compiled in
+    as constants (the smoother before), to round-off."""
+    (_, _, _, _), (meas_rot, meas_pos, info) = _pendulum(t_n=50, seed=11)
+    meas_pos = meas_pos.copy()
+    for i in (40, 41):  # two wrong fits, 15 cm along the line of sight: outliers of the model
+        meas_pos[i] *= 1.0 + 0.15 / np.linalg.norm(meas_pos[i])
+    valid = np.ones(50, bool)
+    base = SmootherConfig(
+        info_scale=1.0, hinge_max_cost=12.6, hinge_whole_track=True, hinge_robust_scale=6.0
+    )
+    args = (meas_rot, meas_pos, info, valid, DT)
+    ref = smooth_track(*args, base)
+    assert ref.hinge
+    static, _ = smooth_mod._compiled_form(base)
+    segment_fit = smooth_mod._JIT[(static, float(DT))]
+    whole_fit = smooth_mod._JIT[("whole", static, float(DT))]
+    changes = {
+        "angular_accel_psd": 200.0,
+        "jerk_psd": 100.0,
+        "info_scale": 0.3,
+        "hinge_max_cost": 1e-6,  # below every fit's cost: the model is refused
+        "hinge_robust_scale": 1e-3,
+        "hinge_min_inliers": 1.0,  # every valid frame an inlier, not the two wrong fits: refused
+    }
+    for name, value in changes.items():
+        out = smooth_track(*args, dataclasses.replace(base, **{name: value}))
+        fields = ("rotation", "position", "velocity", "acceleration")
+        moved = max(np.max(np.abs(getattr(out, f) - getattr(ref, f))) for f in fields)
+        assert moved > 1e-6 or bool(out.hinge) != bool(ref.hinge), name
+    assert segment_fit._cache_size() == 1 and whole_fit._cache_size() == 1
+    # the numbers as constants of the program (as compiled before): the same per-segment result
+    cfg = dataclasses.replace(base, angular_accel_psd=7.0, jerk_psd=33.0, info_scale=0.7)
+    with jax.enable_x64(True):
+        padded = smooth_mod._pad_inputs(meas_rot, meas_pos, info, valid)
+        baked = jax.jit(lambda r, p, i, v: smooth_mod._smooth(r, p, i, v, DT, cfg))(*padded)
+        traced = smooth_mod._smooth_segment(meas_rot, meas_pos, info, valid, DT, cfg)
+    assert segment_fit._cache_size() == 1
+    for f in ("rotation", "position", "velocity"):
+        np.testing.assert_allclose(
+            getattr(traced, f), np.asarray(getattr(baked, f))[:50], atol=1e-9
+        )

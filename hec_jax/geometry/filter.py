@@ -40,9 +40,15 @@ class FilterState(NamedTuple):
 
 
 def transition(config: FilterConfig) -> tuple[Array, Array]:
-    """(F, Q) (9, 9) of one frame interval."""
-    f, q = transition_np(config.jerk_psd, config.dt)
-    return jnp.asarray(f), jnp.asarray(q)
+    """(F, Q) (9, 9) of one frame interval. ``config.jerk_psd`` may be a traced scalar (the
+    smoother passes it so); ``config.dt`` is a number.
+    """
+    if isinstance(config.jerk_psd, int | float):
+        f, q = transition_np(config.jerk_psd, config.dt)
+        return jnp.asarray(f), jnp.asarray(q)
+    # Q is linear in jerk_psd: the same products as transition_np's (the Kronecker factor is 0/1)
+    f, q_unit = transition_np(1.0, config.dt)
+    return jnp.asarray(f), config.jerk_psd * jnp.asarray(q_unit)
 
 
 def transition_np(jerk_psd: float, dt: float) -> tuple[np.ndarray, np.ndarray]:

@@ -652,6 +652,35 @@ def _unsplit(cfg: SmootherConfig) -> SmootherConfig:
     )
 
 
+# The real-valued settings the jitted fits read. They enter the fits as a traced (6,) float64
+# argument, not as constants of the program, so settings that differ only in them share one
+# compilation (a sweep over them compiles once per sequence length).
+_TRACED_NUMBERS = (
+    "angular_accel_psd",
+    "jerk_psd",
+    "info_scale",
+    "hinge_max_cost",
+    "hinge_robust_scale",
+    "hinge_min_inliers",
+)
+
+
+def _compiled_form(cfg: SmootherConfig) -> tuple[SmootherConfig, np.ndarray]:
+    """(the settings a jitted fit is compiled for: :func:`_unsplit`'s with every field of
+    ``_TRACED_NUMBERS`` at its default, those fields' values (6,) float64 to pass it).
+    """
+    numbers = np.array([float(getattr(cfg, name)) for name in _TRACED_NUMBERS], np.float64)
+    defaults = {name: getattr(SmootherConfig, name) for name in _TRACED_NUMBERS}
+    return dataclasses.replace(_unsplit(cfg), **defaults), numbers
+
+
+def _with_numbers(static: SmootherConfig, numbers: Array) -> SmootherConfig:
+    """``static`` with the fields of ``_TRACED_NUMBERS`` set from ``numbers`` (traced inside a
+    jitted fit: the settings object then holds scalars of the trace).
+    """
+    return dataclasses.replace(static, **dict(zip(_TRACED_NUMBERS, numbers, strict=True)))
+
+
 def _segments(idx: np.ndarray, new_segment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(starts, ends) [a, b) of the segments of the valid frames ``idx`` (sorted), a new one
     after each ``new_segment`` (len(idx) - 1,) break.
@@ -665,12 +694,12 @@ def _segments(idx: np.ndarray, new_segment: np.ndarray) -> tuple[np.ndarray, np.
 def _smooth_segment(rotations, positions, information, valid, dt, cfg) -> SmoothedTrack:
     """:func:`_smooth` on one segment (>= 4 valid frames), padded to a multiple of ``PAD``."""
     t_n = len(valid)
-    cfg = _unsplit(cfg)
-    key = (cfg, float(dt))
+    static, numbers = _compiled_form(cfg)
+    key = (static, float(dt))
     if key not in _JIT:
-        _JIT[key] = jax.jit(lambda r, p, i, v: _smooth(r, p, i, v, dt, cfg))
+        _JIT[key] = jax.jit(lambda r, p, i, v, x: _smooth(r, p, i, v, dt, _with_numbers(static, x)))
     # padded to a multiple of PAD frames to share compilations
-    out = _JIT[key](*_pad_inputs(rotations, positions, information, valid))
+    out = _JIT[key](*_pad_inputs(rotations, positions, information, valid), numbers)
     per_frame = (np.array(x)[:t_n] for x in out[:5])
     return SmoothedTrack(*per_frame, *(np.asarray(x) for x in out[5:8]))
 
@@ -701,17 +730,19 @@ def _whole_track(out, rotations, positions, information, valid, segments, dt, cf
     and out: (out, (T,) bool the frames that took the model's state).
     """
     t_n = len(valid)
-    key = ("whole", _unsplit(cfg), float(dt))
+    static, numbers = _compiled_form(cfg)
+    key = ("whole", static, float(dt))
     if key not in _JIT:
 
-        def run(r, p, i, v, r0, p0):
-            info = jnp.where(v[:, None, None], cfg.info_scale * i, 0.0)
-            return fit_hinge_robust(r, p, info, v, r0, p0, dt, cfg)
+        def run(r, p, i, v, r0, p0, x):
+            traced = _with_numbers(static, x)
+            info = jnp.where(v[:, None, None], traced.info_scale * i, 0.0)
+            return fit_hinge_robust(r, p, info, v, r0, p0, dt, traced)
 
         _JIT[key] = jax.jit(run)
     r, p, i, v = _pad_inputs(rotations, positions, information, valid)
     r0, p0, _, _ = _pad_inputs(out.rotation, out.position, information, valid)  # the start
-    robust = _JIT[key](r, p, i, v, r0, p0)
+    robust = _JIT[key](r, p, i, v, r0, p0, numbers)
     if not bool(robust.accepted):
         return out, np.zeros(t_n, bool)
     fit = robust.fit
