@@ -14,8 +14,10 @@ CFG_1D = LearnerConfig(net=NetConfig(n_axes=1), contact_stiffness=K_C, eta=(0.1,
 
 
 def _learner_1d(cfg=CFG_1D):
-    """The learner of the 1-D world (target impedance M_E, B_E, K_E; sampling DT)."""
-    return nets.make_online_learner(cfg, DT, (M_E,), (B_E,), (K_E,))
+    """The learner of the 1-D world (target impedance M_E, B_E, K_E; sampling DT), jitted as the
+    loop runs it (eager JAX would compile each operation on its own: the suite's time)."""
+    init, update = nets.make_online_learner(cfg, DT, (M_E,), (B_E,), (K_E,))
+    return jax.jit(init, static_argnums=1), jax.jit(update)
 
 
 def _inputs_1d(values, contact, radius=CFG_1D.radius):
@@ -311,7 +313,7 @@ def _batch_of_steps(dtype, batch=5, n_axes=2, hidden=(20, 20)):
     not learn); rates and U shared, as the learner passes them."""
     cfg = NetConfig(n_axes=n_axes, hidden=hidden)
     keys = jax.random.split(jax.random.PRNGKey(7), batch)
-    params = jax.vmap(lambda k: nets.init_params(k, cfg, dtype))(keys)
+    params = jax.jit(jax.vmap(lambda k: nets.init_params(k, cfg, dtype)))(keys)
     params = jax.tree_util.tree_map(lambda p: 3.0 * p, params)  # outputs away from 0
     rng = np.random.default_rng(8)  # test data from NumPy (eager JAX compiles each operation)
     net_in = jnp.asarray(rng.normal(size=(batch, n_axes, 4)), dtype)
@@ -400,8 +402,9 @@ def test_network_step_kernel_is_differentiable_through_the_reference():
         leaves = jax.tree_util.tree_leaves(new)
         return jnp.sum(o**2) + sum(jnp.sum(jnp.sin(w)) for w in leaves)
 
-    ref = jax.grad(lambda p, gg: loss("xla", p, gg), argnums=(0, 1))(params, g)
-    ker = jax.grad(lambda p, gg: loss("interpret", p, gg), argnums=(0, 1))(params, g)
+    # jitted: one compile each rather than one per operation
+    ref = jax.jit(jax.grad(lambda p, gg: loss("xla", p, gg), argnums=(0, 1)))(params, g)
+    ker = jax.jit(jax.grad(lambda p, gg: loss("interpret", p, gg), argnums=(0, 1)))(params, g)
     for a, b in zip(jax.tree_util.tree_leaves(ker), jax.tree_util.tree_leaves(ref), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(b))))
 
