@@ -70,7 +70,10 @@ from hec_jax.geometry.refine import so3_exp, so3_log
 
 @dataclass(frozen=True)
 class SmootherConfig:
-    """Static parameters of the smoother.
+    """Parameters of the smoother. The real-valued ones the jitted fits read
+    (``angular_accel_psd``, ``jerk_psd``, ``info_scale``, ``hinge_max_cost``,
+    ``hinge_robust_scale``, ``hinge_min_inliers``) enter them as arguments: settings that differ
+    only in those share one compilation per padded sequence length.
 
     Attributes:
         angular_accel_psd: spectral density of the white angular acceleration [rad^2/s^3].
