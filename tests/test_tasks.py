@@ -12,13 +12,11 @@ from hec_jax.nets import LearnerConfig
 
 @pytest.fixture(scope="module")
 def catching_logs():
-    """3 swings of 0.9 s (contact at ~0.58 s), 1 seed, all three conditions, one compile."""
-    config = tl.TaskConfig(
-        learner=LearnerConfig(task="catching", r_b=0.085, eta=(0.3,) * 3, contact_stiffness=1e5),
-        swing_s=0.9,
-        swings=3,
-    )
-    logs, _ = tl.run_conditions(tl.build_loop(config), default_conditions(), seed=0, n_seeds=1)
+    """The catching preset, 2 swings of 1 s, 2 seeds, all three conditions: the program of
+    tests/test_hand_eye.py's ground-truth run (one compile for both modules, through the
+    persistent compilation cache)."""
+    config = tl.replace(tl.catching().task, swings=2, swing_s=1.0)
+    logs, _ = tl.run_conditions(tl.build_loop(config), config.pendulum.conditions(), 0, 2)
     return logs
 
 
