@@ -9,15 +9,8 @@ from hec_jax.loop import metrics as mt
 from hec_jax.mjx_scene import default_conditions
 from hec_jax.nets import LearnerConfig
 
-
-@pytest.fixture(scope="module")
-def catching_logs():
-    """The catching preset, 2 swings of 1 s, 2 seeds, all three conditions: the program of
-    tests/test_hand_eye.py's ground-truth run (one compile for both modules, through the
-    persistent compilation cache)."""
-    config = tl.replace(tl.catching().task, swings=2, swing_s=1.0)
-    logs, _ = tl.run_conditions(tl.build_loop(config), config.pendulum.conditions(), 0, 2)
-    return logs
+# The catching loop's learning (all three conditions on ground truth) is checked in
+# tests/test_hand_eye.py, on the ground-truth run its camera fixture compiles and runs anyway.
 
 
 def test_contact_events():
@@ -27,27 +20,6 @@ def test_contact_events():
     f[60:70] = 1.0
     assert mt.contact_events(f, 0.5, min_gap=5) == [(10, 17), (60, 70)]
     assert mt.contact_events(np.zeros(10), 0.5, min_gap=5) == []
-
-
-def test_catching_loop_learns_to_soften_the_impact(catching_logs):
-    peak = {c: mt.force_norm(lg)[0].max(-1) for c, lg in catching_logs.items()}  # per swing
-    # Without learning every swing is the same (the world restarts at the same release).
-    np.testing.assert_allclose(peak["plain"], peak["plain"][0], rtol=1e-9)
-    np.testing.assert_allclose(peak["frozen"], peak["frozen"][0], rtol=1e-9)
-    assert peak["plain"][0] > 100.0  # a hard impact at ~1 m/s
-    # Learning lowers the peak force below both baselines already within these swings.
-    assert peak["learned"][-1] < 0.8 * min(peak["plain"][0], peak["frozen"][0])
-    # Strict Eq. 49 at every sample, and the plain condition has no virtual force at all.
-    assert mt.stability_summary(catching_logs["learned"])["all_strictly_stable"]
-    assert np.all(catching_logs["plain"]["f_o"] == 0.0)
-    assert np.all(np.isfinite(catching_logs["learned"]["x_e"]))
-
-
-def test_learning_only_inside_the_sphere(catching_logs):
-    lg = catching_logs["learned"]
-    assert np.any(lg["learning"])
-    assert not np.any(lg["learning"] & ~lg["inside"])
-    assert not np.any(catching_logs["frozen"]["learning"])
 
 
 def test_switches_reject_unknown_condition():
