@@ -487,17 +487,33 @@ def test_settings_differing_in_numbers_share_one_compilation_and_each_number_act
         "hinge_robust_scale": 1e-3,
         "hinge_min_inliers": 1.0,  # every valid frame an inlier, not the two wrong fits: refused
     }
+    # the whole-track program on its own, from the measurements (every number but jerk_psd acts)
+    padded = smooth_mod._pad_inputs(meas_rot, meas_pos, info, valid)
+    with jax.enable_x64(True):
+        whole = lambda c: whole_fit(*padded, *padded[:2], smooth_mod._compiled_form(c)[1])  # noqa: E731
+        whole_ref = whole(base)
     for name, value in changes.items():
-        out = smooth_track(*args, dataclasses.replace(base, **{name: value}))
+        cfg = dataclasses.replace(base, **{name: value})
+        out = smooth_track(*args, cfg)
         fields = ("rotation", "position", "velocity", "acceleration")
         moved = max(np.max(np.abs(getattr(out, f) - getattr(ref, f))) for f in fields)
         assert moved > 1e-6 or bool(out.hinge) != bool(ref.hinge), name
+        if name != "jerk_psd":
+            with jax.enable_x64(True):
+                got = whole(cfg)
+            fit_moved = max(
+                float(np.max(np.abs(np.asarray(a) - np.asarray(b))))
+                for a, b in (
+                    (got.fit.rotation, whole_ref.fit.rotation),
+                    (got.velocity, whole_ref.velocity),
+                )
+            )
+            assert fit_moved > 1e-6 or bool(got.accepted) != bool(whole_ref.accepted), name
     assert len(smooth_mod._JIT) == jitted  # no new jitted function
     assert (segment_fit._cache_size(), whole_fit._cache_size()) == compiled  # none compiled
     # the numbers as constants of the program (as compiled before): the same per-segment result
     cfg = dataclasses.replace(base, angular_accel_psd=7.0, jerk_psd=33.0, info_scale=0.7)
     with jax.enable_x64(True):
-        padded = smooth_mod._pad_inputs(meas_rot, meas_pos, info, valid)
         baked = jax.jit(lambda r, p, i, v: smooth_mod._smooth(r, p, i, v, DT, cfg))(*padded)
         traced = smooth_mod._smooth_segment(meas_rot, meas_pos, info, valid, DT, cfg)
     assert segment_fit._cache_size() == compiled[0]

@@ -43,7 +43,7 @@ def transition(config: FilterConfig) -> tuple[Array, Array]:
     """(F, Q) (9, 9) of one frame interval. ``config.jerk_psd`` may be a traced scalar (the
     smoother passes it so); ``config.dt`` is a number.
     """
-    if isinstance(config.jerk_psd, int | float):
+    if not isinstance(config.jerk_psd, jax.Array):  # a number (Python or NumPy): as before
         f, q = transition_np(config.jerk_psd, config.dt)
         return jnp.asarray(f), jnp.asarray(q)
     # Q is linear in jerk_psd: the same products as transition_np's (the Kronecker factor is 0/1)
