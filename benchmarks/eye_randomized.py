@@ -121,6 +121,12 @@ class EyeRandomized:
     # SmootherConfig.hinge_max_cost of the smoother (the preset's, 2.0; 0.5, the library's
     # default, for the ablation; docs/eye_randomized.md "The fixed-axis model's cost bound")
     hinge_max_cost: float = SMOOTH.hinge_max_cost
+    # SmootherConfig.hinge_step_check and hinge_iters of the smoother (the preset's: the
+    # fixed-axis fit's steps checked, up to 100 iterations, stopped once converged; False and 10
+    # for the ablation, the smoother before session 62; docs/eye_randomized.md, "The fixed-axis
+    # fit's steps checked")
+    hinge_step_check: bool = SMOOTH.hinge_step_check
+    hinge_iters: int = SMOOTH.hinge_iters
 
     def __post_init__(self):
         require(self, "count", "sequences", "width", "height", "threads")
@@ -138,6 +144,7 @@ class EyeRandomized:
             require(self, "non_negative", "face_seam_step")
         require(self, "non_negative", "min_inner_support", "max_speed_m_s")
         require(self, "positive", "hinge_max_cost")
+        require(self, "count", "hinge_iters")
 
 
 def tracker_config(a: EyeRandomized):
@@ -174,7 +181,11 @@ def split_seeds(a: EyeRandomized) -> list[int]:
 def smoother_config(a: EyeRandomized):
     """The smoother's configuration: ``SMOOTH`` with the flags' overrides."""
     return dataclasses.replace(
-        SMOOTH, max_speed_m_s=a.max_speed_m_s or None, hinge_max_cost=a.hinge_max_cost
+        SMOOTH,
+        max_speed_m_s=a.max_speed_m_s or None,
+        hinge_max_cost=a.hinge_max_cost,
+        hinge_step_check=a.hinge_step_check,
+        hinge_iters=a.hinge_iters,
     )
 
 

@@ -274,6 +274,53 @@ def test_whole_track_hinge_velocity_is_the_model_s():
     assert a_err < 0.1, a_err  # |a| up to 4.5 m/s^2
 
 
+def _hinge_objective(fit, cfg) -> float:
+    """:func:`smooth_mod.fit_hinge`'s objective, recomputed from its outputs: the frames'
+    normalised squared residuals plus the angle's second differences over their prior sigma."""
+    sigma = np.sqrt(2.0 / 3.0 * cfg.angular_accel_psd * DT**3)
+    second = np.diff(np.asarray(fit.angle), 2) / sigma
+    return float(np.nansum(np.asarray(fit.frame_cost)) + np.sum(second**2))
+
+
+def test_hinge_step_check_never_raises_the_objective_where_plain_steps_do():
+    """A fixed-axis fit started on a wrong lock (frames 0-3 1 m off and turned 90 deg, the
+    information unweighted, as the robust fit's first pass sees it). Plain Gauss-Newton steps
+    raise the objective (on this seed by 10% at iteration 4, 70x by iteration 9), so where they
+    end depends on the iteration count; with ``hinge_step_check`` the objective never rises and
+    ends lower. The reported objective trace ends at the objective recomputed from the fit's
+    outputs. From a good start both take the same steps to the same fit."""
+    (rot, pos, _, _), (meas_rot, meas_pos, info) = _pendulum(seed=8)
+    meas_pos, meas_rot = meas_pos.copy(), meas_rot.copy()
+    meas_pos[:4] += np.array([0.6, -0.5, 0.6])  # [m]
+    meas_rot[:4] = np.asarray(so3_exp(jnp.array([np.pi / 2, 0.0, 0.0]))) @ meas_rot[:4]
+    valid = np.ones(len(pos), bool)
+
+    def fit(meas_rot, meas_pos, start_rot, start_pos, check):
+        cfg = SmootherConfig(info_scale=1.0, hinge_step_check=check)
+        return jax.jit(
+            lambda r, p, i, v, r0, p0: smooth_mod.fit_hinge(r, p, i, v, r0, p0, DT, cfg)
+        )(meas_rot, meas_pos, info, valid, start_rot, start_pos), cfg
+
+    traces = {}
+    for check in (False, True):
+        out, cfg = fit(meas_rot, meas_pos, meas_rot, meas_pos, check)
+        traces[check] = np.asarray(out.objective)
+        assert traces[check].shape == (cfg.hinge_iters + 1,)
+        np.testing.assert_allclose(traces[check][-1], _hinge_objective(out, cfg), rtol=1e-12)
+    plain, checked = traces[False], traces[True]
+    assert np.all(np.diff(checked) <= 0.0), checked
+    assert np.any(np.diff(plain) > 0.05 * plain[:-1]), plain  # the failure the check removes
+    assert checked[-1] < plain[-1], (checked, plain)
+    # no wrong lock, started at the truth: each step lowers the objective (to round-off once
+    # converged), and the two fits agree
+    (_, _, _, _), (clean_rot, clean_pos, _) = _pendulum(seed=8)
+    good = [fit(clean_rot, clean_pos, rot, pos, check)[0] for check in (False, True)]
+    assert np.all(np.diff(good[0].objective) <= 1e-12 * good[0].objective[:-1])  # round-off
+    np.testing.assert_allclose(good[1].objective, good[0].objective, rtol=1e-9)
+    np.testing.assert_allclose(good[1].position, good[0].position, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(good[1].rotation, good[0].rotation, rtol=0, atol=1e-9)
+
+
 def test_smooth_track_is_float64_without_x64():
     """With ``jax_enable_x64`` off the smoother still computes in float64: the same outputs, and
     the fixed-axis model is not lost (in float32 its fit can return NaN)."""

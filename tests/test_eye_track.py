@@ -180,6 +180,12 @@ OFF = {  # the issue-24 settings and their off values
 }
 
 
+# The recorded tracker's smoother: plain Gauss-Newton steps, 10 of them, in the fixed-axis fit
+# (the default since 2026-12-03 checks each step and runs to convergence, which moves the ghost
+# case's smoothed outputs by up to 4e-7 of their scale and its axis by 1.3e-6: over RTOL)
+RECORDED_SMOOTHER = SmootherConfig(hinge_step_check=False, hinge_iters=10)
+
+
 @pytest.fixture(scope="module")
 def ref():
     with np.load(REFERENCE) as f:
@@ -245,7 +251,7 @@ def test_the_new_checks_are_off_by_default():
 )  # loop: its own compilation (~10 s on the 2 CI cores), with -m slow
 def test_defaults_reproduce_the_recorded_tracker(ref, case):
     frames, background, cfg = _case(ref, case)
-    tr = track_box(frames, ref["intrinsics"], EDGE, FPS, cfg, background=background)
+    tr = track_box(frames, ref["intrinsics"], EDGE, FPS, cfg, RECORDED_SMOOTHER, background)
     assert _differences(tr, ref, case) == []
 
 
@@ -276,10 +282,10 @@ def test_depth_gate_on_the_recorded_frames(ref):
 @pytest.mark.parametrize(
     "case, track, smoother",
     [
-        ("plain", {}, SmootherConfig(max_gap_s=0.2)),
-        ("ghost", {"foreground_edges": True}, None),
-        ("ghost", {"min_iou_acquire": 0.6}, None),
-        ("ghost", dataclasses.asdict(UNSEEN_SCENES), None),
+        ("plain", {}, dataclasses.replace(RECORDED_SMOOTHER, max_gap_s=0.2)),
+        ("ghost", {"foreground_edges": True}, RECORDED_SMOOTHER),
+        ("ghost", {"min_iou_acquire": 0.6}, RECORDED_SMOOTHER),
+        ("ghost", dataclasses.asdict(UNSEEN_SCENES), RECORDED_SMOOTHER),
     ],
     ids=["max_gap_s", "foreground_edges", "min_iou_acquire", "unseen_scenes"],
 )

@@ -88,7 +88,15 @@ class SmootherConfig:
             info_scale {0.003 .. 0.1}; lower values smooth more and would blur faster motion.
         iters: Gauss-Newton iterations of the rotation pass.
         hinge: also fit the fixed-axis model (3. above) and use it where it fits.
-        hinge_iters: its Gauss-Newton iterations.
+        hinge_iters: its Gauss-Newton iterations: the most, with ``hinge_step_check`` (the
+            fit stops once converged); all of them without.
+        hinge_step_check: refuse a Gauss-Newton step of the fixed-axis fit that raises its
+            objective and raise the damping instead (Levenberg-Marquardt, :func:`fit_hinge`),
+            and stop once converged. False (the smoother before session 62, with
+            ``hinge_iters`` 10): every step is taken; started on wrong fits, the plain steps
+            can raise the objective manyfold (``HingeFit.objective``), so the fit they end at
+            depends on the iteration count and on round-off (docs/eye_randomized.md, "The
+            fixed-axis fit's steps checked").
         hinge_max_cost: largest median normalised squared residual (6 dof per measured frame,
             the information scaled by ``info_scale``) of an accepted fixed-axis fit [-]. 0.5 was
             chosen on the two held-out rendered swings (release 0.35 and 0.58 rad): their fits
@@ -162,7 +170,8 @@ class SmootherConfig:
     info_scale: float = 0.01
     iters: int = 3
     hinge: bool = True
-    hinge_iters: int = 10
+    hinge_iters: int = 100
+    hinge_step_check: bool = True
     hinge_max_cost: float = 0.5
     max_gap_s: float | None = None
     split_at_restarts: bool = False
@@ -259,7 +268,9 @@ def smooth_rotations(rotations: Array, info_rot: Array, dt: float, cfg: Smoother
 class HingeFit(NamedTuple):
     """Fixed-axis fit. Attributes: rotation (T, 3, 3), position (T, 3) [m], axis (3,) unit,
     pivot (3,) a point on the axis [m], angle (T,) theta [rad], frame_cost (T,) normalised
-    squared residual of each frame (NaN where unmeasured), cost its median over measured frames.
+    squared residual of each frame (NaN where unmeasured), cost its median over measured frames,
+    objective (hinge_iters + 1,) the fit's objective (the frames' whitened residuals and the
+    angle's prior, squared and summed) before each iteration and at the end.
     """
 
     rotation: Array
@@ -269,6 +280,7 @@ class HingeFit(NamedTuple):
     angle: Array
     frame_cost: Array
     cost: Array
+    objective: Array
 
 
 def _sqrt_info(info: Array) -> Array:
@@ -294,7 +306,13 @@ def fit_hinge(
     (T, 6, 6), already scaled; zero where unmeasured) and the second difference of theta over
     sigma = sqrt((2/3) q_w dt^3) (white angular acceleration, as :func:`smooth_rotations`).
     Parameters: (dR_0, dt_0, da, dp) (12) and theta (T); the gauges (a shift of all theta
-    against R_0 and t_0, p along a) are held by a small Marquardt damping.
+    against R_0 and t_0, p along a) are held by a small Marquardt damping (1e-6 of the
+    diagonal). With ``cfg.hinge_step_check`` a step that does not lower the objective is
+    refused and the damping raised (Levenberg-Marquardt, with the gain-ratio update of Madsen,
+    Nielsen and Tingleff); each accepted step lowers it again, down to 1e-6. So the objective
+    never rises, and while every step lowers it the iterates are the plain ones. It stops once
+    an accepted step lowers the objective by under 1e-10 of it, or the damping passes 1e8 (no
+    lower objective found), or after ``cfg.hinge_iters`` iterations.
 
     Started from a smoothed sequence (``rot_init``, ``pos_init``): a = the principal direction of
     the rotation vectors log(R_i R_f^T) (f the first valid frame), theta_i their component
@@ -350,8 +368,15 @@ def fit_hinge(
         + jnp.eye(t_n - 2, t_n, 2, dtype=dtype)
     ) / sigma
 
+    def total_cost(state, theta):
+        """The objective: whitened frame residuals and the angle's prior, squared and summed."""
+        x = jnp.zeros(13, dtype)
+        one = lambda th, rm, tm, li: frame_residual(x, th, rm, tm, li, state)  # noqa: E731
+        res = jax.vmap(one)(theta, rotations, positions, sqrt_info)
+        return jnp.sum(res**2) + jnp.sum((second @ theta) ** 2)
+
     def step(carry, _):
-        state, theta = carry
+        state, theta, damping, nu = carry
         res, jac = frame_jacobians(state, theta)
         jg, jt = jac[..., :12], jac[..., 12]  # (T, 6, 12), (T, 6)
         h_gg = jnp.einsum("tki,tkj->ij", jg, jg)
@@ -361,18 +386,61 @@ def fit_hinge(
         grad = jnp.concatenate(
             [jnp.einsum("tki,tk->i", jg, res), jnp.sum(jt * res, -1) + second.T @ (second @ theta)]
         )
-        h = h + jnp.diag(1e-6 * jnp.diag(h) + 1e-12)
+        cost = jnp.sum(res**2) + jnp.sum((second @ theta) ** 2)
+        if not cfg.hinge_step_check:
+            h = h + jnp.diag(1e-6 * jnp.diag(h) + 1e-12)
+            dx = -jnp.linalg.solve(h, grad)
+            return (unpack(dx[:12], state), theta + dx[12:], damping, nu), cost
+        # Levenberg-Marquardt with the gain-ratio update of Madsen, Nielsen and Tingleff (2004,
+        # "Methods for non-linear least squares problems", 3.2): a step that does not lower the
+        # objective is refused and the damping raised by nu (doubled at each refusal in a row);
+        # an accepted one scales it by max(1/3, 1 - (2 rho - 1)^3), rho the actual over the
+        # predicted decrease, down to the plain steps' 1e-6
+        scale = jnp.diag(h)
+        h = h + jnp.diag(damping * scale + 1e-12)
         dx = -jnp.linalg.solve(h, grad)
-        return (unpack(dx[:12], state), theta + dx[12:]), None
+        trial = (unpack(dx[:12], state), theta + dx[12:])
+        trial_cost = total_cost(*trial)
+        predicted = dx @ (damping * scale * dx - grad)  # the decrease of the linearised cost
+        better = jnp.isfinite(trial_cost) & (trial_cost < cost)
+        rho = (cost - trial_cost) / jnp.maximum(predicted, jnp.finfo(dtype).tiny)
+        state, theta = jax.tree.map(lambda n, o: jnp.where(better, n, o), trial, (state, theta))
+        shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
+        damping = jnp.where(better, jnp.maximum(damping * shrink, 1e-6), damping * nu)
+        nu = jnp.where(better, 2.0, 2.0 * nu)
+        # converged: an accepted step that lowered the objective by under 1e-10 of it, or no
+        # step found (the damping past 1e8: steps of 1e-8 of a gradient step, refused)
+        converged = (better & (cost - trial_cost <= 1e-10 * cost)) | (damping > 1e8)
+        return (state, theta, damping, nu), (cost, converged)
 
     state = (r_ref, t_ref, axis, pivot)
-    (state, theta), _ = jax.lax.scan(step, (state, theta), None, cfg.hinge_iters)
+    start = (state, theta, jnp.asarray(1e-6, dtype), jnp.asarray(2.0, dtype))
+    if not cfg.hinge_step_check:
+        (state, theta, _, _), costs = jax.lax.scan(step, start, None, cfg.hinge_iters)
+        ran = cfg.hinge_iters
+    else:  # up to ``hinge_iters`` iterations, stopped once converged
+
+        def body(loop):
+            k, carry, costs, _ = loop
+            carry, (cost, converged) = step(carry, None)
+            return k + 1, carry, costs.at[k].set(cost), converged
+
+        def more(loop):
+            k, _, _, converged = loop
+            return (k < cfg.hinge_iters) & ~converged
+
+        loop = (0, start, jnp.zeros(cfg.hinge_iters, dtype), jnp.asarray(False))
+        ran, (state, theta, _, _), costs, _ = jax.lax.while_loop(more, body, loop)
     r0, t0, a, p = state
     e = so3_exp(theta[:, None] * a[None])
     rot, pos = e @ r0, p[None, :] + jnp.einsum("tij,j->ti", e, t0 - p)
     res, _ = frame_jacobians(state, theta)
     frame_cost = jnp.where(valid, jnp.sum(res**2, -1), jnp.nan)
-    return HingeFit(rot, pos, a, p, theta, frame_cost, jnp.nanmedian(frame_cost))
+    final = jnp.sum(res**2) + jnp.sum((second @ theta) ** 2)
+    # the iterations not run (stopped once converged) hold the final objective
+    costs = jnp.where(jnp.arange(cfg.hinge_iters) < ran, costs, final)
+    objective = jnp.concatenate([costs, final[None]])
+    return HingeFit(rot, pos, a, p, theta, frame_cost, jnp.nanmedian(frame_cost), objective)
 
 
 class RobustHinge(NamedTuple):
