@@ -296,11 +296,19 @@ def test_hinge_step_check_never_raises_the_objective_where_plain_steps_do():
     meas_rot[:4] = np.asarray(so3_exp(jnp.array([np.pi / 2, 0.0, 0.0]))) @ meas_rot[:4]
     valid = np.ones(len(pos), bool)
 
+    configs = {
+        c: SmootherConfig(info_scale=1.0, hinge_step_check=c, hinge_iters=10) for c in (0, 1)
+    }
+    fits = {  # one compilation per rule
+        c: jax.jit(
+            lambda r, p, i, v, r0, p0, cfg=cfg: smooth_mod.fit_hinge(r, p, i, v, r0, p0, DT, cfg)
+        )
+        for c, cfg in configs.items()
+    }
+
     def fit(meas_rot, meas_pos, start_rot, start_pos, check):
-        cfg = SmootherConfig(info_scale=1.0, hinge_step_check=check, hinge_iters=10)
-        return jax.jit(
-            lambda r, p, i, v, r0, p0: smooth_mod.fit_hinge(r, p, i, v, r0, p0, DT, cfg)
-        )(meas_rot, meas_pos, info, valid, start_rot, start_pos), cfg
+        out = fits[int(check)](meas_rot, meas_pos, info, valid, start_rot, start_pos)
+        return out, configs[int(check)]
 
     traces = {}
     for check in (False, True):

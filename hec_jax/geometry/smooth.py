@@ -88,11 +88,12 @@ class SmootherConfig:
             info_scale {0.003 .. 0.1}; lower values smooth more and would blur faster motion.
         iters: Gauss-Newton iterations of the rotation pass.
         hinge: also fit the fixed-axis model (3. above) and use it where it fits.
-        hinge_iters: its Gauss-Newton iterations: the most, with ``hinge_step_check`` (the
-            fit stops once converged); all of them without.
-        hinge_step_check: refuse a Gauss-Newton step of the fixed-axis fit that raises its
-            objective and raise the damping instead (Levenberg-Marquardt, :func:`fit_hinge`),
-            and stop once converged. False (the smoother before session 62, with
+        hinge_iters: its Gauss-Newton iterations: the most, refused steps included, with
+            ``hinge_step_check`` (the fit stops once converged); all of them without.
+        hinge_step_check: refuse a Gauss-Newton step of the fixed-axis fit that does not lower
+            its objective and raise the damping instead (Levenberg-Marquardt,
+            :func:`fit_hinge`), and stop once converged. On by default, unlike the other
+            options added since issue 24: it corrects the fit's numerics. False (the smoother before session 62, with
             ``hinge_iters`` 10): every step is taken; started on wrong fits, the plain steps
             can raise the objective manyfold (``HingeFit.objective``), so the fit they end at
             depends on the iteration count and on round-off (docs/eye_randomized.md, "The
@@ -136,7 +137,7 @@ class SmootherConfig:
             over the whole track").
         hinge_robust_scale: c0 of the Cauchy weights [-] (same units as ``hinge_max_cost``;
             chosen on the benchmark's development seeds from {0.5, 1, 3}).
-        hinge_robust_passes: fits of the reweighting (each ``hinge_iters`` Gauss-Newton steps).
+        hinge_robust_passes: fits of the reweighting (each :func:`fit_hinge`).
         hinge_min_inliers: least share of the valid frames that must be inliers [-]: the model
             must explain at least half of the track (0.6 and 0.75 tried, same docs section).
         hinge_min_frames: least number of inlier frames.
@@ -270,7 +271,8 @@ class HingeFit(NamedTuple):
     pivot (3,) a point on the axis [m], angle (T,) theta [rad], frame_cost (T,) normalised
     squared residual of each frame (NaN where unmeasured), cost its median over measured frames,
     objective (hinge_iters + 1,) the fit's objective (the frames' whitened residuals and the
-    angle's prior, squared and summed) before each iteration and at the end.
+    angle's prior, squared and summed) before each iteration and at the end (after an early
+    stop, the iterations not run repeat the final value).
     """
 
     rotation: Array
@@ -309,10 +311,12 @@ def fit_hinge(
     against R_0 and t_0, p along a) are held by a small Marquardt damping (1e-6 of the
     diagonal). With ``cfg.hinge_step_check`` a step that does not lower the objective is
     refused and the damping raised (Levenberg-Marquardt, with the gain-ratio update of Madsen,
-    Nielsen and Tingleff); each accepted step lowers it again, down to 1e-6. So the objective
-    never rises, and while every step lowers it the iterates are the plain ones. It stops once
-    an accepted step lowers the objective by under 1e-10 of it, or the damping passes 1e8 (no
-    lower objective found), or after ``cfg.hinge_iters`` iterations.
+    Nielsen and Tingleff); an accepted step lowers it again (down to 1e-6) when it gave at least
+    half the predicted decrease. So the objective never rises, and while every step gives at
+    least half its predicted decrease the iterates are the plain ones. It stops once an
+    accepted step lowers the objective by under 1e-10 of it (10 float epsilons in float32), or
+    the damping passes 1e8 (no lower objective found), or after ``cfg.hinge_iters`` iterations
+    (refused steps count).
 
     Started from a smoothed sequence (``rot_init``, ``pos_init``): a = the principal direction of
     the rotation vectors log(R_i R_f^T) (f the first valid frame), theta_i their component
@@ -410,7 +414,8 @@ def fit_hinge(
         nu = jnp.where(better, 2.0, 2.0 * nu)
         # converged: an accepted step that lowered the objective by under 1e-10 of it, or no
         # step found (the damping past 1e8: steps of 1e-8 of a gradient step, refused)
-        converged = (better & (cost - trial_cost <= 1e-10 * cost)) | (damping > 1e8)
+        tol = max(1e-10, 10.0 * float(jnp.finfo(dtype).eps))
+        converged = (better & (cost - trial_cost <= tol * cost)) | (damping > 1e8)
         return (state, theta, damping, nu), (cost, converged)
 
     state = (r_ref, t_ref, axis, pivot)
