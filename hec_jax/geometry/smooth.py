@@ -93,11 +93,11 @@ class SmootherConfig:
         hinge_step_check: refuse a Gauss-Newton step of the fixed-axis fit that does not lower
             its objective and raise the damping instead (Levenberg-Marquardt,
             :func:`fit_hinge`), and stop once converged. On by default, unlike the other
-            options added since issue 24: it corrects the fit's numerics. False (the smoother before session 62, with
-            ``hinge_iters`` 10): every step is taken; started on wrong fits, the plain steps
-            can raise the objective manyfold (``HingeFit.objective``), so the fit they end at
-            depends on the iteration count and on round-off (docs/eye_randomized.md, "The
-            fixed-axis fit's steps checked").
+            options added since issue 24: it corrects the fit's numerics. False with
+            ``hinge_iters`` 10 is the plain fit as it was: every step is taken; started on
+            wrong fits, the plain steps can raise the objective manyfold
+            (``HingeFit.objective``), so the fit they end at depends on the iteration count
+            and on round-off (docs/eye_randomized.md, "The fixed-axis fit's steps checked").
         hinge_max_cost: largest median normalised squared residual (6 dof per measured frame,
             the information scaled by ``info_scale``) of an accepted fixed-axis fit [-]. 0.5 was
             chosen on the two held-out rendered swings (release 0.35 and 0.58 rad): their fits
