@@ -27,6 +27,21 @@ def steps(seq):
     return tracker, [tracker.update(f) for f in seq.frames]
 
 
+def _fit_error_without_gaps(seq, steps) -> float:
+    """[m] The largest distance from the truth of a fit of the default tracker that saw every
+    frame of this swing, frame 12 left out (fitted ~2 cm off with or without a gap). A frame
+    after a gap is held to this: a single frame's fit error varies with the last bits of the
+    rendered frames and of the fit (a few mm from frame to frame: on a Zen 3 CPU 0.4-7.8 mm, frame
+    11 3.7 mm without a gap and 6.6 mm after a one-frame gap, against 4.8 mm fitted from the
+    un-skipped prediction), and a bound of 5 mm set on one CPU type failed on another
+    (2026-12-03, ``docs/testing.md``). Not above 1 cm, so a worse tracker cannot raise its own bar.
+    """
+    _, st = steps
+    err = [np.linalg.norm(s.measured_position - seq.position[s.frame]) for s in st if s.frame != 12]
+    assert all(s.valid for s in st) and max(err) < 0.01, err
+    return max(err)
+
+
 def test_update_matches_track_box(seq, steps):
     _, st = steps
     tr = track_box(seq.frames, seq.intrinsics, EDGE, FPS)
@@ -123,7 +138,7 @@ def test_a_fit_in_another_labelling_of_the_cube_s_axes_changes_nothing(seq):
 
 
 @pytest.mark.parametrize("gap", [1, 3, 4])
-def test_skip_predicts_over_unseen_frames(seq, gap):
+def test_skip_predicts_over_unseen_frames(seq, steps, gap):
     # frames 10 .. 9 + gap never seen (dropped by a busy eye): skip(gap) moves the filter and the
     # (frame 12 is left out as the frame after a gap: the tracker fits it 20 mm off in any case)
     # frame count over them, so the next frame is fitted at its own time
@@ -139,7 +154,8 @@ def test_skip_predicts_over_unseen_frames(seq, gap):
     np.testing.assert_allclose(after.velocity, ahead.velocity, atol=1e-5)
     st = tracker.update(seq.frames[10 + gap])
     assert st.valid and st.frame == 10 + gap
-    assert np.linalg.norm(st.measured_position - seq.position[10 + gap]) < 0.005
+    error = np.linalg.norm(st.measured_position - seq.position[10 + gap])
+    assert error <= _fit_error_without_gaps(seq, steps)
     # a long gap (a starved consumer): the rotation stays a rotation, the prediction finite
     tracker.skip(300)
     late = tracker.predict(0.0)
@@ -275,7 +291,7 @@ def test_local_search_recovers_a_sudden_turn_from_its_turned_starts(seq, keep, m
 @pytest.mark.parametrize(
     "defer", [pytest.param(0, marks=pytest.mark.slow), 1, pytest.param(2, marks=pytest.mark.slow)]
 )
-def test_the_search_from_scratch_waits_for_defer_search_failed_frames(seq, defer):
+def test_the_search_from_scratch_waits_for_defer_search_failed_frames(seq, steps, defer):
     # black frames while the filter runs (the cube hidden): with ``defer_search`` n the first n
     # failed frames in a row are left to the prediction (invalid, no search from scratch), the
     # next ones searched near it; once lost (``lost_after`` 3) every frame is searched. A frame
@@ -295,7 +311,8 @@ def test_the_search_from_scratch_waits_for_defer_search_failed_frames(seq, defer
     assert searched == ([] if defer else [10])
     st = tracker.update(seq.frames[11])  # the cube again, one frame after the last fit
     assert st.valid and st.fit_source == "tracked"
-    assert np.linalg.norm(st.measured_position - seq.position[11]) < 0.005
+    error = np.linalg.norm(st.measured_position - seq.position[11])
+    assert error <= _fit_error_without_gaps(seq, steps)
     searched.clear()
     steps = [tracker.update(black) for _ in range(5)]  # frames 12-16: lost after 3
     assert [s.search_deferred for s in steps] == [i < defer for i in range(5)]

@@ -7,6 +7,18 @@ Run with the tracker of that time (main at 4416d0b), from a checkout of it, e.g.
     cd /tmp/eyemain && PYTHONPATH=/tmp/eyemain MUJOCO_GL=egl \\
         /work/main/.venv/bin/python /work/main/tests/data/make_tracker_reference.py OUT.npz
 
+or, to record what that tracker makes of the stored frames on another CPU type (the search's
+choice between near-equal starts follows the last bits of XLA's float arithmetic, which differ
+between SIMD instruction sets; ``tests/test_eye_track.py``'s ``REFERENCES``)::
+
+    ... make_tracker_reference.py OUT.npz /work/main/tests/data/tracker_reference.npz
+
+which writes the outputs only. With OpenCV 5, that tracker's ``detect.edge_points`` needs its one
+``cv2.remap`` call split into blocks of under 32767 map rows (OpenCV 5 refuses larger maps; each
+output row depends on its own map row only, so the split changes no value). So made on
+2026-12-03 (session 63): ``tracker_reference_avx2.npz``, on an AMD EPYC Zen 3 (AVX2, no
+AVX-512), OpenCV 5.1.0, jax 0.10.2.
+
 The frames: a 32-frame swing (release 0.5 rad, 30 fps, 640x480, ``render_swing``), blacked out
 over frames 10-17 (0.27 s: a loss, a re-acquisition and a gap the smoother's ``max_gap_s = 0.2``
 would split at) and with a grey bar over the cube's left half in frames 22-25 (a hand in front).
@@ -71,18 +83,24 @@ def frames_and_background():
     return frames, background, k
 
 
-def main(out: str) -> None:
+def main(out: str, frames_from: str | None = None) -> None:
+    """Render the frames and record the tracker's outputs on them, or (``frames_from``, a
+    reference written before) record this CPU's outputs on that reference's stored frames."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    frames, background, k = frames_and_background()
+    if frames_from is None:
+        frames, background, k = frames_and_background()
+    else:
+        with np.load(frames_from) as f:
+            frames, background, k = f["frames"], f["background"], f["intrinsics"]
     loop_track = TrackConfig(maneuver_nis=16.3, stop_hypothesis=True)  # scene_tracker("void")
     cases = {
         "loop": track_box(frames, k, CUBE_EDGE, FPS, loop_track, background=background),
         "plain": track_box(frames, k, CUBE_EDGE, FPS),
         "ghost": track_box(frames[:12], k, CUBE_EDGE, FPS, background=frames[3]),
     }
-    arrays = {"frames": frames, "background": background, "intrinsics": k}
+    arrays = {} if frames_from else {"frames": frames, "background": background, "intrinsics": k}
     for case, tr in cases.items():
         arrays |= {f"{case}_{name}": np.asarray(getattr(tr, name)) for name in FIELDS}
         print(case, "valid", tr.valid.astype(int), flush=True)
@@ -90,4 +108,4 @@ def main(out: str) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    main(*sys.argv[1:3])
