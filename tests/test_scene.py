@@ -258,6 +258,10 @@ def test_conditions_validation():
         S.default_conditions(rod_lenght=0.5)
 
 
+# slow (2026-12-03): the CG solver with the sparse Jacobian is an option (``--solver cg`` of the
+# sweep, for GPUs without a batched Cholesky); the default suite keeps the default (Newton) solve
+# against MuJoCo C (test_dynamics_match_mujoco_c). 23 s of the CI's time.
+@pytest.mark.slow
 def test_cg_sparse_solver_matches_c_and_newton():
     """``set_solver_options(..., "cg", "sparse")`` (no batched Cholesky in an MJX step): MJX's
     constraint solve equals MuJoCo C's with the same settings, and both equal scene.xml's Newton
