@@ -721,9 +721,6 @@ def test_a_faint_cube_under_six_grey_levels_is_found_with_the_lower_floor():
             assert not valid.any()
 
 
-# slow (2026-12-03): one development seed's regression for a number of the benchmark's preset
-# (45 frames rendered, two trackers: 18 s of the CI's time)
-@pytest.mark.slow
 def test_the_segments_mask_keeps_its_floor_on_a_far_faint_cube():
     """Development seed 157 (low contrast, an 8 cm cube at 2.2 m): with the faint floor of 3
     grey levels also in the mask that keeps the segments on the moving box, the tracked fits

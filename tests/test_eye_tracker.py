@@ -623,10 +623,6 @@ def test_snapshot_and_restore_replay_the_track_frame_for_frame(seq):
         replay.restore({"_state": snap["_state"]})
 
 
-# slow (2026-12-03): a diagnostic of the real-time run, off by default
-# (``RealtimeConfig.eye_save_failed``): 19 s of the CI's time; the snapshot and restore it
-# relies on are in the default suite (the tests above)
-@pytest.mark.slow
 def test_a_failed_frame_saved_by_the_real_time_eye_replays_to_the_same_fit(seq):
     # the real-time eye's diagnostic (``RealtimeConfig.eye_save_failed``): a frame whose
     # tracked fit failed (forced: the prediction 6 cm off) is saved with the tracker's snapshot
@@ -956,10 +952,6 @@ def test_configs_differing_only_on_the_host_share_their_compiled_functions():
     assert track._compiled(jerk, FPS)[3] != track._compiled(base, FPS)[3]
 
 
-# slow (2026-12-03): ``cpu_small_kernels`` is an option (on in the randomized benchmark's and
-# the real-time run's fast presets; the default suite runs it in test_eye_randomized.py's
-# benchmark test); this test's two compiles of the fit took 13 s of the CI's time
-@pytest.mark.slow
 def test_cpu_small_kernels_reach_the_compiler_and_change_only_round_off(seq):
     """``cpu_small_kernels`` compiles the fit without YNNPACK fusions (XLA's default fit has
     them) and changes only round-off: from a prior 3 mm and 2 deg off the true pose of a rendered

@@ -409,11 +409,9 @@ def test_network_step_kernel_is_differentiable_through_the_reference():
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-12 * float(jnp.max(jnp.abs(b))))
 
 
-# slow (2026-12-03): two vmapped compiles and the eager steps, 13 s of the CI's time; the GPU
-# kernel's fallback. Its refusals of bad kernels and shapes are in the default suite (below)
-@pytest.mark.slow
 def test_network_step_triton_off_the_gpu_and_unbatched_is_the_reference():
-    """kernel='triton' runs the reference (bitwise) where there is no CUDA device or no vmap."""
+    """kernel='triton' runs the reference (bitwise) where there is no CUDA device or no vmap, and
+    bad kernels or network shapes are refused."""
     params, net_in, g, learning, eta, u = _batch_of_steps(jnp.float64)
     if jax.default_backend() != "gpu":
         batched = _vmapped_step("triton", eta, u)(params, net_in, g, learning)
@@ -422,13 +420,6 @@ def test_network_step_triton_off_the_gpu_and_unbatched_is_the_reference():
     args = (jax.tree_util.tree_map(one, params), net_in[0], g[0], learning[0], eta, u)
     single = nets.network_step(*args, 0.1, "triton")
     _assert_same_params(single, nets.network_step(*args, 0.1, "xla"))
-
-
-def test_network_step_refuses_bad_kernels_and_network_shapes():
-    """A kernel not known, or a network the Triton kernel cannot run, is refused up front."""
-    params, net_in, g, learning, eta, u = _batch_of_steps(jnp.float64)
-    one = lambda a: a[0]  # noqa: E731
-    args = (jax.tree_util.tree_map(one, params), net_in[0], g[0], learning[0], eta, u)
     with pytest.raises(ValueError, match="kernel must be one of"):
         nets.network_step(*args, 0.1, "cuda")
     with pytest.raises(ValueError, match="kernel must be one of"):

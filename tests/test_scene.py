@@ -326,7 +326,7 @@ def test_cg_sparse_solver_matches_c_and_newton():
         S.set_solver_options(S.load_mj_model(), 4, 8, "cg")
 
 
-@pytest.mark.slow  # 70 s on the 2-core CI; the forward oracle above stays in the default suite
+@pytest.mark.slow  # 70 s on the 2-core CI; the forward oracle above is slow too (2026-12-03)
 def test_implicit_solve_derivatives_do_not_depend_on_cg_sparse():
     """``differentiable.solve`` under CG with the sparse inertia: the same qacc and the same
     forward- and reverse-mode derivatives (float64) as under scene.xml's Newton/dense, at a
