@@ -146,16 +146,20 @@ def test_causal_outputs_and_timing(seq, track):
 
 REFERENCE = Path(__file__).parent / "data" / "tracker_reference.npz"
 # The outputs that recorded code gives on those frames on a CPU without AVX-512 (an AMD Zen 3,
-# 2026-12-03, session 63). The plain case's search from scratch chooses between starts whose
-# scores differ in the last bits of XLA's arithmetic, which is vectorised for the host's SIMD
-# width: there that code picks another start at frame 0 (other edge labels, the box 0.1-1 cm
-# elsewhere at frames 4-7) than on the AVX-512 CPUs the first reference was recorded on (Zen 4,
-# Zen 5). The frames, the loop case and the ghost case's decisions are the same on both.
+# 2026-12-03, session 63; made with tests/data/tracker_reference_opencv5.patch applied to it).
+# In the loop and plain cases the search from scratch picks another of its starts at frame 0
+# there than on the AVX-512 CPUs the first reference was recorded on (Zen 4, Zen 5): other edge
+# labels at frames 0-9, 18-21, 25 and 28, fits up to 7 mm apart, the smoothed box up to 6 mm.
+# The stored segments are the same; the choice is an argmax over starts whose scores come out of
+# XLA's arithmetic. That this follows the SIMD width is a hypothesis from the CPUs seen (Zen 3
+# against Zen 4 and 5; no Intel AVX-512 machine was tried); the test picks by ``avx512f``. The
+# ghost case's decisions are the same on both.
 REFERENCE_AVX2 = Path(__file__).parent / "data" / "tracker_reference_avx2.npz"
 
 
 def _has_avx512() -> bool:
-    """Whether this (Linux) CPU has AVX-512 (``avx512f`` in ``/proc/cpuinfo``'s flags)."""
+    """Whether this (Linux x86) CPU has AVX-512 (``avx512f`` in ``/proc/cpuinfo``'s flags).
+    Elsewhere (no such file, or no ``flags`` lines, as on ARM) neither recording was checked."""
     try:
         text = Path("/proc/cpuinfo").read_text()
     except OSError:

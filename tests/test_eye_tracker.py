@@ -29,12 +29,18 @@ def steps(seq):
 
 def _fit_error_without_gaps(seq, steps) -> float:
     """[m] The largest distance from the truth of a fit of the default tracker that saw every
-    frame of this swing, frame 12 left out (fitted ~2 cm off with or without a gap). A frame
-    after a gap is held to this: a single frame's fit error varies with the last bits of the
-    rendered frames and of the fit (a few mm from frame to frame: on a Zen 3 CPU 0.4-7.8 mm, frame
-    11 3.7 mm without a gap and 6.6 mm after a one-frame gap, against 4.8 mm fitted from the
-    un-skipped prediction), and a bound of 5 mm set on one CPU type failed on another
-    (2026-12-03, ``docs/testing.md``). Not above 1 cm, so a worse tracker cannot raise its own bar.
+    frame of this swing, frame 12 left out (fitted ~2 cm off with or without a gap); itself held
+    under 1 cm, so a worse tracker cannot raise its own bar without failing.
+
+    The bound for a frame fitted after a gap (by the default tracker, or in the defer test by one
+    whose extra hypotheses act only on failed frames). **A loosening** (2026-12-03): it was 5 mm,
+    set on a Zen 4 CPU's rendering; on a Zen 3's (the CI's since) the no-gap fits of frames 0-23
+    are 0.4-7.8 mm off (frame 12 23 mm), frame 11 is 3.7 mm off without a gap and 6.6 mm after
+    ``skip(1)`` (4.8 mm fitted from the un-skipped prediction), so one frame's error varies by a
+    few mm with the last bits of the frames and the fit, and 5 mm lay inside that spread. Here
+    7.8 mm; the Zen 4 value was not measured. At a one-frame gap this cannot tell ``skip`` from
+    no ``skip`` (nor could 5 mm); at 3 and 4 frames the fit without ``skip`` failed (measured,
+    not asserted). ``docs/testing.md``, session 63.
     """
     _, st = steps
     err = [np.linalg.norm(s.measured_position - seq.position[s.frame]) for s in st if s.frame != 12]
@@ -314,10 +320,10 @@ def test_the_search_from_scratch_waits_for_defer_search_failed_frames(seq, steps
     error = np.linalg.norm(st.measured_position - seq.position[11])
     assert error <= _fit_error_without_gaps(seq, steps)
     searched.clear()
-    steps = [tracker.update(black) for _ in range(5)]  # frames 12-16: lost after 3
-    assert [s.search_deferred for s in steps] == [i < defer for i in range(5)]
+    lost = [tracker.update(black) for _ in range(5)]  # frames 12-16: lost after 3
+    assert [s.search_deferred for s in lost] == [i < defer for i in range(5)]
     assert searched == [12 + i for i in range(5) if i >= defer]
-    assert not any(s.valid for s in steps)
+    assert not any(s.valid for s in lost)
 
 
 def test_defer_search_must_be_a_count(seq):

@@ -15,7 +15,8 @@ between SIMD instruction sets; ``tests/test_eye_track.py``'s ``REFERENCES``)::
 
 which writes the outputs only. With OpenCV 5, that tracker's ``detect.edge_points`` needs its one
 ``cv2.remap`` call split into blocks of under 32767 map rows (OpenCV 5 refuses larger maps; each
-output row depends on its own map row only, so the split changes no value). So made on
+output row depends on its own map row only, so the split changes no value):
+``git apply /work/main/tests/data/tracker_reference_opencv5.patch`` in the worktree. So made on
 2026-12-03 (session 63): ``tracker_reference_avx2.npz``, on an AMD EPYC Zen 3 (AVX2, no
 AVX-512), OpenCV 5.1.0, jax 0.10.2.
 
