@@ -9,7 +9,7 @@ Run with the tracker of that time (main at 4416d0b), from a checkout of it, e.g.
 
 or, to record what that tracker makes of the stored frames on another CPU type (the search's
 choice between near-equal starts follows the last bits of XLA's float arithmetic, which differ
-between SIMD instruction sets; ``tests/test_eye_track.py``'s ``REFERENCES``)::
+between SIMD instruction sets; ``tests/test_eye_track.py``'s ``REFERENCE_AVX2``)::
 
     ... make_tracker_reference.py OUT.npz /work/main/tests/data/tracker_reference.npz
 
