@@ -272,7 +272,8 @@ class HingeFit(NamedTuple):
     squared residual of each frame (NaN where unmeasured), cost its median over measured frames,
     objective (hinge_iters + 1,) the fit's objective (the frames' whitened residuals and the
     angle's prior, squared and summed) before each iteration and at the end (after an early
-    stop, the iterations not run repeat the final value).
+    stop, the iterations not run repeat the final value). With ``hinge_step_check`` it is the
+    objective each comparison used (the start's or the accepted trial's), so it never rises.
     """
 
     rotation: Array
@@ -372,15 +373,18 @@ def fit_hinge(
         + jnp.eye(t_n - 2, t_n, 2, dtype=dtype)
     ) / sigma
 
-    def total_cost(state, theta):
-        """The objective: whitened frame residuals and the angle's prior, squared and summed."""
+    def residuals(state, theta):
+        """(T, 6) whitened frame residuals, without their Jacobians."""
         x = jnp.zeros(13, dtype)
         one = lambda th, rm, tm, li: frame_residual(x, th, rm, tm, li, state)  # noqa: E731
-        res = jax.vmap(one)(theta, rotations, positions, sqrt_info)
+        return jax.vmap(one)(theta, rotations, positions, sqrt_info)
+
+    def objective(res, theta):
+        """The frames' whitened residuals and the angle's prior, squared and summed."""
         return jnp.sum(res**2) + jnp.sum((second @ theta) ** 2)
 
     def step(carry, _):
-        state, theta, damping, nu = carry
+        state, theta, damping, nu, cost = carry
         res, jac = frame_jacobians(state, theta)
         jg, jt = jac[..., :12], jac[..., 12]  # (T, 6, 12), (T, 6)
         h_gg = jnp.einsum("tki,tkj->ij", jg, jg)
@@ -390,11 +394,11 @@ def fit_hinge(
         grad = jnp.concatenate(
             [jnp.einsum("tki,tk->i", jg, res), jnp.sum(jt * res, -1) + second.T @ (second @ theta)]
         )
-        cost = jnp.sum(res**2) + jnp.sum((second @ theta) ** 2)
         if not cfg.hinge_step_check:
+            cost = objective(res, theta)
             h = h + jnp.diag(1e-6 * jnp.diag(h) + 1e-12)
             dx = -jnp.linalg.solve(h, grad)
-            return (unpack(dx[:12], state), theta + dx[12:], damping, nu), cost
+            return (unpack(dx[:12], state), theta + dx[12:], damping, nu, cost), cost
         # Levenberg-Marquardt with the gain-ratio update of Madsen, Nielsen and Tingleff (2004,
         # "Methods for non-linear least squares problems", 3.2): a step that does not lower the
         # objective is refused and the damping raised by nu (doubled at each refusal in a row);
@@ -403,12 +407,16 @@ def fit_hinge(
         scale = jnp.diag(h)
         h = h + jnp.diag(damping * scale + 1e-12)
         dx = -jnp.linalg.solve(h, grad)
+        # ``cost`` is carried from the start or the accepted trial: every comparison, and the
+        # reported trace, uses the objective of one code path (recomputed with the Jacobians it
+        # could differ from the accepted trial's in the last bit)
         trial = (unpack(dx[:12], state), theta + dx[12:])
-        trial_cost = total_cost(*trial)
+        trial_cost = objective(residuals(*trial), trial[1])
         predicted = dx @ (damping * scale * dx - grad)  # the decrease of the linearised cost
         better = jnp.isfinite(trial_cost) & (trial_cost < cost)
         rho = (cost - trial_cost) / jnp.maximum(predicted, jnp.finfo(dtype).tiny)
         state, theta = jax.tree.map(lambda n, o: jnp.where(better, n, o), trial, (state, theta))
+        new_cost = jnp.where(better, trial_cost, cost)
         shrink = jnp.maximum(1.0 / 3.0, 1.0 - (2.0 * jnp.clip(rho, 0.0, 1.0) - 1.0) ** 3)
         damping = jnp.where(better, jnp.maximum(damping * shrink, 1e-6), damping * nu)
         nu = jnp.where(better, 2.0, 2.0 * nu)
@@ -416,12 +424,13 @@ def fit_hinge(
         # step found (the damping past 1e8: steps of 1e-8 of a gradient step, refused)
         tol = max(1e-10, 10.0 * float(jnp.finfo(dtype).eps))
         converged = (better & (cost - trial_cost <= tol * cost)) | (damping > 1e8)
-        return (state, theta, damping, nu), (cost, converged)
+        return (state, theta, damping, nu, new_cost), (cost, converged)
 
     state = (r_ref, t_ref, axis, pivot)
-    start = (state, theta, jnp.asarray(1e-6, dtype), jnp.asarray(2.0, dtype))
+    damping0, nu0 = jnp.asarray(1e-6, dtype), jnp.asarray(2.0, dtype)
     if not cfg.hinge_step_check:
-        (state, theta, _, _), costs = jax.lax.scan(step, start, None, cfg.hinge_iters)
+        start = (state, theta, damping0, nu0, jnp.zeros((), dtype))  # (the cost: an output)
+        (state, theta, _, _, _), costs = jax.lax.scan(step, start, None, cfg.hinge_iters)
         ran = cfg.hinge_iters
     else:  # up to ``hinge_iters`` iterations, stopped once converged
 
@@ -434,14 +443,18 @@ def fit_hinge(
             k, _, _, converged = loop
             return (k < cfg.hinge_iters) & ~converged
 
+        start = (state, theta, damping0, nu0, objective(residuals(state, theta), theta))
         loop = (0, start, jnp.zeros(cfg.hinge_iters, dtype), jnp.asarray(False))
-        ran, (state, theta, _, _), costs, _ = jax.lax.while_loop(more, body, loop)
+        ran, (state, theta, _, _, final), costs, _ = jax.lax.while_loop(more, body, loop)
     r0, t0, a, p = state
     e = so3_exp(theta[:, None] * a[None])
     rot, pos = e @ r0, p[None, :] + jnp.einsum("tij,j->ti", e, t0 - p)
-    res, _ = frame_jacobians(state, theta)
+    if not cfg.hinge_step_check:
+        res, _ = frame_jacobians(state, theta)
+        final = objective(res, theta)
+    else:
+        res = residuals(state, theta)
     frame_cost = jnp.where(valid, jnp.sum(res**2, -1), jnp.nan)
-    final = jnp.sum(res**2) + jnp.sum((second @ theta) ** 2)
     # the iterations not run (stopped once converged) hold the final objective
     costs = jnp.where(jnp.arange(cfg.hinge_iters) < ran, costs, final)
     objective = jnp.concatenate([costs, final[None]])
