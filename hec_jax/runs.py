@@ -366,8 +366,21 @@ _ACTIVE: list[dict[str, Path]] = []
 _LOCK = threading.RLock()
 
 
-def _failed_name(out: Path) -> Path:
-    return out.with_name(f"{out.name}.failed-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}")
+def _move_aside(partial: Path, out: Path, kind: str) -> Path:
+    """Renames ``partial`` to a new sibling ``<name>.<kind>-<UTC time>`` of ``out`` (``-2``,
+    ``-3``, ... appended while that name is taken: two runs ending in the same second keep both
+    folders) and returns it.
+    """
+    base = f"{out.name}.{kind}-{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}"
+    for n in itertools.count(1):
+        target = out.with_name(base if n == 1 else f"{base}-{n}")
+        try:
+            target.mkdir()  # claims the name (atomic); the folder then takes its place
+        except FileExistsError:
+            continue
+        os.replace(partial, target)
+        return target
+    raise AssertionError("unreachable")
 
 
 def _fail(run: dict[str, Path], error: str) -> Path:
@@ -376,9 +389,7 @@ def _fail(run: dict[str, Path], error: str) -> Path:
     for tmp in partial.glob(".*.tmp*"):  # a file being written when the run stopped
         tmp.unlink(missing_ok=True)
     _set_status(partial, "failed", error)
-    failed = _failed_name(out)
-    os.replace(partial, failed)
-    return failed
+    return _move_aside(partial, out, "failed")
 
 
 def fail_active_run(error: str) -> Path | None:
@@ -399,9 +410,11 @@ def run_folder(
     """A run folder that appears complete, or not at all (a context manager yielding the folder
     to write into).
 
-    The run writes into a hidden sibling ``.<name>.partial-<pid>`` whose ``config.json`` says
+    The run writes into a new hidden sibling ``.<name>.partial-<pid>-<random>`` whose ``config.json`` says
     ``"status": "running"``; when the block ends normally the status becomes ``complete`` and
-    the folder is renamed to ``out`` (replacing an old one only with ``overwrite``). If the block
+    the folder is renamed to ``out`` (replacing an old one only with ``overwrite``; if another
+    run made ``out`` meanwhile, this one becomes ``<name>.complete-<UTC time>`` and
+    FileExistsError says so). If the block
     raises (Ctrl-C included) the status becomes ``failed`` with the error, and the folder is
     renamed to ``<name>.failed-<UTC time>``; so does :func:`fail_active_run` (the scripts'
     SIGINT/SIGTERM handler); a killed process leaves only the hidden partial folder. Either way
@@ -409,13 +422,14 @@ def run_folder(
 
     Raises:
         FileExistsError: ``out`` exists, is not empty and ``overwrite`` is False (checked
-            before anything is computed).
+            before anything is computed, and again at the end: see above).
     """
     out = Path(out)
     check_out(out, overwrite)
-    partial = out.with_name(f".{out.name}.partial-{os.getpid()}")
-    if partial.exists():
-        shutil.rmtree(partial)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # a new name for every run, even two in one process (a killed run's folder stays as it was)
+    partial = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-{os.getpid()}-", dir=out.parent))
+    os.chmod(partial, 0o777 & ~_umask())  # (mkdtemp makes it private) as a plain mkdir would
     start_run(partial, seed, dict(settings, status="running"))
     run = {"partial": partial, "out": out}
     with _LOCK:
@@ -434,6 +448,13 @@ def run_folder(
             raise RuntimeError(f"the run was ended as failed while it ran: {out}")
         _ACTIVE.remove(run)
         _set_status(partial, "complete")
+        if not overwrite and out.exists() and (not out.is_dir() or any(out.iterdir())):
+            # another run made ``out`` while this one ran: neither replaces the other
+            kept = _move_aside(partial, out, "complete")
+            raise FileExistsError(
+                f"{out} appeared while this run ran and --overwrite was not given: it is left"
+                f" as it is, and this run's complete results are in {kept}"
+            )
         if out.exists():
             old = out.with_name(f".{out.name}.replaced-{os.getpid()}")
             os.replace(out, old)

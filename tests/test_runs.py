@@ -2,6 +2,7 @@
 the one video writer (H.264 through imageio-ffmpeg, OpenCV mp4v without)."""
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -99,6 +100,9 @@ def test_run_folder_appears_complete_or_not_at_all(tmp_path):
     config = json.loads((out / "config.json").read_text())
     assert config["status"] == "complete" and config["what"] == "test"
     assert (out / "metrics.json").stat().st_mode & 0o044  # readable by group and others
+    umask = os.umask(0o022)
+    os.umask(umask)
+    assert out.stat().st_mode & 0o777 == 0o777 & ~umask  # the folder as a plain mkdir makes it
     # an existing non-empty folder is refused before anything runs; --overwrite replaces it
     with pytest.raises(FileExistsError, match="--overwrite"):
         with runs.run_folder(out, 1, _settings()):
@@ -146,6 +150,44 @@ def test_a_failed_run_never_looks_complete(tmp_path):
     (failed,) = tmp_path.glob("run.failed-*")
     config = json.loads((failed / "config.json").read_text())
     assert config["status"] == "failed" and "ZeroDivisionError" in config["error"]
+
+
+def test_two_failures_in_one_second_keep_both_folders_and_their_errors(tmp_path):
+    """The failed folder's name has a resolution of one second; a second failure of the same
+    ``out`` in that second gets its own folder (``-2``), and each run's own error propagates."""
+    out = tmp_path / "run"
+    for i in range(3):
+        with pytest.raises(KeyError, match=f"error {i}"):
+            with runs.run_folder(out, i, _settings()) as folder:
+                runs.write_json(folder / "half.json", {"run": i})
+                raise KeyError(f"error {i}")
+    failed = sorted(tmp_path.glob("run.failed-*"))
+    assert len(failed) == 3 and not out.exists()
+    seeds = sorted(json.loads((f / "config.json").read_text())["seed"] for f in failed)
+    assert seeds == [0, 1, 2]
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no partial left
+
+
+def test_an_out_made_by_another_run_meanwhile_is_not_replaced(tmp_path):
+    """Two runs to the same ``out`` without ``overwrite``: the first to finish takes ``out``;
+    the other, finishing later, neither replaces it nor is lost: its folder becomes
+    ``<name>.complete-<time>`` and FileExistsError names it."""
+    out = tmp_path / "run"
+    with pytest.raises(FileExistsError, match="appeared while this run ran") as err:
+        with runs.run_folder(out, 0, _settings()) as folder_a:
+            runs.write_json(folder_a / "metrics.json", {"run": "A"})
+            with runs.run_folder(out, 1, _settings()) as folder_b:  # B starts after A, ends first
+                runs.write_json(folder_b / "metrics.json", {"run": "B"})
+            assert json.loads((out / "metrics.json").read_text()) == {"run": "B"}
+    assert json.loads((out / "metrics.json").read_text()) == {"run": "B"}  # B's, untouched
+    (kept,) = tmp_path.glob("run.complete-*")
+    assert str(kept) in str(err.value)
+    assert json.loads((kept / "metrics.json").read_text()) == {"run": "A"}
+    assert json.loads((kept / "config.json").read_text())["status"] == "complete"
+    # with overwrite the later run replaces the earlier one, as before
+    with runs.run_folder(out, 2, _settings(), overwrite=True) as folder:
+        runs.write_json(folder / "metrics.json", {"run": "C"})
+    assert json.loads((out / "metrics.json").read_text()) == {"run": "C"}
 
 
 def test_a_killed_run_leaves_no_run_folder(tmp_path):
