@@ -161,3 +161,30 @@ def test_catching_metrics_of_a_seed_without_contact_are_values_not_errors():
     assert m["per_seed"][1]["relative_speed_at_contact"] is None
     np.testing.assert_allclose(m["relative_speed_at_contact"]["mean"], np.sqrt(2.0))
     assert not m["held_every_seed"]
+
+
+def test_catching_contact_speeds_use_the_simulators_object_velocity():
+    """With a camera the controller's X_o' is the eye's estimate; the contact-speed metrics take
+    the simulator's, so runs with different eyes compare the same quantity. Here the cube moves
+    at 1 m/s, the estimate says 0.5 m/s and the hand moves at 0.5 m/s: the hand lags by 0.5 m/s
+    and follows at half the cube's speed (the estimate would say 0 and 1)."""
+    seeds, swings, steps = 1, 1, 1000
+    f = np.zeros((seeds, swings, steps, 3))
+    f[0, 0, 300:, 0] = 2.0
+    shape = (seeds, swings, steps, 2)
+    logs = {
+        "f_contact": f,
+        "inside": np.ones((seeds, swings, steps), bool),
+        "xd_o": np.broadcast_to([0.5, 0.0], shape),
+        "xd_o_true": np.broadcast_to([1.0, 0.0], shape),
+        "xd_e": np.broadcast_to([0.5, 0.0], shape),
+        "margins": np.ones((seeds, swings, steps, 2, 3)),
+    }
+    m = mt.catching_swing_metrics(logs, 0, 0, 2.0, 200, 1e-3, 1e-3)
+    assert m["relative_speed_at_contact"] == pytest.approx(0.5)
+    assert m["object_speed_at_contact"] == pytest.approx(1.0)
+    assert m["hand_follow_ratio"] == pytest.approx(0.5)
+    del logs["xd_o_true"]  # logs without the simulator's velocity: the logged one
+    assert mt.catching_swing_metrics(logs, 0, 0, 2.0, 200, 1e-3, 1e-3)[
+        "relative_speed_at_contact"
+    ] == pytest.approx(0.0)

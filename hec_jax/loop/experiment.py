@@ -130,7 +130,8 @@ def task_metrics(loop: Loop, logs: dict) -> dict:
         "held": "one contact episode lasting to the end of the swing (no second impact)",
         "settles_to_f_cd_within_20pct": "every seed's settle_rel_error <= 0.2 and held",
         "hand_follow_ratio": "X_e' . X_o' / |X_o'|^2 one sample before the first contact (0: the"
-        " hand waits, 1: it moves with the object); target: > 0.3",
+        " hand waits, 1: it moves with the object; X_o' the simulator's, not the eye's);"
+        " target: > 0.3",
     }
 
     def ratio(a: float, b: float) -> float | None:

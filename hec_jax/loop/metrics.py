@@ -170,7 +170,10 @@ def catching_swing_metrics(
     ``peak_force`` [N], ``t_c`` [s] (first sample inside the sphere), and at the first contact:
     ``t_contact`` [s], ``relative_speed_at_contact`` and ``object_speed_at_contact`` [m/s] one
     sample before it, ``hand_follow_ratio`` (X_e' . X_o' / |X_o'|^2: 0 the hand waits, 1 it moves
-    with the object); without contact these are None and ``no_contact`` is True.
+    with the object); without contact these are None and ``no_contact`` is True. X_o' is the
+    simulator's (``xd_o_true``), not the controller's estimate (``xd_o``: the eye's with a
+    camera), so that runs with different eyes are compared on the same physical quantity; logs
+    without ``xd_o_true`` use ``xd_o``.
     """
     f = force_norm(logs)[s, w]
     events = contact_events(f, threshold, min_gap=20)
@@ -180,7 +183,8 @@ def catching_swing_metrics(
     out["no_contact"] = not events
     if events:
         i = max(events[0][0] - 1, 0)
-        xd_o, xd_e = logs["xd_o"][s, w, i], logs["xd_e"][s, w, i]
+        xd_o = logs["xd_o_true" if "xd_o_true" in logs else "xd_o"][s, w, i]
+        xd_e = logs["xd_e"][s, w, i]
         speed_o = float(np.linalg.norm(xd_o))
         out.update(
             t_contact=events[0][0] * dt,
