@@ -65,6 +65,11 @@ def test_shards_merge_and_resume(sharded_by_process):
     assert "1 of this shard's 2 chunks already there, skipped" in log
     chunk0 = out / "chunks" / "chunk_00000.npz"
     assert chunk0.stat().st_mtime_ns == mtime0  # finished work is not redone
+    # the resume (shard 0 of 1) kept the record of shard 0 of 2, which computed chunk 0
+    (earlier,) = (out / "shard_0" / "earlier").iterdir()
+    assert "--num-shards" in json.loads((earlier / "config.json").read_text())["argv"]
+    assert json.loads((earlier / "timing.json").read_text())["chunks_run"] == 1
+    assert json.loads((out / "shard_0" / "timing.json").read_text())["chunks_run"] == 1
     merged = _load(out)  # the chunks of two processes
     np.testing.assert_array_equal(merged["index"], [0, 1])
     assert np.all(merged["peak_plain"] > 100.0)  # the hard impact without learning
@@ -185,19 +190,64 @@ def test_damaged_chunks_and_a_folder_with_nothing_computed(tmp_path):
     from hec_jax.loop import sweep
     from hec_jax.runs import write_npz
 
+    config = _tiny_sweep()
+    sha = np.full(3, sweep.settings_sha256(config))
     good = tmp_path / "chunks" / "chunk_00000.npz"
-    write_npz(good, **{k: np.zeros(3) for k in sweep.CHUNK_KEYS})
+    write_npz(good, **{k: np.zeros(3) for k in sweep.CHUNK_KEYS}, settings_sha256=sha)
     assert sweep.chunk_is_complete(good, 3) and not sweep.chunk_is_complete(good, 4)
     damaged = tmp_path / "chunks" / "chunk_00001.npz"
     damaged.write_bytes(good.read_bytes()[:100])
     assert not sweep.chunk_is_complete(damaged)
-    config = _tiny_sweep()
+    unhashed = tmp_path / "unhashed.npz"  # (written before chunks carried their settings)
+    write_npz(unhashed, **{k: np.zeros(3) for k in sweep.CHUNK_KEYS})
+    assert not sweep.chunk_is_complete(unhashed)
     sweep.check_same_sweep(tmp_path / "chunks", config)
     with pytest.raises(SystemExit, match="damaged chunk files.*chunk_00001"):
         sweep.merge(tmp_path, config)
     fresh = tmp_path / "fresh" / "chunks"
     sweep.check_same_sweep(fresh, _tiny_sweep("--chunk", "3"))  # the first call's settings
     sweep.check_same_sweep(fresh, config)  # no chunk yet: the corrected call is not refused
-    write_npz(fresh / "chunk_00000.npz", **{k: np.zeros(1) for k in sweep.CHUNK_KEYS})
+    write_npz(
+        fresh / "chunk_00000.npz",
+        **{k: np.zeros(1) for k in sweep.CHUNK_KEYS},
+        settings_sha256=sha[:1],
+    )
     with pytest.raises(SystemExit, match="other settings"):
         sweep.check_same_sweep(fresh, _tiny_sweep("--chunk", "3"))
+
+
+def test_a_chunk_of_other_settings_is_never_merged(tmp_path):
+    """Two shards started with different arguments before either wrote a chunk: the second
+    replaces the first's settings file (nothing computed yet), and the first then writes its
+    chunk. The chunk carries its settings' hash: the second's merge and a resume refuse it (no
+    metrics, nothing computed), instead of counting it as the second's run."""
+    from hec_jax.loop import sweep
+    from hec_jax.runs import write_npz
+
+    first, second = _tiny_sweep("--chunk", "3"), _tiny_sweep()
+    chunks = tmp_path / "chunks"
+    sweep.check_same_sweep(chunks, first)
+    sweep.check_same_sweep(chunks, second)  # no chunk yet: the second's settings replace them
+    sha_first = np.full(2, sweep.settings_sha256(first))
+    assert sha_first[0] != sweep.settings_sha256(second)
+    write_npz(
+        chunks / "chunk_00000.npz",
+        **{k: np.zeros(2) for k in sweep.CHUNK_KEYS},
+        settings_sha256=sha_first,
+    )
+    for call in (lambda: sweep.merge(tmp_path, second), lambda: sweep.run_sweep(second, tmp_path)):
+        with pytest.raises(SystemExit, match="other settings than this sweep's.*chunk_00000"):
+            call()
+    assert not (tmp_path / "metrics.json").exists() and not (tmp_path / "shard_0").exists()
+
+
+def test_a_sweep_in_the_other_precision_is_refused(tmp_path):
+    """``SweepConfig.float32`` must match ``jax_enable_x64`` (the tests run in float64): else
+    the chunks would be computed in one precision and recorded as the other."""
+    import dataclasses
+
+    from hec_jax.loop import sweep
+
+    with pytest.raises(ValueError, match="float32 is True but jax_enable_x64 is True"):
+        sweep.run_sweep(dataclasses.replace(_tiny_sweep(), float32=True), tmp_path)
+    assert not (tmp_path / "chunks").exists()

@@ -6,7 +6,8 @@ catching experiment (``config.task``: swings with the weights carried over) plus
 impedance baseline (F_o = 0) under the same condition. Runs are processed in chunks of ``chunk``
 (one ``vmap``); each finished chunk is written atomically to ``chunks/chunk_NNNNN.npz`` and a
 restarted sweep skips the chunks already there (it must have the same settings:
-``chunks/sweep_settings.json``). With several devices each device runs its slice of every chunk
+``chunks/sweep_settings.json``; every chunk carries the hash of the settings it was computed
+under, and a chunk of other settings is never merged). With several devices each device runs its slice of every chunk
 (:mod:`hec_jax.loop.devices`); across hosts, ``shard_index/num_shards`` take every n-th chunk and
 :func:`merge` merges the chunk files afterwards.
 """
@@ -14,8 +15,10 @@ restarted sweep skips the chunks already there (it must have the same settings:
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import itertools
 import json
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -231,20 +234,93 @@ def check_same_sweep(chunk_dir: Path, config: SweepConfig) -> None:
         write_json(path, settings)
 
 
-CHUNK_KEYS = ("index", "seed_index", "peak_plain", "peak_learned", "min_margin", "settle_force")
+CHUNK_KEYS = (
+    "index",
+    "seed_index",
+    "peak_plain",
+    "peak_learned",
+    "min_margin",
+    "settle_force",
+    "finite_plain",
+    "finite_learned",
+)
+
+
+def settings_sha256(config: SweepConfig) -> str:
+    """The SHA-256 of :meth:`SweepConfig.settings` (keys sorted): written into every chunk, so
+    that a chunk is only ever merged into the sweep that computed it.
+    """
+    text = json.dumps(config.settings(), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def chunk_sweep(path: Path) -> str | None:
+    """The ``settings_sha256`` a chunk file was computed under (None: unreadable or none;
+    "mixed" if its runs disagree).
+    """
+    try:
+        with np.load(path) as data:
+            shas = set(np.atleast_1d(data["settings_sha256"]).astype(str).tolist())
+    except Exception:  # noqa: BLE001
+        return None
+    return shas.pop() if len(shas) == 1 else "mixed"
 
 
 def chunk_is_complete(path: Path, n_runs: int | None = None) -> bool:
-    """Whether ``path`` is a readable chunk file with every array the merge needs (and
-    ``n_runs`` runs when given); a damaged or truncated file is not.
+    """Whether ``path`` is a readable chunk file with every array the merge needs and the
+    sweep's settings hash (and ``n_runs`` runs when given); a damaged or truncated file is not.
     """
     try:
         with np.load(path) as data:
             arrays = {k: data[k] for k in CHUNK_KEYS}
+            arrays["settings_sha256"] = data["settings_sha256"]
     except Exception:  # noqa: BLE001 (any failure to read means: not done)
         return False
     n = len(arrays["index"])
     return all(len(v) == n for v in arrays.values()) and (n_runs is None or n == n_runs)
+
+
+def _refuse_other_sweeps(files, config: SweepConfig) -> None:
+    """Refuses chunk files computed under other settings than ``config``'s (e.g. by a shard
+    started with other arguments while this one compiled, before either wrote a chunk).
+
+    Raises:
+        SystemExit: naming them.
+    """
+    sha = settings_sha256(config)
+    other = [str(f) for f in files if chunk_sweep(f) not in (sha, None)]
+    if other:
+        raise SystemExit(
+            f"chunk files computed with other settings than this sweep's: {other}; resume with"
+            " the same arguments as those, or use another --out"
+        )
+
+
+def _keep_earlier_records(shard_dir: Path) -> None:
+    """Moves a shard's earlier ``config.json`` and ``timing.json`` (a resumed or repeated
+    shard, perhaps on another machine or commit) into ``shard_dir/earlier/`` under their start
+    time, so that the record of who computed the chunks already there is kept.
+    """
+    config = shard_dir / "config.json"
+    if not config.exists():
+        return
+    try:
+        started = json.loads(config.read_text()).get("started_utc", "unknown")
+    except ValueError:
+        started = "unreadable"
+    stamp = str(started).replace(":", "").replace("-", "")
+    earlier = shard_dir / "earlier"
+    earlier.mkdir(exist_ok=True)
+    for n in itertools.count(1):
+        target = earlier / (stamp if n == 1 else f"{stamp}-{n}")
+        try:
+            target.mkdir()
+            break
+        except FileExistsError:
+            continue
+    for name in ("config.json", "timing.json"):
+        if (shard_dir / name).exists():
+            os.replace(shard_dir / name, target / name)
 
 
 def run_sweep(
@@ -264,15 +340,25 @@ def run_sweep(
     """
     if not 0 <= shard_index < num_shards:
         raise ValueError(f"need 0 <= shard_index < num_shards, got {shard_index}, {num_shards}")
+    if jax.config.jax_enable_x64 == config.float32:
+        raise ValueError(
+            f"SweepConfig.float32 is {config.float32} but jax_enable_x64 is"
+            f" {jax.config.jax_enable_x64}: call jax.config.update('jax_enable_x64',"
+            " not config.float32) first (the chunks would be computed in the other precision)"
+        )
     conditions, seed_index = config.runs()
     n_runs = len(seed_index)
     n_chunks = -(-n_runs // config.chunk)
     chunk_dir = folder / "chunks"
     check_same_sweep(chunk_dir, config)
+    _refuse_other_sweeps(sorted(chunk_dir.glob("chunk_*.npz")), config)
+    sha = settings_sha256(config)
     settings = dict(
         sweep=config.settings(), **(run_settings or {}), devices=[str(d) for d in jax.devices()]
     )
-    start_run(folder / f"shard_{shard_index}", config.seed, settings)
+    shard_dir = folder / f"shard_{shard_index}"
+    _keep_earlier_records(shard_dir)
+    start_run(shard_dir, config.seed, settings)
     loop = build_loop(config.task)
     n_dev = jax.device_count()
     devices = jax.devices()[:1]
@@ -328,6 +414,7 @@ def run_sweep(
             path,
             index=index,
             seed_index=seed_index[index],
+            settings_sha256=np.full(len(index), sha),  # per run, as every chunk array
             **res,
             **{k: v[index] for k, v in conditions.items()},
         )
@@ -400,6 +487,7 @@ def merge(folder: Path, config: SweepConfig) -> dict:
     check_same_sweep(chunk_dir, config)
     _, seed_index = config.runs()
     files = sorted(chunk_dir.glob("chunk_*.npz"))
+    _refuse_other_sweeps(files, config)
     damaged = [str(f) for f in files if not chunk_is_complete(f)]
     if damaged:
         raise SystemExit(f"damaged chunk files (run the sweep again to recompute them): {damaged}")
@@ -427,7 +515,10 @@ def merge(folder: Path, config: SweepConfig) -> dict:
         "runs_learned_never_touching": int((reached & ~touched).sum()),
         "success_rate_peak_at_most_half_plain": float(success.mean()) if success.size else None,
         "peak_ratio_learned_over_plain": mean_std(ratio[reached]) if reached.any() else None,
-        "strictly_stable_every_run": bool(np.all(data["min_margin"][finite] > 0)),
+        # over the finite runs (the diverged ones are counted above); None: none finite
+        "strictly_stable_every_run": (
+            bool(np.all(data["min_margin"][finite] > 0)) if finite.any() else None
+        ),
         "per_run": [
             {
                 **{k: float(data[k][i]) for k in FIELDS},
