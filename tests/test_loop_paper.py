@@ -150,7 +150,7 @@ def test_catching_metrics_on_a_known_trace():
     assert m["overshoot_over_f_cd"] == pytest.approx(2.5)
     assert m["time_to_f_cd_s"] == pytest.approx(0.4)
     assert m["settle_force"] == pytest.approx(2.1)
-    # a bounce (second contact) is not held; the force never stays in the band
+    # a bounce (second contact) is not held; the force enters the band to stay only after it
     f2 = f.copy()
     f2[1500:1600] = 0.0
     m2 = pm.catching_run_metrics(_catch_log(f2, xd_o, xd_e), DT, f_cd, 1e-3, 0.5)
@@ -178,6 +178,8 @@ def test_hitting_metrics_on_a_known_trace():
     assert m["sustained"] == pytest.approx(0.6)
     assert m["max_pulse"] == 54.0 and m["pulse_over_f_hd"] == pytest.approx(54.0 / 5.0)
     np.testing.assert_allclose(m["speed_gain"], [0.5 - (1.0 - 0.1 * k) for k in range(5)])
+    with pytest.raises(ValueError, match="'catching' or 'hitting', got 'catch'"):
+        pm.task_run_metrics("catch", log, DT, 5.0, 1e-3, 0.5)  # not taken for hitting
 
 
 def test_summary_counts_missing_values_and_fractions():

@@ -160,7 +160,12 @@ def runs_of(logs: dict) -> list[dict]:
 def task_run_metrics(task: str, log: dict, dt: float, f_d: float, threshold: float, settle_s):
     """:func:`catching_run_metrics` or :func:`hitting_run_metrics` (with ``speed_gain_mean``, the
     mean speed gained per hit) by ``task``.
+
+    Raises:
+        ValueError: ``task`` is neither "catching" nor "hitting".
     """
+    if task not in ("catching", "hitting"):
+        raise ValueError(f"task must be 'catching' or 'hitting', got {task!r}")
     if task == "catching":
         return catching_run_metrics(log, dt, f_d, threshold, settle_s)
     m = hitting_run_metrics(log, dt, f_d, threshold)
