@@ -304,6 +304,25 @@ def test_validation_errors():
         apply(p, vp, C.fixed_target([0.0, 0.0]), st0, obs._replace(f_int=jnp.zeros(3)))
 
 
+def test_a_singular_jacobian_without_damping_is_flagged_not_hidden():
+    """With ``mx_damping`` = 0 a singular J (a straight arm) has no operational inertia: M_x is
+    0/0 and the torques are NaN. The info says so (``mx_cond`` inf, ``saturated`` True: a NaN
+    torque is not "within the limit"); the default damping gives finite torques there."""
+    obs = _random_obs(np.random.default_rng(6), f_int=np.zeros(2))
+    obs = obs._replace(J=jnp.array([[1.0, 0.5, 0.25], [0.0, 0.0, 0.0]]))  # rank 1
+    p = C.impedance_params(1.0, 40.0, 400.0)
+    vp = C.virtual_params(0.0, 0.0, 0.0, 0.25)
+    tgt = C.fixed_target([0.0, 0.0])
+    for damping, finite in ((0.0, False), (C.ControllerConfig().mx_damping, True)):
+        init, apply = C.make_impedance_controller(
+            DT, TORQUE_LIMIT, C.ControllerConfig(mx_damping=damping)
+        )
+        _, _, info = apply(p, vp, tgt, init(obs), obs)
+        assert bool(jnp.all(jnp.isfinite(info.tau_cmd))) == finite
+        over = bool(np.any(np.abs(np.asarray(info.tau_cmd)) > np.asarray(TORQUE_LIMIT)))
+        assert bool(info.saturated) == (over or not finite) and np.isinf(info.mx_cond)
+
+
 def test_controller_jit_vmap_grad():
     """apply works under jit, vmap (over parameters) and grad (w.r.t. K_e), with finite values."""
     init, apply = C.make_impedance_controller(DT, TORQUE_LIMIT)

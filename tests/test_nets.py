@@ -483,6 +483,9 @@ def test_configs_and_apply_refuse_what_they_cannot_handle():
         NetConfig(input_scale=(0.0, 1.0, 1.0, 1.0))
     with pytest.raises(ValueError, match="hidden"):
         NetConfig(hidden=())
+    for margin in (0.0, 1.0):  # 0: K_o + K_e = 0 at a saturated output, not > 0
+        with pytest.raises(ValueError, match="margin"):
+            NetConfig(margin=margin)
     cfg = NetConfig()
     params = nets.init_params(jax.random.PRNGKey(0), cfg, jnp.float64)
     u = nets.u_max(cfg, jnp.ones(2), 40.0 * jnp.ones(2), 400.0 * jnp.ones(2))
@@ -490,3 +493,28 @@ def test_configs_and_apply_refuse_what_they_cannot_handle():
     for shape in ((2, 3), (1, 4), (4,)):  # wrong width; a width-1 axis is not broadcast
         with pytest.raises(ValueError, match="inputs must have shape"):
             nets.apply(params, cfg, jnp.zeros(shape), u)
+
+
+def test_at_the_centre_of_the_sphere_the_learner_agrees_with_the_controller():
+    """At X_r = 0 the sphere's normal is undefined and the controller gives no virtual force
+    (``SphereKinematics.inside``: 0 < |X_r| <= r); the learner counts the sample as outside too,
+    so it neither reports a force the hand does not get nor learns from it."""
+    from hec_jax import control as C
+    from hec_jax.nets import LearnerInputs, SphereGeometry
+
+    cfg = LearnerConfig()
+    init, update = nets.make_online_learner(cfg, 1e-3, [1.0, 1.0], [40.0, 40.0], [400.0, 400.0])
+    state = init(jax.random.PRNGKey(0), jnp.float64)
+    x = np.array([0.3, 0.2])
+    for x_o in (x, x + np.array([0.05, 0.0])):  # at the centre; inside, off it
+        sk = C.sphere_kinematics(x_o - x, np.array([0.5, 0.1]), np.zeros(2), cfg.radius)
+        values = (x, np.zeros(2), np.zeros(2), x_o, np.array([0.5, 0.1]), np.zeros(2), np.zeros(2))
+        inputs = LearnerInputs(
+            *(jnp.asarray(v) for v in values),
+            jnp.asarray(False),
+            SphereGeometry(sk.dx_o, sk.dxd_o, sk.dxdd_o),
+        )
+        _, out = update(state, inputs)
+        assert bool(out.inside) == bool(sk.inside) == (not np.array_equal(x_o, x))
+        if not sk.inside:
+            np.testing.assert_array_equal(out.f_o, 0.0)

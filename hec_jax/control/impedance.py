@@ -219,7 +219,8 @@ class ControlInfo(NamedTuple):
         tau_cmd: [N m] (3,) torque before saturation.
         f_o: [N] (2,) virtual force F_o (Eq. 47).
         mx_cond: () condition number of J M^-1 J^T.
-        saturated: () bool, any joint at its torque limit.
+        saturated: () bool, any joint at its torque limit, or a commanded torque not finite
+            (only with ``mx_damping`` = 0 at a singular Jacobian, where ``mx_cond`` is inf).
         sphere: the virtual-sphere kinematics (Eqs. 45-46).
         xdd_e: [m/s^2] (2,) the hand acceleration used for dX_o'' (backward difference).
     """
@@ -361,7 +362,8 @@ def make_impedance_controller(
             tau_cmd=tau_cmd,
             f_o=f_o,
             mx_cond=cond,
-            saturated=jnp.any(jnp.abs(tau_cmd) > limit),
+            # NaN counts as saturated (mx_damping = 0 at a singular J: M_x = 0/0)
+            saturated=~jnp.all(jnp.abs(tau_cmd) <= limit),
             sphere=sk,
             xdd_e=xdd_e,
         )

@@ -89,7 +89,8 @@ class TaskConfig:
     touch_memory_across: Literal["follow_hand", "hand_velocity"] = "follow_hand"
     # [s] time constant of a first-order low-pass on the object's acceleration X_o'' when the
     # object state is the simulator's (camera runs take the eye filter's estimate); 0: X_o'' is
-    # the 1 kHz backward difference of X_o' (impact-dominated in contact, see VIN_NOTE).
+    # the 1 kHz backward difference of X_o' (impact-dominated in contact, see VIN_NOTE). The
+    # hand's X_e'' is never filtered (dX_o'' = X_o'' - X_e'' keeps its impact spike).
     object_accel_tau_s: float = 0.0
     # Hand-cube contact (the scene's hand_cube pair), written into the MJX model's pair_solref
     # (timeconst [s], dampratio) / pair_solimp; None keeps scene.xml's (0.005 s, 1: critically
@@ -568,9 +569,14 @@ def catching_paper(**overrides) -> ExperimentConfig:
       0.34-0.48 m from the hand (r = 0.25 m), so t_c falls during the swing and X_r'(t_c) is the
       approach velocity that alpha (Eq. 62) shapes.
     * **One contact model** for both tasks (``PAPER_CONTACT_SOLREF``, restitution 0.37).
-    * **All three networks learn** (eta 0.3 each); the VIN's acceleration signal is the object's
-      acceleration low-passed with a 1/30 s time constant (``object_accel_tau_s``), as smooth as
-      the paper's 30 Hz camera estimate; camera runs use the eye filter's estimate.
+    * **All three networks learn** (eta 0.3 each). The object's acceleration X_o'' is low-passed
+      with a 1/30 s time constant (``object_accel_tau_s``), as smooth as the paper's 30 Hz
+      camera estimate; camera runs use the eye filter's estimate. The hand's X_e'' is not: it
+      is the 1 kHz backward difference, as a robot's own sensing would give it. So the VIN's
+      relative acceleration dX_o'' = X_o'' - X_e'' still spikes at an impact: on one frozen
+      swing of this preset (docs/experiments.md, 2026-12-04) its peak in contact was 175 m/s^2
+      (29 m/s^2 for the low-passed X_o'' alone; 0.37 m/s^2 median inside the sphere before
+      contact). Low-passing X_e'' too was not tried.
     * **Neutral initial networks** (``NetConfig.neutral_init``): O = 0 at the start, so the frozen
       baseline is plain impedance plus the small random output weights.
     * F_cd = 2 N (the catching preset's value; the paper gives none), mu = 1e-3 as there.

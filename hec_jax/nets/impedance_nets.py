@@ -91,8 +91,8 @@ class NetConfig:
             )
         if not (np.isfinite(self.theta) and np.isfinite(self.init_output_std)):
             raise ValueError("NetConfig.theta and init_output_std must be finite")
-        if not 0 <= self.margin < 1:
-            raise ValueError(f"NetConfig.margin must be in [0, 1), got {self.margin}")
+        if not 0 < self.margin < 1:  # 0: K_o + K_e = 0 at a saturated output (a pole at s = 0)
+            raise ValueError(f"NetConfig.margin must be in (0, 1), got {self.margin}")
 
 
 class FlaxMlp(nn.Module):

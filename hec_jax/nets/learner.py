@@ -303,7 +303,7 @@ def make_online_learner(
         xd_r = inputs.xd_o - inputs.xd_e
         xdd_r = inputs.xdd_o - inputs.xdd_e
         rho = _norm(x_r)
-        inside = finite & (rho <= config.radius)
+        inside = finite & (rho > 0) & (rho <= config.radius)  # as SphereKinematics (Eq. 47)
         entering = inside & ~state.was_inside
         xd_r_tc = jnp.where(entering, xd_r, state.xd_r_tc)  # latch X_r'(t_c) per encounter
         touched = (state.touched & ~entering) | (inside & inputs.in_contact)
