@@ -92,6 +92,34 @@ def test_untimed_loop_is_the_simulated_c_loop(untimed):
     assert np.any(run.logs[1]["learning"])  # ... and learning, weights carried over
 
 
+def test_the_logged_margins_are_those_of_the_impedance_applied(untimed):
+    """The policy logs the strict Eq. 49 margins of the virtual impedance it applied: a fixed
+    one in place of the networks (the paper protocol's fixed arms), zero for plain impedance,
+    the networks' own in the frozen condition. Until 2026-12-04 it logged the networks' margins
+    in all three, so the fixed and plain arms' stability summaries described the wrong
+    impedance. The state: the release, the cube inside the sphere (seen)."""
+    from hec_jax.nets import stability_margins
+
+    exp, loop, key, _ = untimed
+    ids, c = loop.ids, exp.task.pendulum.conditions()
+    m = RT.plant_model(exp.task)
+    d = make_data_c(m, ids, c, np.asarray(loop.q_home))
+    obs = observe_c(ids, d.qpos, d.qvel, c_quantities(m, d, ids), np.zeros(3))
+    ls = loop.learner_init(key, jnp.float64)
+    imp = exp.task.impedance
+    fixed = jnp.array([[-5.0, -1.0, -0.2], [3.0, 0.5, 0.1]])  # (K_o, B_o, M_o) per axis
+    for sw, applied in (
+        (L.switches("frozen", fixed=fixed), lambda aux: fixed),
+        (L.switches("plain"), lambda aux: jnp.zeros((2, 3))),
+        (L.switches("frozen"), lambda aux: jnp.stack([aux["k_o"], aux["b_o"], aux["m_o"]], -1)),
+    ):
+        ps = jax.jit(loop.initial_policy_state_obs)(obs, ls, sw)
+        _, _, aux = jax.jit(loop.policy_obs)(ps, obs, 0.0)
+        want = stability_margins(applied(aux), imp.m_e, imp.b_e, imp.k_e)
+        np.testing.assert_allclose(aux["margins"], want, rtol=1e-12, atol=1e-12)
+        assert not np.allclose(aux["k_o"], 0.0) or sw.use_virtual == 0  # the case is not void
+
+
 def test_a_gap_of_steps_spans_the_accelerations_and_not_the_learning_step(untimed):
     """After skipped steps the policy's and the controller's backward differences (X_e'', X_o'')
     span the gap: the policy over a gap of 3 steps equals the one-step policy from a state whose

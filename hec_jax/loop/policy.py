@@ -50,7 +50,7 @@ from hec_jax.mjx_scene import (
     solve_posture,
 )
 from hec_jax.mjx_scene.model import ROD_DENSITY, ROD_RADIUS
-from hec_jax.nets import LearnerInputs, SphereGeometry, make_online_learner
+from hec_jax.nets import LearnerInputs, SphereGeometry, make_online_learner, stability_margins
 
 CONDITIONS = ("plain", "frozen", "learned")
 
@@ -313,7 +313,9 @@ def build_loop(config: TaskConfig) -> Loop:
             k_o=o[:, 0],
             b_o=o[:, 1],
             m_o=o[:, 2],
-            margins=out.margins,
+            # Eq. 49 margins of the impedance applied (a fixed one, or zero unseen), not the
+            # networks' output where something else was applied
+            margins=stability_margins(o, params.m_e, params.b_e, params.k_e),
             energy=out.energy,
             inside=out.inside,
             learning=out.learning,
