@@ -245,7 +245,8 @@ def test_eq49_projection(vals, target):
         np.asarray(vp.b_o) >= -0.999 * np.asarray(b_e)
     )
     kept &= np.asarray(vp.k_o) >= -0.999 * np.asarray(k_e)
-    assert np.all(np.asarray(pr.m_o)[kept] == np.asarray(vp.m_o)[kept])
+    for name in ("m_o", "b_o", "k_o"):  # all three kept, not only M_o
+        assert np.all(np.asarray(getattr(pr, name))[kept] == np.asarray(getattr(vp, name))[kept])
     assert np.all(stable[kept])
 
 
