@@ -172,6 +172,16 @@ def _publish(path: Path, write, suffix: str) -> None:
 
 
 def _umask() -> int:
+    """The process's umask, read without changing it where Linux says it (``/proc/self/status``):
+    setting and restoring it would briefly give another thread's new files the wrong mode.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
     mask = os.umask(0o022)
     os.umask(mask)
     return mask

@@ -230,3 +230,15 @@ def test_device_records_the_processor(tmp_path):
     if model is not None:
         assert device["cpu_model"] == model
     assert device["cpu_count"] >= 1
+
+
+def test_the_umask_is_read_as_set():
+    """Files and folders get the mode a plain open/mkdir would give (``0o666 & ~umask``), the
+    umask read without being changed where Linux gives it."""
+    old = os.umask(0o027)
+    try:
+        assert runs._umask() == 0o027
+        os.umask(0o002)
+        assert runs._umask() == 0o002
+    finally:
+        os.umask(old)
