@@ -23,6 +23,7 @@ Oracles:
 import dataclasses
 import json
 import os
+import time
 from pathlib import Path
 
 import jax
@@ -338,6 +339,16 @@ def test_shared_board_and_frame_ring_round_trip():
     board.write(t=1.5, x=[2.0, 3.0])
     seq, rec = board.read()
     assert seq == 2 and rec["t"] == 1.5 and rec["x"].tolist() == [2.0, 3.0]
+    # a writer preempted mid-write (the sequence odd): the control loop's try_read returns at
+    # once with nothing, read waits and then gives up; once the write completes both read it
+    board._buf[0] += 1.0
+    board._buf[1] = 9.0
+    t0 = time.monotonic()
+    assert board.try_read() is None and time.monotonic() - t0 < 0.01
+    with pytest.raises(TimeoutError):
+        board.read(timeout_s=0.02)
+    board._buf[0] += 1.0
+    assert board.try_read()[0] == board.read()[0] == 4 and board.try_read()[1]["t"] == 9.0
     ring = FrameRing(4, 6, {"t": ()}, slots=2)
     assert ring.get() is None
     for i in range(3):

@@ -507,8 +507,12 @@ def run_loop(
                 if j >= n:
                     break
                 c1 = _thread_ns()
+                fresh = None
                 if estimates is not None and estimates.seq != seq:
-                    seq, est = estimates.read()
+                    # never waits on the eye: a write in progress is read at the next tick
+                    fresh = estimates.try_read()
+                if fresh is not None:
+                    seq, est = fresh
                     if int(est["episode"]) == e:
                         sw_vec = fns.sw.pack_np(
                             sw_base._replace(eye=eye_input(est, guard, memory)), sw_np_dtype

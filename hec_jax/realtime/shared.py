@@ -67,6 +67,22 @@ class Board:
             buf[self._slices[name]] = np.ravel(v)
         buf[0] += 1.0
 
+    def try_read(self) -> tuple[int, dict[str, np.ndarray]] | None:
+        """(seq, {name: copy}) of a complete record, or None without waiting when a write is in
+        progress or completed during the copy (for a reader on a deadline: it reads the record
+        on its next try, and is never held up by a writer preempted mid-write).
+        """
+        buf = self._buf
+        s0 = buf[0]
+        if s0 % 2:
+            return None
+        copy = buf.copy()
+        if buf[0] != s0:
+            return None
+        return int(s0), {
+            name: copy[sl].reshape(self.fields[name]) for name, sl in self._slices.items()
+        }
+
     def read(self, timeout_s: float = 1.0) -> tuple[int, dict[str, np.ndarray]]:
         """(seq, {name: copy}) of a complete record (retries while a write is in progress; a
         writer preempted mid-write is waited for, sleeping 20 us between tries after 50).
@@ -74,17 +90,11 @@ class Board:
         Raises:
             TimeoutError: no consistent copy within ``timeout_s`` (a writer died mid-write).
         """
-        buf = self._buf
         tries, t_end = 0, None
         while True:
-            s0 = buf[0]
-            if s0 % 2 == 0:
-                copy = buf.copy()
-                if buf[0] == s0:
-                    return int(s0), {
-                        name: copy[sl].reshape(self.fields[name])
-                        for name, sl in self._slices.items()
-                    }
+            record = self.try_read()
+            if record is not None:
+                return record
             tries += 1
             if tries > 50:
                 t_end = time.monotonic() + timeout_s if t_end is None else t_end
