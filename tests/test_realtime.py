@@ -1106,3 +1106,56 @@ def test_idle_filler_keeps_the_cpus_busy_at_idle_priority_and_leaves_nothing_beh
         idle_filler("busy", {cpu})
     with pytest.raises(ValueError, match="idle_filler"):
         RT.RealtimeConfig(idle_filler="busy")
+
+
+def _synthetic_eye_episode(lost_after_s: float | None, n: int = 3000, dt: float = 1e-3):
+    """A 3 s episode on time: an estimate of every 33rd step's exposure taken 20 steps later,
+    seen until the exposure passes ``lost_after_s`` (None: always), then reported lost (the
+    controller's state then has no eye estimate in force: its stamp is NaN, as in run_loop)."""
+    from types import SimpleNamespace
+
+    j = np.arange(n)
+    exposures = np.arange(0, n, 33)
+    ticks = np.where(exposures > 0, exposures + 20, 0)
+    keep = ticks < n
+    exposures, ticks = exposures[keep], ticks[keep]
+    seen = np.ones(len(ticks)) if lost_after_s is None else (exposures * dt < lost_after_s) * 1.0
+    stamp, cur, at = np.full(n, np.nan), np.nan, {int(t): k for k, t in enumerate(ticks)}
+    for t in j:
+        if t in at:
+            k = at[t]
+            cur = exposures[k] * dt if seen[k] > 0 else np.nan
+        stamp[t] = cur
+    rec = {"kind": np.zeros(n, int), "t_wake": j * dt, "t_obs": j * dt + 1e-4}
+    rec.update(t_step=j * dt + 2e-4, t_write=j * dt + 3e-4, t_stamp=stamp)
+    zeros = np.zeros(len(ticks))
+    arrival = {
+        "tick": ticks * 1.0,
+        "t_tick": ticks * dt,
+        "t_stamp": exposures * dt,
+        "frame": np.arange(len(ticks)) * 1.0,
+        "number": np.arange(len(ticks)) * 1.0,
+        "seen": seen,
+        "valid": seen,
+        "t_wall_exposure": zeros,
+        "t_wall_done": zeros,
+        "t_wall_taken": zeros,
+    }
+    return SimpleNamespace(ticks=[rec], arrivals=[arrival], logs=[{"f_contact": np.zeros((n, 3))}])
+
+
+def test_the_eye_age_target_fails_when_the_eye_has_lost_the_cube():
+    """An eye that tracks for 0.5 s and then reports the cube lost: the age of the estimates in
+    force stays at 52 ms at most (within two frame periods), but 2.5 s of ticks have no eye state at
+    all, and the target says so. The same episode with the cube seen throughout passes."""
+    from hec_jax.realtime.report import deadline_report
+
+    fps = 1 / 0.033
+    lost = deadline_report(_synthetic_eye_episode(0.5), 1e-3, fps)
+    assert lost["eye"]["age_ms"]["max"] == pytest.approx(52.0)
+    assert lost["eye"]["ticks_without_estimate"] > 2400
+    assert lost["targets"]["eye_age_within_two_frame_periods"] is False
+    kept = deadline_report(_synthetic_eye_episode(None), 1e-3, fps)
+    assert kept["eye"]["ticks_without_estimate"] == 0
+    assert kept["eye"]["age_ms"]["max"] == pytest.approx(52.0)
+    assert kept["targets"]["eye_age_within_two_frame_periods"] is True
