@@ -1159,3 +1159,72 @@ def test_the_eye_age_target_fails_when_the_eye_has_lost_the_cube():
     assert kept["eye"]["ticks_without_estimate"] == 0
     assert kept["eye"]["age_ms"]["max"] == pytest.approx(52.0)
     assert kept["targets"]["eye_age_within_two_frame_periods"] is True
+
+
+def test_a_stalled_camera_renders_the_newest_frame_time_not_an_old_one(monkeypatch):
+    """The camera (``workers.camera_main``, a stand-in renderer) renders frame 0 at step 0, then
+    is held off until step 118: frames 1-3 (due at steps 33, 66, 99) have all come. It renders
+    frame 3, 19 steps late, and counts frames 1 and 2 as skipped. It used to render frame 1
+    there, 85 steps late, which the eye would fit as the state of step 33."""
+    import queue
+    import threading
+
+    import mujoco
+
+    from hec_jax.mjx_scene import render as render_module
+    from hec_jax.realtime import workers
+    from hec_jax.realtime.shared import Images
+
+    class StandInCamera:
+        def __init__(self, m, *args, **kwargs):
+            self.data = mujoco.MjData(m)
+
+        def render(self, q):
+            return np.zeros((8, 8, 3), np.uint8)
+
+        def close(self):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            pass
+
+    monkeypatch.setattr(render_module, "SceneCamera", StandInCamera)
+    cam = L.CameraConfig.void_perfect(width=8, height=8)
+    exp = L.catching(eye="camera", camera=cam)
+    m = RT.plant_model(exp.task)
+    meta = ("episode", "number", "t_exposure", "t_wall_exposure", "t_wall_done")
+    frames = FrameRing(8, 8, {**{k: () for k in meta}, "q_arm": (3,)})
+    stop = threading.Event()
+
+    class ScriptedBoard:
+        """The plant's board as the camera sees it: each new read one step of ``steps``."""
+
+        def __init__(self, steps):
+            self.steps, self.k = steps, 0
+
+        @property
+        def seq(self):
+            if self.k >= len(self.steps):
+                stop.set()
+            return 2 * (self.k + 1)
+
+        def read(self):
+            step = self.steps[min(self.k, len(self.steps) - 1)]
+            self.k += 1
+            rec = {"t": step * 1e-3, "step": step, "episode": 0, "t_wall": 0.0}
+            return 2 * self.k, {**rec, "t_clock": np.nan, "qpos": np.zeros(m.nq)}
+
+    # frame 0 at step 0 (then the read after its render), then the stall: step 118
+    board = ScriptedBoard([0, 1, 118, 119])
+    log_queue = queue.Queue()
+    workers.camera_main(
+        exp.task, cam, 33, np.zeros(m.nq), board, frames, Images(2, 8, 8),
+        stop=stop, log_queue=log_queue, dt=1e-3,
+    )  # fmt: skip
+    log = log_queue.get(timeout=10)
+    assert "error" not in log, log.get("error")
+    assert log["number"].tolist() == [0, 3] and log["step"].tolist() == [0, 118]
+    assert log["skipped"] == 2

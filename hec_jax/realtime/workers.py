@@ -182,6 +182,12 @@ def camera_main(
             if step < number * period:
                 time.sleep(camera_sleep_s(rec, number * period, dt, monotonic_s()))
                 continue
+            # held off for a whole period or more (a stall): the newest frame time that has
+            # come, not an old one exposed late; the ones passed over are skipped
+            due = step // period
+            if due > number:
+                skipped += due - number
+                number = due
             t0, cpu0, steal0 = monotonic_s(), time.process_time(), host_steal_ms()
             image = camera.render(rec["qpos"])
             x_true = camera.data.site_xpos[ids.cube_site].copy()
