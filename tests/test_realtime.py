@@ -234,6 +234,26 @@ class _ScriptedClock:
         return self.t
 
 
+def test_a_late_last_write_ends_the_episode_at_its_length():
+    """The last tick of a 10-step episode writes 3.5 ms after its deadline: its own step is
+    late and the plant integrates nothing past the episode's end (it counted 3 steps more as
+    skipped, which the runner's counts then disagreed with the report about)."""
+    exp = _task()
+    loop = L.build_loop(exp.task)
+    plant = RT.MujocoPlant(exp.task, loop.q_home)
+    clock, n = _ScriptedClock(), 10
+    plant.begin_episode(n)
+    plant.start(clock)
+    for j in range(n):
+        clock.t = j * 1e-3 + 1e-4
+        assert plant.read().index == j
+        clock.t = j * 1e-3 + (2e-4 if j < n - 1 else 4.5e-3)
+        plant.write(np.zeros(3))
+    assert plant.counts == (n, n - 1, 1, 0)
+    assert plant.episode_log()["kind"].tolist() == [0] * (n - 1) + [1]
+    assert plant.read().index == n  # the runner's loop ends there
+
+
 def test_plant_holds_the_torque_on_late_and_skipped_steps():
     """Deadline of step j: (j + 1) dt. A late torque is applied from the next step on; steps
     whose deadline passes with no call are integrated with the held torque."""

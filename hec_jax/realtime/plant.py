@@ -484,10 +484,12 @@ class MujocoPlant:
             )
 
     def _catch_up(self) -> None:
-        """Integrates, with the held torque, every step whose deadline has passed."""
+        """Integrates, with the held torque, every step of the episode whose deadline has
+        passed (none past its end: a late last write ends it there).
+        """
         now = self.clock.now()
         self._late_row = self.j
-        while now >= (self.j + 1) * self.dt:
+        while now >= (self.j + 1) * self.dt and self.j < len(self._log["t"]):
             self._integrate(self._u, 2)
 
     def read(self) -> PlantSample:
