@@ -1248,3 +1248,20 @@ def test_a_stalled_camera_renders_the_newest_frame_time_not_an_old_one(monkeypat
     assert "error" not in log, log.get("error")
     assert log["number"].tolist() == [0, 3] and log["step"].tolist() == [0, 118]
     assert log["skipped"] == 2
+
+
+@pytest.mark.slow  # a spawned eye process: about 15 s, most of it the child's imports
+def test_an_eye_that_dies_at_start_up_is_reported_and_closed_at_once():
+    """An eye process that fails while it starts (here: no camera to read): ``wait_ready``
+    raises with its traceback, and ``close`` returns that message at once (it waited 60 s on
+    the log queue wait_ready had emptied)."""
+    from hec_jax.realtime.runner import EyeProcess
+
+    cam = L.CameraConfig.void_perfect(width=64, height=48)
+    exp = L.catching(eye="camera", camera=cam)
+    eye = EyeProcess(exp.task, cam, None, 1e-3, None)
+    with pytest.raises(RuntimeError, match="the eye process died"):
+        eye.wait_ready(120)
+    t0 = time.monotonic()
+    log = eye.close()
+    assert time.monotonic() - t0 < 15 and "error" in log and "Traceback" in log["error"]

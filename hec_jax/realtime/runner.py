@@ -38,6 +38,7 @@ import dataclasses
 import gc
 import math
 import os
+import queue
 import resource
 import time
 from dataclasses import dataclass, field
@@ -639,6 +640,7 @@ class EyeProcess:
 
         self.estimates = Board(workers.ESTIMATE_FIELDS)
         self._ready, self._stop, self._log = _CTX.Event(), _CTX.Event(), _CTX.Queue()
+        self._last_words = None  # the message of an eye that died (taken by wait_ready)
         fps = 1.0 / (steps_per_frame(cam, dt) * dt)
         cache = jax.config.jax_compilation_cache_dir
         with _child_env():
@@ -669,20 +671,34 @@ class EyeProcess:
 
         def ok():
             if not self.proc.is_alive():
-                raise RuntimeError(f"the eye process died: {self._log.get(timeout=5)}")
+                try:  # kept for close(), which would otherwise wait for it in vain
+                    self._last_words = self._log.get(timeout=5)
+                except queue.Empty:
+                    self._last_words = {"error": "nothing (it died before it could say why)"}
+                raise RuntimeError(f"the eye process died: {self._last_words}")
             return self._ready.is_set()
 
         wait_for(ok, timeout_s, 0.05, "the eye process")
 
     def close(self) -> dict | None:
-        """Stops the eye; returns its per-frame log."""
+        """Stops the eye; returns its per-frame log (what it said before it died, if it did)."""
         if self.proc is None:
             return None
         self._stop.set()
-        try:
-            log = self._log.get(timeout=60)
-        except Exception:  # noqa: BLE001 - a dead eye leaves no log
-            log = None
+        log = self._last_words
+        if log is None:
+            # while it runs it gets 60 s to send its log; a dead one has sent all it will
+            for _ in range(600):
+                try:
+                    log = self._log.get(timeout=0.1)
+                    break
+                except queue.Empty:
+                    if not self.proc.is_alive():
+                        try:
+                            log = self._log.get(timeout=0.5)  # sent just before it ended
+                        except queue.Empty:
+                            log = None
+                        break
         self.proc.join(timeout=10)
         if self.proc.is_alive():
             self.proc.terminate()
