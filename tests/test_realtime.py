@@ -93,6 +93,16 @@ def test_untimed_loop_is_the_simulated_c_loop(untimed):
     assert np.any(run.logs[1]["learning"])  # ... and learning, weights carried over
 
 
+def _at_the_release(untimed):
+    """(exp, loop, the observation at the release (MuJoCo C), the learner's initial state)."""
+    exp, loop, key, _ = untimed
+    ids, c = loop.ids, exp.task.pendulum.conditions()
+    m = RT.plant_model(exp.task)
+    d = make_data_c(m, ids, c, np.asarray(loop.q_home))
+    obs = observe_c(ids, d.qpos, d.qvel, c_quantities(m, d, ids), np.zeros(3))
+    return exp, loop, obs, loop.learner_init(key, jnp.float64)
+
+
 def test_the_logged_margins_are_those_of_the_impedance_applied(untimed):
     """The policy logs the strict Eq. 49 margins of the virtual impedance it applied: a fixed
     one in place of the networks (the paper protocol's fixed arms), zero for plain impedance,
@@ -101,12 +111,7 @@ def test_the_logged_margins_are_those_of_the_impedance_applied(untimed):
     impedance. The state: the release, the cube inside the sphere (seen)."""
     from hec_jax.nets import stability_margins
 
-    exp, loop, key, _ = untimed
-    ids, c = loop.ids, exp.task.pendulum.conditions()
-    m = RT.plant_model(exp.task)
-    d = make_data_c(m, ids, c, np.asarray(loop.q_home))
-    obs = observe_c(ids, d.qpos, d.qvel, c_quantities(m, d, ids), np.zeros(3))
-    ls = loop.learner_init(key, jnp.float64)
+    exp, loop, obs, ls = _at_the_release(untimed)
     imp = exp.task.impedance
     fixed = jnp.array([[-5.0, -1.0, -0.2], [3.0, 0.5, 0.1]])  # (K_o, B_o, M_o) per axis
     for sw, applied in (
@@ -127,12 +132,7 @@ def test_a_gap_of_steps_spans_the_accelerations_and_not_the_learning_step(untime
     previous velocities lie a third of the way back (the same accelerations, by construction);
     the learner's sampling interval stays one step in both. The state: the release, the cube
     inside the virtual sphere (F_o has a mass term); the velocities 3 steps on are made up."""
-    exp, loop, key, _ = untimed
-    ids, c = loop.ids, exp.task.pendulum.conditions()
-    m = RT.plant_model(exp.task)
-    d = make_data_c(m, ids, c, np.asarray(loop.q_home))
-    obs0 = observe_c(ids, d.qpos, d.qvel, c_quantities(m, d, ids), np.zeros(3))
-    ls = loop.learner_init(key, jnp.float64)
+    exp, loop, obs0, ls = _at_the_release(untimed)
     ps = jax.jit(loop.initial_policy_state_obs)(obs0, ls, L.switches("learned"))
     toward = (obs0.x_e - obs0.x_o) / jnp.linalg.norm(obs0.x_e - obs0.x_o)  # the cube approaching
     obs = obs0._replace(
