@@ -523,6 +523,10 @@ def test_realtime_camera_run_reports_itself(monkeypatch):
     assert processed == len(seen_by_eye)
     rendered_up_to_last = cam_log["index"][cam_log["index"] <= seen_by_eye.max()]
     assert dropped == len(set(rendered_up_to_last) - set(seen_by_eye))
+    # the rest of the rendered frames came after the eye's last: counted apart, not lost
+    after_last = eye["eye"]["frames_after_last_processed"]
+    assert after_last == len(cam_log["index"]) - len(rendered_up_to_last)
+    assert processed + dropped + after_last == eye["camera"]["frames_rendered"]
     assert eye["estimates_taken"] >= 1
     assert eye["latency_ms"]["n"] == 0 or eye["latency_ms"]["p50"] > 0
     # the eye's stages (mask, the tracker's detection and estimation) lie within its frame time

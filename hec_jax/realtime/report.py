@@ -358,6 +358,7 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
     if eye_log:
         out["eye"] = {
             "frames_processed": int(len(eye_log["index"])),
+            # rendered frames the eye skipped for a newer one (between its first and last)
             "frames_dropped": int(eye_log["dropped"]),
             "frames_valid": int(np.sum(eye_log["valid"])),
             # failed while the filter ran and left to the prediction (TrackConfig.defer_search)
@@ -366,6 +367,10 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
             "eye_ms": percentiles(eye_log["eye_ms"][eye_log["number"] > 0]),
             "acquisition_ms": percentiles(eye_log["eye_ms"][eye_log["number"] == 0]),
         }
+        if camera_log and len(eye_log["index"]):
+            # rendered after the eye's last processed frame: the run ended before it took them
+            after = camera_log["index"] > np.max(eye_log["index"])
+            out["eye"]["frames_after_last_processed"] = int(np.sum(after))
         for stage in ("mask_ms", "detection_ms", "estimation_ms"):  # logs since session 20
             if stage in eye_log:
                 out["eye"][stage] = percentiles(eye_log[stage][eye_log["number"] > 0])
@@ -655,6 +660,10 @@ def deadline_table(report: dict) -> list[str]:
                     "frames processed by the eye / dropped / valid / search deferred",
                     f"{e['frames_processed']} / {e['frames_dropped']} / {e['frames_valid']}"
                     f" / {e.get('frames_search_deferred', '-')}",
+                ),
+                (
+                    "frames rendered after the eye's last (the run ended first)",
+                    str(e.get("frames_after_last_processed", "-")),
                 ),
                 ("eye p50 / p99 / max [ms]", ms(e["eye_ms"])),
             ]
