@@ -151,6 +151,42 @@ def test_paper_eye_follows_a_known_motion_and_flags_invalid_frames():
     assert np.median(phi_err) < 10.0  # [deg] measured: median 4 deg
 
 
+def test_the_composed_rotation_restarts_after_a_frame_without_a_motion(monkeypatch):
+    """Exact corners (no detection) with one frame without a face: Phi of the next pair covers
+    one frame only, so the composed R_cam_cube restarts from that pair's own pose instead of
+    composing onto the rotation from before the gap (which would lose the gap's rotation)."""
+    from hec_jax.geometry.accuracy import symmetric_rotation_error_deg
+
+    n, gap = 14, 6
+    rot, centre = _swing(n, amplitude=0.8)
+    t_now = [0]
+
+    def exact_face(frame, background, config, previous=None):
+        t = t_now[0]
+        if t == gap:
+            return None
+        quad = _front_face_corners(rot[t], centre[t])
+        return quad if previous is None else pe.match_quad(previous, quad)
+
+    monkeypatch.setattr(pe, "face_quad", exact_face)
+    bg = np.zeros((480, 640, 3), np.uint8)
+    eye = PaperEye(K, EDGE, FPS, CFG, bg)
+    steps = []
+    for t in range(n):
+        t_now[0] = t
+        steps.append(eye.update(bg))
+    status = [s.status for s in steps]
+    assert status[gap] == "no_face" and status[gap + 1] == "first", status
+    valid = [t for t in range(n) if steps[t].valid]
+    assert valid[0] == 1 and gap + 2 in valid, status
+    # the rotation over the gap's two frames is several degrees (what the old chain lost)
+    assert rotation_error_deg(rot[gap + 1], rot[gap - 1]) > 4.0
+    err = symmetric_rotation_error_deg(
+        np.stack([steps[t].pose_rotation for t in valid]), rot[valid]
+    )
+    assert np.all(err < 1e-3), dict(zip(valid, np.round(err, 4), strict=True))
+
+
 def test_a_repeated_frame_or_a_jump_is_flagged():
     rot, centre = _swing(20)
     bg = np.zeros((480, 640, 3), np.uint8)

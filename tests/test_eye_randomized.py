@@ -16,7 +16,7 @@ import pytest
 from hec_jax.geometry import accuracy
 from hec_jax.geometry.baselines import match_quad, paper_two_frame_track, pnp_face_track
 from hec_jax.geometry.smooth import NO_EXTRAPOLATION, SmootherConfig, smooth_track
-from hec_jax.geometry.synthetic import random_rotation
+from hec_jax.geometry.synthetic import random_rotation, rotation_from_axis_angle
 from hec_jax.geometry.track import (
     RANDOMIZED_BENCHMARK,
     UNSEEN_SCENES,
@@ -491,6 +491,98 @@ def test_smoother_splits_at_the_tracker_s_restarts():
     np.testing.assert_allclose(out.position[8:], pos[8:], atol=2e-3)
     with pytest.raises(ValueError, match="restarts"):
         smooth_track(rot, pos, info, valid, dt, split, restarts=restarts[:-1])
+
+
+def test_pnp_baseline_is_exact_on_exact_corners(monkeypatch):
+    """The OpenCV baseline on a face's exact corners (the intrinsics convention, as
+    ``face_quad`` gives them): the box's centre to round-off. Corners shifted to OpenCV's pixel
+    centres with K left as it is would put it about 1.2 mm/m off."""
+    import cv2
+
+    from hec_jax.geometry import baselines
+    from hec_jax.geometry.camera import intrinsics_from_fovy
+
+    k = intrinsics_from_fovy(45.0, 640, 480)
+    edge = 0.1
+    face_rot = [cv2.Rodrigues(np.array(r))[0] for r in ([0.3, -0.2, 0.1], [-0.1, 0.4, 0.05])]
+    face_centre = [np.array([0.05, -0.03, 1.5]), np.array([-0.2, 0.1, 0.9])]
+    obj = baselines._square_object_points(edge)
+    quads = []
+    for r, c in zip(face_rot, face_centre, strict=True):
+        uvw = (obj @ r.T + c) @ k.T
+        quads.append(uvw[:, :2] / uvw[:, 2:])
+    monkeypatch.setattr(baselines, "face_quad", lambda frame, background: quads[int(frame)])
+    track = baselines.pnp_face_track([0, 1], k, edge, FPS, None)
+    assert track.valid.all()
+    for i, (r, c) in enumerate(zip(face_rot, face_centre, strict=True)):
+        n = r[:, 2] if r[:, 2] @ c > 0 else -r[:, 2]  # the box lies beyond its visible face
+        np.testing.assert_allclose(track.position[i], c + 0.5 * edge * n, atol=1e-7)
+
+
+def test_segments_in_mask_looks_up_the_pixel_that_holds_each_point():
+    """Pixel (row j, column i) spans [i, i + 1) x [j, j + 1) in the intrinsics convention."""
+    from hec_jax.geometry.detect import segments_in_mask
+
+    seg = np.array([[[10.1, 10.2], [10.4, 10.3]]])  # inside pixel (10, 10)
+    for where, kept in (((10, 10), 1), ((9, 9), 0)):
+        mask = np.zeros((20, 20), bool)
+        mask[where] = True
+        assert len(segments_in_mask(seg, mask, (0, 0))) == kept, where
+    # a window whose top-left pixel is (5, 8): the same pixel is (row 2, column 5) in it
+    mask = np.zeros((6, 8), bool)
+    mask[2, 5] = True
+    assert len(segments_in_mask(seg, mask, (5, 8))) == 1
+
+
+def test_track_errors_measure_rotation_from_the_first_valid_frame():
+    """A perfect track acquired at frame 2 (its rotations relative to frame 2, as ``track_box``
+    gives them) has no rotation error; one of frame 0's reference would show 2 frames' turn."""
+    t_n = 10
+    z = np.array([0.0, 0.0, 1.0])
+    rot = np.stack([rotation_from_axis_angle(z, 0.05 * t) for t in range(t_n)])
+    pos, zero = np.tile([0.0, 0.0, 1.0], (t_n, 1)), np.zeros((t_n, 3))
+    truth = SimpleNamespace(position=pos, velocity=zero, acceleration=zero, rotation=rot)
+    relative = rot @ rot[2].T
+    track = SimpleNamespace(
+        valid=np.arange(t_n) >= 2,
+        position=pos,
+        measured_position=pos,
+        velocity=zero,
+        acceleration=zero,
+        rotation=relative,
+        causal_position=pos,
+        causal_velocity=zero,
+        causal_acceleration=zero,
+        causal_rotation=relative,
+        timing_ms={},
+    )
+    errors = accuracy.track_errors(track, truth)
+    assert errors["rotation_median_deg"] < 1e-5 and errors["causal_rotation_median_deg"] < 1e-5
+    assert errors["position_rms_mm"] == 0.0 and errors["valid_rate"] == 0.8
+
+
+def test_non_finite_outputs_on_valid_frames_count_against_the_method():
+    """A valid frame with a NaN position is a gross error (not dropped), a NaN rotation 180 deg
+    off; a NaN velocity is no velocity, counted by the table's velocity coverage."""
+    t_n = 6
+    truth = SimpleNamespace(
+        position=np.tile([0.0, 0.0, 1.0], (t_n, 1)),
+        velocity=np.zeros((t_n, 3)),
+        rotation=np.tile(np.eye(3), (t_n, 1, 1)),
+    )
+    position, velocity = truth.position.copy(), np.zeros((t_n, 3))
+    rotation = truth.rotation.copy()
+    position[2] = np.nan
+    rotation[3] = np.nan
+    velocity[0] = np.nan
+    errors = accuracy.sequence_errors(
+        position, rotation, velocity, np.ones(t_n, bool), truth, np.ones(t_n, bool), 1.0
+    )
+    assert errors["gross_errors"] == 1 and errors["acquire_delay"] == 0
+    assert errors["rotation_err_deg"][3] == 180.0 and np.sum(errors["rotation_err_deg"]) == 180.0
+    table = accuracy.target_table([errors])
+    assert table["gross_errors"] == 1 and not table["meets"]["gross_errors"]
+    assert table["velocity_coverage"] == 5 / 6 and table["velocity_rms_m_s"] == 0.0
 
 
 def test_symmetric_rotation_error():

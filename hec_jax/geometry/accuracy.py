@@ -76,7 +76,8 @@ def track_errors(track, truth) -> dict:
         track: a :class:`hec_jax.geometry.BoxTrack` (smoothed and ``causal_*`` fields).
         truth: the true state in the same camera frame, with fields ``position``, ``velocity``,
             ``acceleration`` (T, 3) [m, m/s, m/s^2] and ``rotation`` (T, 3, 3) R_cam_box (e.g. a
-            ``hec_jax.mjx_scene.RenderedSequence``); the true Phi is R_t R_0^T.
+            ``hec_jax.mjx_scene.RenderedSequence``); the true Phi is R_t R_f^T, f the first
+            valid frame (``track.rotation`` is relative to it, :func:`track_box`).
 
     Returns:
         ``frames``, ``valid_rate``, RMS errors of the smoothed, measured and causal centre
@@ -89,7 +90,8 @@ def track_errors(track, truth) -> dict:
     def rms(a, b):
         return float(np.sqrt(np.mean(np.sum((a - b) ** 2, -1)[v])))
 
-    phi = truth.rotation @ truth.rotation[0].T
+    first = int(np.argmax(v))  # the tracks' rotations are relative to their first valid frame
+    phi = truth.rotation @ truth.rotation[first].T
     rot = rotation_error_deg(track.rotation, phi)[v]
     return {
         "frames": int(len(v)),
@@ -178,11 +180,16 @@ def sequence_errors(
         within ``GROSS_M`` of the truth; None if never visible, a large number if never acquired),
         ``visible_frames``, ``valid_visible_frames``, and over the valid frames ``position_err_m``,
         ``distance_m``, ``rotation_err_deg``, ``velocity_err_m_s``, plus ``gross_errors`` (valid
-        frames farther than ``GROSS_M``, visible or not) and ``time_ms``.
+        frames farther than ``GROSS_M``, visible or not) and ``time_ms``. A valid frame with a
+        non-finite position counts as farther than ``GROSS_M`` and one with a non-finite rotation
+        as 180 deg off; a non-finite velocity is no velocity (left out of the velocity RMS and
+        counted by :func:`target_table`'s ``velocity_coverage``).
     """
     valid = np.asarray(valid, bool)
     visible = np.asarray(visible, bool)
     pos_err = np.linalg.norm(np.asarray(position) - truth.position, axis=-1)
+    # a valid-flagged frame without a finite position is as wrong as it gets (never dropped)
+    pos_err = np.where(np.isfinite(pos_err), pos_err, np.inf)
     good = valid & (pos_err <= GROSS_M)
     delay = None
     if visible.any():
@@ -197,8 +204,9 @@ def sequence_errors(
         "valid_visible_frames": int((valid & visible).sum()),
         "position_err_m": pos_err[v],
         "distance_m": np.linalg.norm(truth.position, axis=-1)[v],
-        "rotation_err_deg": symmetric_rotation_error_deg(
-            np.asarray(rotation)[v], truth.rotation[v]
+        # a non-finite rotation on a valid frame: the largest error, 180 deg
+        "rotation_err_deg": np.nan_to_num(
+            symmetric_rotation_error_deg(np.asarray(rotation)[v], truth.rotation[v]), nan=180.0
         ),
         "velocity_err_m_s": vel_err[v],
         "gross_errors": int(np.sum(valid & (pos_err > GROSS_M))),
@@ -223,7 +231,8 @@ def target_table(per_sequence: list[dict]) -> dict:
         ``sequences``, ``acquired_within_3_rate`` (over the sequences where the box is ever fully
         visible), ``valid_rate`` (valid among fully visible frames), ``position_median_mm_per_m``
         (median over valid frames of error / distance), ``rotation_median_deg``,
-        ``velocity_rms_m_s`` (over valid frames with a velocity), ``gross_errors`` (count),
+        ``velocity_rms_m_s`` (over valid frames with a velocity), ``velocity_coverage`` (the
+        share of valid frames that have a velocity), ``gross_errors`` (count),
         ``gross_error_sequences``, ``time_ms_per_frame`` (mean of the sequence means), and
         ``meets`` {metric: bool} against :data:`TARGETS`.
     """
@@ -231,6 +240,7 @@ def target_table(per_sequence: list[dict]) -> dict:
     cat = lambda key: np.concatenate([np.asarray(s[key], float) for s in per_sequence])  # noqa: E731
     pos, dist = cat("position_err_m"), cat("distance_m")
     rot, vel = cat("rotation_err_deg"), cat("velocity_err_m_s")
+    valid_frames = vel.size
     vel = vel[np.isfinite(vel)]
     vis = sum(s["visible_frames"] for s in per_sequence)
     out = {
@@ -242,6 +252,7 @@ def target_table(per_sequence: list[dict]) -> dict:
         "position_median_mm_per_m": float(np.median(pos / dist) * 1e3) if pos.size else np.nan,
         "rotation_median_deg": float(np.median(rot)) if rot.size else np.nan,
         "velocity_rms_m_s": float(np.sqrt(np.mean(vel**2))) if vel.size else np.nan,
+        "velocity_coverage": float(vel.size / valid_frames) if valid_frames else np.nan,
         "gross_errors": int(sum(s["gross_errors"] for s in per_sequence)),
         "gross_error_sequences": int(sum(s["gross_errors"] > 0 for s in per_sequence)),
         "time_ms_per_frame": float(np.mean([s["time_ms"] for s in per_sequence])),

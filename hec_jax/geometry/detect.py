@@ -910,7 +910,8 @@ def segments_in_mask(segments: np.ndarray, mask: np.ndarray, origin: tuple[int, 
     if not len(segments):
         return segments
     pts = np.concatenate([segments, segments.mean(1, keepdims=True)], axis=1)  # (N, 3, 2)
-    ij = np.floor(pts - PIXEL_OFFSET - np.asarray(origin)).astype(int)
+    # the pixel that holds the point: pixel j spans [j, j + 1) in the intrinsics convention
+    ij = np.floor(pts - np.asarray(origin)).astype(int)
     h, w = mask.shape
     inside = (ij[..., 0] >= 0) & (ij[..., 0] < w) & (ij[..., 1] >= 0) & (ij[..., 1] < h)
     ij = np.clip(ij, 0, [w - 1, h - 1])

@@ -577,6 +577,7 @@ class PaperEye:
         self._misses = self.config.lost_after
         self._rejected = 0
         self._rotation = None  # composed R_cam_cube
+        self._rotation_current = False  # _rotation is the previous frame's (a chain unbroken)
 
     @property
     def frame(self) -> int:
@@ -646,9 +647,12 @@ class PaperEye:
                         self._start(centre, velocity)
                         status = "ok"
             if status == "ok":
-                start = self._rotation is None
+                # Phi covers the last frame only: after a frame without a motion (no face, a
+                # jump, degenerate, gated) the chain restarts from this pair's own pose
+                start = self._rotation is None or not self._rotation_current
                 self._rotation = phi @ (got.rot_before if start else self._rotation)
         valid = status == "ok"
+        self._rotation_current = valid
         self._misses = 0 if valid else self._misses + 1
         if self._misses >= cfg.lost_after and self._started:
             self._started = False  # lost: nothing is extrapolated further
