@@ -129,7 +129,8 @@ BAD = {
     "benchmarks/eye_randomized.py": [
         (["--sequences", "0"], "--sequences: must be an integer >= 1"),
         (["--fps", "0"], "--fps: must be finite and > 0"),
-        (["--split", "test"], "--split: 'test' is not one of dev, heldout, dev-low-views"),
+        (["--split", "test"], "--split: 'test' is not one of dev, heldout, dev-low-views, fresh"),
+        (["--split", "dev", "--first", "999999", "--sequences", "2"], "past the dev seeds"),
         (["--search-texture", "-1"], "--search-texture: must be finite and >= 0"),
         (["--lsd-contrast", "0"], "--lsd-contrast: must be finite and > 0"),
         (["--max-face-split", "-1"], "--max-face-split: must be finite and >= 0"),

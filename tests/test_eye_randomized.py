@@ -33,7 +33,20 @@ NO_GAPS = 0.2  # SmootherConfig.max_gap_s of the benchmark [s]
 
 def test_draw_scene_is_seeded_and_in_range():
     r = RandomSceneRanges()
-    scenes = [draw_scene(s) for s in range(40)]
+    # the issue's ranges (issue 24, point 1), not the class's own values only
+    assert r.elevation_deg == (-10.0, 60.0) and r.azimuth_deg == 70.0
+    assert r.distance_m == (0.6, 2.5) and r.edge_m == (0.05, 0.15)
+    scenes = [draw_scene(s) for s in range(400)]
+    # and the draws cover them: each range's outer tenths are reached on both sides
+    for field, (lo, hi) in (
+        ("elevation_deg", r.elevation_deg),
+        ("azimuth_deg", (-r.azimuth_deg, r.azimuth_deg)),
+        ("distance_m", r.distance_m),
+        ("edge_m", r.edge_m),
+    ):
+        x = np.array([getattr(sc, field) for sc in scenes])
+        assert x.min() < lo + 0.1 * (hi - lo) and x.max() > hi - 0.1 * (hi - lo), field
+    scenes = scenes[:40]
     assert draw_scene(7) == draw_scene(7) and draw_scene(7) != draw_scene(8)
     for sc in scenes:
         assert r.elevation_deg[0] <= sc.elevation_deg <= r.elevation_deg[1]
@@ -92,6 +105,42 @@ def test_rendered_truth_and_visibility(rendered):
     u, v = int(centre[0]), int(centre[1])
     diff = np.abs(seq.frames[0, v, u].astype(int) - background[v, u].astype(int)).max()
     assert diff > 10
+
+
+def test_a_motion_blurred_frame_s_truth_is_its_mid_exposure_state():
+    """A blurred scene (seed 4: 6.2 ms exposures, three renders each): each frame's true state is
+    the pendulum's at the middle render, stepped here independently with MuJoCo; the state at
+    the exposure's end is millimetres away once the cube moves."""
+    import mujoco
+
+    from hec_jax.mjx_scene.randomized import scene_mjcf
+    from hec_jax.mjx_scene.render import body_in_camera
+
+    scene = draw_scene(4)
+    assert scene.exposure_s > 0.006
+    n = 8
+    seq, _ = render_random_sequence(scene, n, FPS, 320, 240)
+    m = mujoco.MjModel.from_xml_string(*scene_mjcf(scene, 320, 240))
+    steps = int(round(1.0 / (FPS * m.opt.timestep)))
+    m.opt.timestep = 1.0 / (FPS * steps)
+    blur = int(round(scene.exposure_s / m.opt.timestep))
+    d = mujoco.MjData(m)
+    d.qpos[0] = scene.release_rad
+    mujoco.mj_forward(m, d)
+    states = [body_in_camera(m, d, "cube", "eye")]
+    for _ in range(n * steps + 1):
+        mujoco.mj_step(m, d)
+        mujoco.mj_forward(m, d)
+        states.append(body_in_camera(m, d, "cube", "eye"))
+    end_offsets = []
+    for i in range(n):
+        end = 1 + i * steps  # the frame's time, its exposure's end
+        mid = end - (int(round(blur / 2)) if i > 0 else 0)  # frame 0 is one render
+        np.testing.assert_allclose(seq.position[i], states[mid][0], atol=1e-12)
+        np.testing.assert_allclose(seq.rotation[i], states[mid][1], atol=1e-12)
+        assert seq.times[i] == pytest.approx(mid * m.opt.timestep)
+        end_offsets.append(np.linalg.norm(states[end][0] - states[mid][0]))
+    assert max(end_offsets) > 1e-3, end_offsets  # [m]
 
 
 # slow: UNSEEN_SCENES (its own search, unbatched); its checks run in the default suite in the

@@ -355,7 +355,9 @@ def render_random_sequence(
 
     The pendulum is released at rest from ``scene.release_rad``. A motion-blurred scene
     (``exposure_s > 0``) averages ``exposure_samples`` renders spread over the exposure ending at
-    the frame time. The background is the scene rendered without the cube and the rod (post-
+    the frame time; its true state (position, rotation, velocity, acceleration) is the state of
+    the middle render, i.e. mid-exposure, as the hand-eye loop's camera stamps its frames (before
+    2026-12-04 it was the state at the exposure's end). Frame 0 is one render. The background is the scene rendered without the cube and the rod (post-
     processed with its own noise), as a calibration image of the empty scene would be.
     """
     xml, assets = scene_mjcf(scene, width, height)
@@ -369,8 +371,10 @@ def render_random_sequence(
     k = camera_intrinsics(m, "eye", width, height)
     rng = np.random.default_rng(scene.seed + 7_000_003)
     frames = np.empty((n_frames, height, width, 3), np.uint8)
-    rot = np.empty((n_frames, 3, 3))
     track = np.empty((n_frames * steps + 2, 3))
+    track_rot = np.empty((len(track), 3, 3))
+    truth_at = np.zeros(n_frames, int)  # the step of each frame's true state (its middle render)
+    shot_steps: list[int] = []
     renderer = mujoco.Renderer(m, height, width)
     offsets = set(np.linspace(0, blur_steps, exposure_samples).round().astype(int).tolist())
     shots: list[np.ndarray] = []
@@ -378,17 +382,18 @@ def render_random_sequence(
         mujoco.mj_forward(m, d)
         for s in range(len(track)):
             p, r = body_in_camera(m, d, "cube", "eye")
-            track[s] = p
+            track[s], track_rot[s] = p, r
             i = -(-(s - 1) // steps) if s >= 1 else 0  # the frame at or after this step
             back = 1 + i * steps - s  # steps before frame i's time
             if s >= 1 and i < n_frames and (back in offsets if blur_steps else back == 0):
                 renderer.update_scene(d, camera="eye")
                 shots.append(renderer.render().astype(np.float32))
+                shot_steps.append(s)
                 if back == 0:
                     img = np.mean(shots, axis=0)
-                    shots = []
+                    truth_at[i] = shot_steps[len(shot_steps) // 2]  # the middle render's
+                    shots, shot_steps = [], []
                     frames[i] = post_process(np.round(img).astype(np.uint8), scene, rng)
-                    rot[i] = r
             mujoco.mj_step(m, d)
             mujoco.mj_forward(m, d)
         # the empty scene: the pendulum's geoms are in group 2, hidden here
@@ -398,8 +403,8 @@ def render_random_sequence(
         background = post_process(renderer.render(), scene, rng)
     finally:
         renderer.close()
-    pos, vel, acc = sampled_motion(track, steps, n_frames, dt)
-    seq = RenderedSequence(frames, k, np.arange(n_frames) / fps, pos, rot, vel, acc)
+    pos, vel, acc = sampled_motion(track, steps, n_frames, dt, truth_at)
+    seq = RenderedSequence(frames, k, truth_at * dt, pos, track_rot[truth_at], vel, acc)
     return seq, background
 
 

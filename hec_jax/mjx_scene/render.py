@@ -208,11 +208,14 @@ class RenderedSequence(NamedTuple):
     acceleration: np.ndarray
 
 
-def sampled_motion(track: np.ndarray, steps: int, n_frames: int, dt: float) -> tuple:
+def sampled_motion(
+    track: np.ndarray, steps: int, n_frames: int, dt: float, at: np.ndarray | None = None
+) -> tuple:
     """(position, velocity, acceleration) at frames 0 .. n_frames - 1 of a per-step track
-    (T, 3) [m] sampled every ``steps`` steps of ``dt`` [s] from step 1 (central differences).
+    (T, 3) [m] sampled every ``steps`` steps of ``dt`` [s] from step 1 (central differences),
+    or at the steps ``at`` (n_frames,) where given (each at least 1).
     """
-    at = 1 + steps * np.arange(n_frames)
+    at = 1 + steps * np.arange(n_frames) if at is None else np.asarray(at, int)
     pos = track[at]
     vel = (track[at + 1] - track[at - 1]) / (2 * dt)
     acc = (track[at + 1] - 2 * pos + track[at - 1]) / (dt * dt)
