@@ -71,7 +71,12 @@ from hec_jax.runs import run_folder, write_json, write_text
 # had been run many times and had informed preset decisions (docs/eye_randomized.md, "A fresh
 # held-out range"); each range ends where the next begins
 SPLITS = {"dev": 0, "heldout": 1_000_000, "dev-low-views": 5000, "fresh": 2_000_000}
-SPLIT_ENDS = {"dev": 1_000_000, "heldout": 2_000_000, "dev-low-views": 1_000_000, "fresh": 3_000_000}
+SPLIT_ENDS = {
+    "dev": 1_000_000,
+    "heldout": 2_000_000,
+    "dev-low-views": 1_000_000,
+    "fresh": 3_000_000,
+}
 LOW_VIEW_DEG = 12.0  # dev-low-views: elevation under this [deg], a low-contrast cube
 METHODS = ("tracker", "tracker_causal", "opencv_pnp", "paper")
 TRACK = RANDOMIZED_BENCHMARK  # the issue-24 checks and the search options (see there)
