@@ -94,6 +94,8 @@ def test_apply_conditions_matches_compiler(scene):
             "geom_size",
             "geom_pos",
             "dof_damping",
+            "body_invweight0",
+            "dof_invweight0",
         ):
             np.testing.assert_allclose(np.asarray(getattr(m2, f)), getattr(mc, f), atol=1e-12)
 
@@ -196,6 +198,39 @@ def test_contact_force_sign_magnitude(scene, quantities):
         f_wrist = out["site_xmat"][i][ids.ft_site].reshape(3, 3) @ out["sensor"][i]
         f_from_sensor = m_h * (a_h - mm.opt.gravity) - f_wrist
         np.testing.assert_allclose(f_from_sensor[PLANE], f_mjx[PLANE], rtol=1e-6)
+
+
+@pytest.mark.parametrize("kw", [CONDS[1], dict(rod_length=0.6, cube_mass=2.0)])
+def test_contact_under_swept_conditions_matches_mujoco_c(scene, quantities, kw):
+    """Hand pressed into a cube of another rod length / mass: MJX's contact force and qacc
+    equal the recompiled C model's (the contact's softness follows the compiler's invweights)."""
+    mm, ids, _ = scene
+    c = S.default_conditions(**kw)
+    mc = S.mj_model_with_conditions(c)
+    d = mujoco.MjData(mc)
+    for angle in (0.3, -0.3):  # the cube swung towards the arm (+x)
+        d.qpos[ids.pend_qpos] = angle
+        mujoco.mj_kinematics(mc, d)
+        cube = d.xpos[ids.cube_body].copy()
+        if cube[0] > 0.4:
+            break
+    assert cube[0] > 0.4
+    q_arm = S.solve_posture(mc, ids, (cube[0] + 0.085, cube[2]))  # 1.5 cm penetration
+    qpos = np.zeros((N_BATCH, 4))
+    qpos[:, :3], qpos[:, 3] = q_arm, d.qpos[ids.pend_qpos]
+    qvel = np.zeros((N_BATCH, 4))
+    qvel[0] = [0.3, -0.2, 0.5, 1.0]
+    ctrl = np.zeros((N_BATCH, 3))
+    out = jax.tree.map(np.asarray, quantities(_stack([c] * N_BATCH), qpos, qvel, ctrl))
+    for i in range(2):
+        d = mujoco.MjData(mc)
+        d.qpos[:], d.qvel[:], d.ctrl[:] = qpos[i], qvel[i], ctrl[i]
+        mujoco.mj_forward(mc, d)
+        assert d.ncon == 1
+        f_c = S.hand_contact_force_c(mc, d, ids)
+        assert np.linalg.norm(f_c) > 50.0
+        np.testing.assert_allclose(out["f_contact"][i][PLANE], f_c[PLANE], rtol=1e-6)
+        np.testing.assert_allclose(out["qacc"][i], d.qacc, rtol=1e-6, atol=1e-6)
 
 
 def test_contact_only_hand_cube(scene):

@@ -311,6 +311,9 @@ def apply_conditions(m: mjx.Model, ids: SceneIds, c: PendulumConditions) -> mjx.
         inertia m_c e^2 / 6 per axis.
     Hinge: dof_damping of the pendulum dof; its position: x of the ceiling body. Release angle/speed and arrival phase enter through the
     state (see ``make_data``) and the hold in ``rollout``, not the model.
+    Constraint softness: the rod's and cube's ``body_invweight0`` and the hinge's
+    ``dof_invweight0`` as the compiler computes them at qpos0 (the hand-cube contact's
+    impedance depends on them; before 2026-12-04 they kept the nominal cube's values).
     """
     L = c.rod_length
     a = ROD_RADIUS
@@ -344,7 +347,30 @@ def apply_conditions(m: mjx.Model, ids: SceneIds, c: PendulumConditions) -> mjx.
         body_pos = body_pos.at[ceiling, 0].set(c.hinge_x)
     geom_size = m.geom_size.at[ids.rod_geom, 1].set(L / 2)
     geom_pos = m.geom_pos.at[ids.rod_geom].set(rod_com)
+    # The compiler's mean inverse inertias at qpos0 (mj_setConst), which set the constraints'
+    # softness (MJX's contact rows take body_invweight0; limit rows dof_invweight0). The hinge
+    # (axis y) carries the rod and the cube alone, so M is block diagonal and its pendulum entry
+    # is the inertia about the hinge: I_h = I_rod + m_r (L/2)^2 + I_cube + m_c (L + e/2)^2 +
+    # armature. A body of COM distance r from the axis: J M^-1 J^T has translational trace
+    # r^2 / I_h and rotational trace 1 / I_h; MuJoCo keeps their means over three axes.
+    r_cube = L + CUBE_EDGE / 2
+    i_hinge = (
+        rod_inertia[1]
+        + m_rod * (L / 2) ** 2
+        + cube_inertia[1]
+        + m_cube * r_cube**2
+        + m.dof_armature[ids.pend_dof]
+    )
+    body_invweight0 = (
+        m.body_invweight0.at[ids.rod_body]
+        .set(jnp.stack([(L / 2) ** 2, jnp.ones_like(L)]) / (3 * i_hinge))
+        .at[ids.cube_body]
+        .set(jnp.stack([r_cube**2, jnp.ones_like(L)]) / (3 * i_hinge))
+    )
+    dof_invweight0 = m.dof_invweight0.at[ids.pend_dof].set(1.0 / i_hinge)
     return m.replace(
+        body_invweight0=body_invweight0,
+        dof_invweight0=dof_invweight0,
         body_mass=body_mass,
         body_subtreemass=body_subtreemass,
         body_inertia=m.body_inertia.at[ids.rod_body]
