@@ -94,3 +94,33 @@ def test_gradient_finite_float32_batch():
     assert np.all(np.isfinite(grad))
     contact_steps = np.sum(np.linalg.norm(f_contact, axis=2) > 1e-6, axis=1)
     assert np.all(contact_steps > 10), contact_steps
+
+
+def test_jacobian_fd_error_sees_each_row():
+    """The exact-Jacobian check against central differences scales each row by its own size:
+    on an affine step whose Jacobian is the unit-mass one (position rows dt^2, velocity rows dt),
+    a wrong position row shows as a relative error of order 1, not 1e-3."""
+    from hec_jax.loop.gradients import jacobian_fd_error, unit_mass_jacobian
+
+    true_jac = unit_mass_jacobian(1e-3)  # (4, 2)
+
+    def one_step(f_o, qpos, qvel, f_prev, m):
+        return jnp.asarray(true_jac) @ f_o
+
+    log = {
+        "f_contact": np.zeros((3, 3)),
+        "qpos": np.zeros((3, 1)),
+        "qvel": np.zeros((3, 1)),
+        "f_o": np.ones((3, 2)),
+    }
+    assert jacobian_fd_error(one_step, true_jac, log, 1, None) < 1e-6
+    doubled, zeroed = true_jac.copy(), true_jac.copy()
+    doubled[:2] *= 2.0
+    zeroed[:2] = 0.0
+    assert jacobian_fd_error(one_step, doubled, log, 1, None) == pytest.approx(0.5, rel=1e-6)
+    assert jacobian_fd_error(one_step, zeroed, log, 1, None) == np.inf
+    velocity_off = true_jac.copy()
+    velocity_off[2:] *= 1.01
+    assert jacobian_fd_error(one_step, velocity_off, log, 1, None) == pytest.approx(
+        0.01 / 1.01, rel=1e-4
+    )
