@@ -58,6 +58,7 @@ BAD = {
         (["--eye", "paper", "--realtime"], "--realtime runs --eye truth or camera"),
         (["--noise-grey", "-1"], "--noise-grey: must be finite and >= 0, got -1.0"),
         (["--jitter-s", "0.02"], "--jitter-s: must be below half the frame period"),
+        (["--exposure-s", "0.05"], "--exposure-s: an exposure cannot outlast the frame period"),
         (["--plane-grid-m", "-0.1"], "--plane-grid-m: must be None or a number > 0 [m]"),
         (["--realtime", "--focal-error", "0.01"], "camera defects (--noise-grey, --blur-ren"),
         (["--realtime", "--camera-model", "industrial"], "camera defects (--noise-grey, --blur"),
@@ -76,6 +77,9 @@ BAD = {
     "experiments/hitting.py": [
         (["--seeds", "0"], "seeds must be an integer >= 1"),
         (["--final-s", "-1"], "final_s must be finite and >= 0"),
+        (["--final-s", "0"], "counts its hits in the continuous run: final_s must be > 0"),
+        (["--seed", "-1"], "seed must be an integer in [0, 2**63), got -1"),
+        (["--seed", str(2**70)], "seed must be an integer in [0, 2**63)"),
         (["--out", USED], "exists and is not empty"),
     ],
     "experiments/sweep.py": [

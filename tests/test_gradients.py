@@ -124,3 +124,12 @@ def test_jacobian_fd_error_sees_each_row():
     assert jacobian_fd_error(one_step, velocity_off, log, 1, None) == pytest.approx(
         0.01 / 1.01, rel=1e-4
     )
+
+
+def test_horizons_longer_than_a_swing_are_refused_before_learning():
+    from hec_jax.loop import sweep_catching
+    from hec_jax.loop.gradients import HorizonProbe
+
+    task = sweep_catching()  # 1.5 s swings: 1500 steps
+    with pytest.raises(ValueError, match="horizons up to 1497 samples fit a swing of 1500"):
+        HorizonProbe(task, (10, 5000))

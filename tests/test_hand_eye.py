@@ -362,6 +362,10 @@ def test_camera_loop_survives_blind_frames():
     assert all((mx == 0) == (8 <= j < 14) for _, j, mx, *_ in seen[:n])  # after corrupt
     assert all(shape == (cam.height, cam.width) and kind == "b" for *_, shape, kind, _ in seen)
     np.testing.assert_array_equal(np.stack([c for *_, c in seen[:n]]), eye["x_true"][0, 0])
+    # and that is the simulator's cube at the frame's mid-exposure step (its logged state)
+    fs = he.frame_steps(cam, loop.ids.timestep, loop.swing_steps)
+    mid = np.maximum(fs - int(round(0.5 * cam.exposure_s / loop.ids.timestep)), 0)
+    np.testing.assert_array_equal(eye["x_true"][0, 0], logs["x_o_true"][0, 0, mid])
     m = mt.eye_metrics(eye, logs, 1e-3)
     assert m["frames_failed"] >= 6
     assert not np.any(eye["valid"][0, 0, 8:14])

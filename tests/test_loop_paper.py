@@ -197,6 +197,11 @@ def test_fixed_candidates_stay_inside_the_networks_output_range():
     assert cand.shape == (75, 2, 3)
     assert np.all(np.abs(cand) <= 0.9 * u / 2 + 1e-12)
     assert np.all(cand[:, :, 0] + np.asarray(imp.k_e) > 0)  # Eq. 49 (strict) for every one
+    # plain impedance (all zero) is a candidate, also on an even grid (--reduced's 4 x 4 x 1)
+    assert np.any(np.all(cand == 0, axis=(1, 2)))
+    even = arms.fixed_candidates(task, 4, 1)
+    assert even.shape == (25, 2, 3) and np.any(np.all(even == 0, axis=(1, 2)))
+    assert np.any(np.all(arms.fixed_candidates(task, 3, 2)[:, :, 2] == 0, axis=1))
 
 
 def test_ablations_change_only_their_field():
@@ -211,14 +216,21 @@ def test_ablations_change_only_their_field():
         arms.PaperProtocol(arms=("online", "nope"))
 
 
-def test_paper_cli_refuses_bad_arguments(capsys):
+def test_paper_cli_refuses_bad_arguments(capsys, monkeypatch):
     from hec_jax.loop.paper_report import paper_main
+
+    def not_refused(*args, **kwargs):
+        raise AssertionError("the arguments were not refused: the protocol started")
+
+    monkeypatch.setattr(arms, "run_arms", not_refused)
 
     for argv in (
         ["--preset", "juggling_paper"],
         ["--preset", "catching_paper", "--eye", "camera", "--out", "/tmp/never"],
         ["--held-out", "0", "--out", "/tmp/never"],
         ["--arms", "online", "nope", "--out", "/tmp/never"],
+        ["--reduced", "--seeds", "5", "--out", "/tmp/never"],  # --reduced would drop it
+        ["--reduced", "--held-out", "6", "--out", "/tmp/never"],
     ):
         with pytest.raises(SystemExit) as e:
             paper_main(argv)

@@ -113,6 +113,17 @@ def test_task_contact_parameters_reach_the_model_only():
     np.testing.assert_allclose(np.asarray(default.mx.pair_solref), [[0.005, 1.0]])
 
 
+@pytest.mark.parametrize("field", ["swing_s", "settle_s", "final_s"])
+def test_durations_under_half_a_control_step_are_refused(field):
+    """A duration that rounds to 0 control steps (dt = 1 ms) would give an empty swing, a settle
+    mean over the whole swing (f[-0:]) or an empty continuous run: refused when the loop is
+    built. 0.6 ms rounds to one step and is taken."""
+    short = {field: 0.0004} | ({"settle_s": 0.0004} if field == "swing_s" else {})
+    with pytest.raises(ValueError, match=f"{field} .* under half a control step"):
+        tl.build_loop(tl.TaskConfig(**short))
+    assert tl.build_loop(tl.TaskConfig(swing_s=0.6e-3, settle_s=0.6e-3)).swing_steps == 1
+
+
 def test_hinge_position_is_a_swept_condition():
     """The hinge x is a pytree leaf of the conditions: moving it moves the released cube by the
     same amount, inside one compiled function (vmap over two hinges)."""

@@ -141,14 +141,16 @@ def _dtype():
 def fixed_candidates(task: TaskConfig, n: int, n_m: int) -> np.ndarray:
     """Constant virtual impedances (C, 2, 3) on a grid: K_o, B_o over -0.9 ... 0.9 of U/2 (the
     networks' output range, so every candidate satisfies Eq. 49 as the networks do), M_o over
-    ``n_m`` points (1: 0); the same values on both axes.
+    ``n_m`` points (1: 0); the same values on both axes. Zero is always among the K_o and B_o
+    values (an even ``n`` gets it added: n + 1 values), so the baseline can pick plain impedance
+    (F_o = 0, K_o = B_o = M_o = 0 with ``n_m`` 1) and is never weaker than it.
     """
     imp = task.impedance
     u = np.asarray(
         nets.u_max(task.learner.net, np.asarray(imp.m_e), np.asarray(imp.b_e), np.asarray(imp.k_e))
     )  # (2, 3)
-    grid = np.linspace(-0.9, 0.9, n)
-    grid_m = np.linspace(-0.9, 0.9, n_m) if n_m > 1 else np.zeros(1)
+    grid = np.union1d(np.linspace(-0.9, 0.9, n), [0.0])
+    grid_m = np.union1d(np.linspace(-0.9, 0.9, n_m), [0.0]) if n_m > 1 else np.zeros(1)
     out = [
         np.stack([u[:, 0] / 2 * k, u[:, 1] / 2 * b, u[:, 2] / 2 * mm], axis=-1)
         for k in grid

@@ -366,6 +366,11 @@ class CameraConfig:
                 f"--jitter-s: must be below half the frame period ({0.5 / self.fps:.4g} s), "
                 f"got {applied.jitter_s!r}"
             )
+        if self.exposure_s > 1.0 / self.fps:
+            raise ValueError(
+                f"--exposure-s: an exposure cannot outlast the frame period "
+                f"({1.0 / self.fps:.4g} s), got {self.exposure_s!r}"
+            )
         if applied.blur_renders > 1 and self.exposure_s <= 0:
             raise ValueError("--blur-renders above 1 needs --exposure-s > 0")
 
@@ -401,6 +406,17 @@ class ExperimentConfig:
             raise ValueError(f"seeds must be an integer >= 1, got {self.seeds}")
         if self.eye not in EYE_SOURCES:
             raise ValueError(f"eye must be one of {', '.join(EYE_SOURCES)}, got {self.eye!r}")
+        if (
+            isinstance(self.seed, bool)
+            or not isinstance(self.seed, int)
+            or not (0 <= self.seed < 2**63)
+        ):
+            raise ValueError(f"seed must be an integer in [0, 2**63), got {self.seed}")
+        if self.task.learner.task == "hitting" and not self.task.final_s > 0:
+            raise ValueError(
+                "the hitting experiment counts its hits in the continuous run: final_s must be "
+                f"> 0, got {self.task.final_s}"
+            )
 
 
 # ---------------------------------------------------------------------------------------------

@@ -174,6 +174,10 @@ class HorizonProbe:
         self.policy = _paper_rule_policy(build_loop(dataclasses.replace(config, learner=unit)))
         self.steps = n = loop.swing_steps
         h_max, learned = max(self.horizons), switches("learned")
+        if h_max > n - 3:  # a sample needs its H steps and two more inside the swing
+            raise ValueError(
+                f"horizons up to {n - 3} samples fit a swing of {n} steps, got {h_max}"
+            )
 
         def start(ls, c):
             m = loop.model_for(c)

@@ -49,6 +49,18 @@ def _reduced(p: PaperProtocol) -> PaperProtocol:
     )
 
 
+# the flags of what _reduced sets (tyro's names of those fields)
+_REDUCED_FLAGS = (
+    "--seeds",
+    "--swings",
+    "--held-out",
+    "--fixed-grid",
+    "--fixed-grid-m",
+    "--fixed-search-pendulums",
+    "--arms",
+)
+
+
 def default_run(preset: str) -> PaperRun:
     """The defaults of ``--preset preset``: that paper preset under the full protocol (hitting:
     each held-out run is the preset's continuous run, ``final_s``).
@@ -77,7 +89,16 @@ def paper_main(argv=None, doc: str | None = None) -> dict:
     and writes its run folder; returns the results (without logs).
     """
     args = list(sys.argv[1:] if argv is None else argv)
-    run = parse(default_run(_preset_in(args)), args, doc)
+    default = default_run(_preset_in(args))
+    run = parse(default, args, doc)
+    if run.reduced:
+        # --reduced sets these itself: a flag given for one of them would be silently dropped
+        given = {a.split("=", 1)[0] for a in args if a.startswith("--")}
+        clash = [f for f in _REDUCED_FLAGS if f in given]
+        if clash:
+            raise usage_error(
+                f"--reduced sets {', '.join(clash)} itself; drop --reduced or those flags"
+            )
     protocol = _reduced(run.protocol) if run.reduced else run.protocol
     if protocol.experiment.eye != "truth":
         raise usage_error(

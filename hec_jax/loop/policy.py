@@ -334,6 +334,12 @@ def build_loop(config: TaskConfig) -> Loop:
         lowpass = jnp.zeros(2, dtype) if config.object_accel_tau_s else None
         return PolicyState(c_init(obs), ls, sw, no_touch(dtype), lowpass)
 
+    for name in ("swing_s", "settle_s") + (("final_s",) if config.final_s > 0 else ()):
+        if steps(getattr(config, name), dt) < 1:
+            raise ValueError(
+                f"TaskConfig.{name} ({getattr(config, name)} s) is under half a control step "
+                f"({dt} s): no step to run or average over"
+            )
     return Loop(
         config=config,
         mx=mx,
