@@ -431,3 +431,22 @@ def test_merged_welded_links_have_the_dynamics_of_one_body_per_link():
             got.append([full_m, d.qfrc_bias.copy(), d.qacc.copy(), *sites, d.sensordata.copy()])
         for a, b in zip(*got, strict=True):
             np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * max(1.0, np.abs(b).max()))
+
+
+@pytest.mark.parametrize("phase", [0.0, 0.05, 0.3, 0.1234])
+def test_the_hold_counts_the_same_steps_in_float32_and_float64(phase):
+    """The pendulum is held at the steps k with k dt < arrival_phase: ceil(phase / dt) of them,
+    whether the step times are accumulated in float32 or float64, in NumPy or JAX (before,
+    float32's accumulated time held one step more for phases on the 1 ms grid)."""
+    from hec_jax.mjx_scene.sim import held_at
+
+    dt = 1e-3
+    expected = int(np.ceil(round(phase / dt, 6)))
+    for dtype in (np.float32, np.float64):
+        t, held = dtype(0.0), []
+        for _ in range(400):
+            held.append(bool(held_at(t, dtype(phase), dt)))
+            t = dtype(t + dtype(dt))
+        assert held == [k < expected for k in range(400)], (dtype, phase)
+    times = jnp.asarray(np.arange(400) * dt, jnp.float32)
+    assert int(jnp.sum(held_at(times, jnp.float32(phase), dt))) == expected

@@ -149,9 +149,23 @@ class Trajectory(NamedTuple):
     aux: Any
 
 
+def held_at(time, arrival_phase, dt):
+    """Whether the pendulum is held at the step starting at ``time`` [s]: the steps k with
+    k dt < ``arrival_phase`` (ceil(phase / dt) of them), counted on the step grid, so float32 and
+    float64 (and MJX and MuJoCo C) hold the same steps. Comparing the accumulated ``time`` with
+    the phase, as before 2026-12-04, held one step more in float32 for phases on the 1 ms grid.
+    Works on floats (NumPy) and traced arrays (JAX) alike.
+    """
+    xp = jnp if isinstance(time, jax.Array) or isinstance(arrival_phase, jax.Array) else np
+    step = xp.round(time / dt)
+    return step < xp.ceil(arrival_phase / dt - 1e-3)
+
+
 def _hold_pendulum(d: mjx.Data, ids: SceneIds, c: PendulumConditions) -> mjx.Data:
-    """Keeps the pendulum in its release state while t < arrival_phase (the experimenter's hand)."""
-    held = d.time < c.arrival_phase
+    """Keeps the pendulum in its release state at the steps before arrival_phase (the
+    experimenter's hand; :func:`held_at`).
+    """
+    held = held_at(d.time, c.arrival_phase, ids.timestep)
     qpos = d.qpos.at[ids.pend_qpos].set(jnp.where(held, c.release_angle, d.qpos[ids.pend_qpos]))
     qvel = d.qvel.at[ids.pend_dof].set(jnp.where(held, c.release_speed, d.qvel[ids.pend_dof]))
     return d.replace(qpos=qpos, qvel=qvel)
@@ -352,7 +366,9 @@ def rollout_c(
     ps = policy_state0
     adr = ids.force_sensor_adr
     for k in range(f_ext.shape[0]):
-        if conditions is not None and d.time < float(conditions.arrival_phase):
+        if conditions is not None and held_at(
+            d.time, float(conditions.arrival_phase), m.opt.timestep
+        ):
             d.qpos[ids.pend_qpos] = float(conditions.release_angle)
             d.qvel[ids.pend_dof] = float(conditions.release_speed)
         d.xfrc_applied[:] = 0.0

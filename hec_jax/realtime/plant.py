@@ -46,6 +46,7 @@ from hec_jax.mjx_scene import (
 )
 from hec_jax.mjx_scene.lab import scene_model
 from hec_jax.mjx_scene.render import render_model_like, with_plane_grid
+from hec_jax.mjx_scene.sim import held_at
 from hec_jax.realtime.clock import Clock, monotonic_s
 from hec_jax.realtime.shared import _CTX, Board, FrameRing, Images, wait_for
 
@@ -436,7 +437,7 @@ class MujocoPlant:
         if self._staged:
             return
         m, d, ids = self.m, self.d, self.ids
-        if d.time < self._arrival:
+        if held_at(d.time, self._arrival, self.dt):
             d.qpos[ids.pend_qpos] = float(self.conditions.release_angle)
             d.qvel[ids.pend_dof] = float(self.conditions.release_speed)
         d.xfrc_applied[:] = 0.0
