@@ -11,7 +11,7 @@ import pytest
 from hec_jax import loop as tl
 from hec_jax.cli import parse
 from hec_jax.loop.cli import TaskRun, task_default
-from hec_jax.mjx_scene import CUBE_EDGE, load_mj_model
+from hec_jax.mjx_scene import CUBE_EDGE, X_HOME, load_mj_model, scene_ids, solve_posture
 from hec_jax.mjx_scene.camera import project
 from hec_jax.mjx_scene.lab import lab_model, scene_model
 from hec_jax.mjx_scene.render import SceneCamera, render_model_like, with_plane_grid
@@ -37,17 +37,23 @@ def _release(m, hinge_x=0.55, angle=-0.5):
     return q
 
 
-def _controlled_swing(m) -> np.ndarray:
-    """(400, nq) qpos of 400 steps of the C model ``m`` (changed in place: the hinge moved)
-    from the release, a constant torque driving the hand into the cube's path."""
+def _controlled_swing(m) -> tuple[np.ndarray, int]:
+    """((500, nq) qpos, steps with a contact) of 500 steps of the C model ``m`` (changed in
+    place: the hinge moved) from the release, the hand waiting at X_HOME held by the constant
+    torque that balances gravity there: the swinging cube strikes it (from step ~413)."""
+    ids = scene_ids(m)
+    q = _release(m)
+    q[list(ids.arm_qpos)] = solve_posture(m, ids, X_HOME)
     d = mujoco.MjData(m)
-    d.qpos[:] = _release(m)
-    d.ctrl[:] = (20.0, -8.0, 1.0)  # [N m]
-    out = []
-    for _ in range(400):
+    d.qpos[:] = q
+    mujoco.mj_forward(m, d)
+    d.ctrl[:] = d.qfrc_bias[list(ids.arm_dof)]  # [N m]
+    out, contact_steps = [], 0
+    for _ in range(500):
         mujoco.mj_step(m, d)
         out.append(d.qpos.copy())
-    return np.array(out)
+        contact_steps += d.ncon > 0
+    return np.array(out), contact_steps
 
 
 def test_lab_is_scene_xml_first_then_visual_only_geoms(models):
@@ -79,9 +85,12 @@ def test_lab_is_scene_xml_first_then_visual_only_geoms(models):
 def test_lab_physics_is_bit_identical(models):
     """The same controlled swing (a few hundred 1 ms steps, hand-cube contact included) in the
     void and the lab C models: the same qpos, bit for bit."""
-    trajs = [_controlled_swing(m0.__copy__()) for m0 in models]
-    np.testing.assert_array_equal(trajs[0], trajs[1])
-    assert np.ptp(trajs[0], axis=0).min() > 1e-3  # everything moved
+    (void_q, void_contacts), (lab_q, lab_contacts) = [
+        _controlled_swing(m0.__copy__()) for m0 in models
+    ]
+    np.testing.assert_array_equal(void_q, lab_q)
+    assert void_contacts == lab_contacts > 10  # the cube struck the hand
+    assert np.ptp(void_q, axis=0).min() > 1e-3  # everything moved
 
 
 def test_render_model_like_fills_the_simulated_prefix(models):
@@ -214,8 +223,8 @@ def test_plane_grid_is_rendering_only(models):
         np.testing.assert_array_equal(out.geom_size[planes, :2], m0.geom_size[planes, :2])
         np.testing.assert_array_equal(out.geom_size[~planes], m0.geom_size[~planes])
         np.testing.assert_array_equal(m0.geom_size, before)  # the original is untouched
-    trajs = [_controlled_swing(m) for m in (void.__copy__(), with_plane_grid(void, 0.5))]
-    np.testing.assert_array_equal(trajs[0], trajs[1])
+    trajs = [_controlled_swing(m)[0] for m in (void.__copy__(), with_plane_grid(void, 0.5))]
+    np.testing.assert_array_equal(trajs[0], trajs[1])  # the grid is visual: a check of that
     for bad in (0.0, -0.1, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="plane grid spacing"):
             with_plane_grid(void, bad)
