@@ -69,7 +69,7 @@ from hec_jax.runs import run_folder, write_json, write_text
 
 # seed ranges; "fresh" (2_000_000, ...) was first run on 2026-12-04, after the held-out range
 # had been run many times and had informed preset decisions (docs/eye_randomized.md, "A fresh
-# held-out range"); each range ends where the next begins
+# held-out range"); dev-low-views picks among the dev seeds from 5000 on
 SPLITS = {"dev": 0, "heldout": 1_000_000, "dev-low-views": 5000, "fresh": 2_000_000}
 SPLIT_ENDS = {
     "dev": 1_000_000,
@@ -192,6 +192,8 @@ def split_seeds(a: EyeRandomized) -> list[int]:
 
     seeds, seed = [], SPLITS[a.split]
     while len(seeds) < a.first + a.sequences:
+        if seed >= SPLIT_ENDS[a.split]:
+            raise ValueError("dev-low-views ran out of development seeds")
         scene = draw_scene(seed)
         if scene.look == "low_contrast" and scene.elevation_deg < LOW_VIEW_DEG:
             seeds.append(seed)

@@ -78,8 +78,8 @@ BAD = {
         (["--seeds", "0"], "seeds must be an integer >= 1"),
         (["--final-s", "-1"], "final_s must be finite and >= 0"),
         (["--final-s", "0"], "counts its hits in the continuous run: final_s must be > 0"),
-        (["--seed", "-1"], "seed must be an integer in [0, 2**63), got -1"),
-        (["--seed", str(2**70)], "seed must be an integer in [0, 2**63)"),
+        (["--seed", "-1"], "seed must be an integer in [0, 2**32), got -1"),
+        (["--seed", str(2**32 + 5)], "seed must be an integer in [0, 2**32)"),
         (["--out", USED], "exists and is not empty"),
     ],
     "experiments/sweep.py": [

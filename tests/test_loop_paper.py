@@ -199,6 +199,9 @@ def test_fixed_candidates_stay_inside_the_networks_output_range():
     assert np.all(cand[:, :, 0] + np.asarray(imp.k_e) > 0)  # Eq. 49 (strict) for every one
     # plain impedance (all zero) is a candidate, also on an even grid (--reduced's 4 x 4 x 1)
     assert np.any(np.all(cand == 0, axis=(1, 2)))
+    # the default grid keeps its 7 x 7 x 3 (its middle point snapped to an exact 0, not doubled)
+    default = arms.fixed_candidates(task, 7, 3)
+    assert default.shape == (147, 2, 3) and np.sum(np.all(default == 0, axis=(1, 2))) == 1
     even = arms.fixed_candidates(task, 4, 1)
     assert even.shape == (25, 2, 3) and np.any(np.all(even == 0, axis=(1, 2)))
     assert np.any(np.all(arms.fixed_candidates(task, 3, 2)[:, :, 2] == 0, axis=1))

@@ -138,19 +138,27 @@ def _dtype():
     return jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
 
 
+def _with_zero(n: int) -> np.ndarray:
+    """``n`` points over -0.9 ... 0.9 with an exact 0 (an odd ``n``'s middle point, which
+    linspace gives as -1.1e-16 for 7, snapped to 0; an even ``n`` gets 0 added: n + 1 points).
+    """
+    grid = np.linspace(-0.9, 0.9, n)
+    grid[np.abs(grid) < 1e-12] = 0.0
+    return np.union1d(grid, [0.0])
+
+
 def fixed_candidates(task: TaskConfig, n: int, n_m: int) -> np.ndarray:
     """Constant virtual impedances (C, 2, 3) on a grid: K_o, B_o over -0.9 ... 0.9 of U/2 (the
     networks' output range, so every candidate satisfies Eq. 49 as the networks do), M_o over
-    ``n_m`` points (1: 0); the same values on both axes. Zero is always among the K_o and B_o
-    values (an even ``n`` gets it added: n + 1 values), so the baseline can pick plain impedance
-    (F_o = 0, K_o = B_o = M_o = 0 with ``n_m`` 1) and is never weaker than it.
+    ``n_m`` points (1: 0); the same values on both axes. Zero is always among the values (an
+    even ``n`` or ``n_m`` gets it added: one value more), so the baseline can pick plain
+    impedance (F_o = 0) and is never weaker than it.
     """
     imp = task.impedance
     u = np.asarray(
         nets.u_max(task.learner.net, np.asarray(imp.m_e), np.asarray(imp.b_e), np.asarray(imp.k_e))
     )  # (2, 3)
-    grid = np.union1d(np.linspace(-0.9, 0.9, n), [0.0])
-    grid_m = np.union1d(np.linspace(-0.9, 0.9, n_m), [0.0]) if n_m > 1 else np.zeros(1)
+    grid, grid_m = _with_zero(n), _with_zero(n_m) if n_m > 1 else np.zeros(1)
     out = [
         np.stack([u[:, 0] / 2 * k, u[:, 1] / 2 * b, u[:, 2] / 2 * mm], axis=-1)
         for k in grid

@@ -406,12 +406,13 @@ class ExperimentConfig:
             raise ValueError(f"seeds must be an integer >= 1, got {self.seeds}")
         if self.eye not in EYE_SOURCES:
             raise ValueError(f"eye must be one of {', '.join(EYE_SOURCES)}, got {self.eye!r}")
+        # jax.random.PRNGKey keeps the low 32 bits with 64-bit JAX off: 2**32 + 5 would be 5
         if (
             isinstance(self.seed, bool)
             or not isinstance(self.seed, int)
-            or not (0 <= self.seed < 2**63)
+            or not (0 <= self.seed < 2**32)
         ):
-            raise ValueError(f"seed must be an integer in [0, 2**63), got {self.seed}")
+            raise ValueError(f"seed must be an integer in [0, 2**32), got {self.seed}")
         if self.task.learner.task == "hitting" and not self.task.final_s > 0:
             raise ValueError(
                 "the hitting experiment counts its hits in the continuous run: final_s must be "

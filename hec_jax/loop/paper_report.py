@@ -93,7 +93,7 @@ def paper_main(argv=None, doc: str | None = None) -> dict:
     run = parse(default, args, doc)
     if run.reduced:
         # --reduced sets these itself: a flag given for one of them would be silently dropped
-        given = {a.split("=", 1)[0] for a in args if a.startswith("--")}
+        given = {a.split("=", 1)[0].replace("_", "-") for a in args if a.startswith("--")}
         clash = [f for f in _REDUCED_FLAGS if f in given]
         if clash:
             raise usage_error(

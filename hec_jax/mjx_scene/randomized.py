@@ -391,7 +391,9 @@ def render_random_sequence(
                 shot_steps.append(s)
                 if back == 0:
                     img = np.mean(shots, axis=0)
-                    truth_at[i] = shot_steps[len(shot_steps) // 2]  # the middle render's
+                    # the middle render's (mid-exposure for an odd exposure_samples; the
+                    # later of the two middle ones for an even count)
+                    truth_at[i] = shot_steps[len(shot_steps) // 2]
                     shots, shot_steps = [], []
                     frames[i] = post_process(np.round(img).astype(np.uint8), scene, rng)
             mujoco.mj_step(m, d)

@@ -151,8 +151,9 @@ class Trajectory(NamedTuple):
 
 def held_at(time, arrival_phase, dt):
     """Whether the pendulum is held at the step starting at ``time`` [s]: the steps k with
-    k dt < ``arrival_phase`` (ceil(phase / dt) of them), counted on the step grid, so float32 and
-    float64 (and MJX and MuJoCo C) hold the same steps. Comparing the accumulated ``time`` with
+    k dt < ``arrival_phase`` (ceil(phase / dt) of them; a phase less than 1e-3 dt above a grid
+    point counts as on it), counted on the step grid, so float32 and float64 (and MJX and
+    MuJoCo C) hold the same steps. Comparing the accumulated ``time`` with
     the phase, as before 2026-12-04, held one step more in float32 for phases on the 1 ms grid.
     Works on floats (NumPy) and traced arrays (JAX) alike.
     """

@@ -358,7 +358,8 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
     if eye_log:
         out["eye"] = {
             "frames_processed": int(len(eye_log["index"])),
-            # rendered frames the eye skipped for a newer one (between its first and last)
+            # rendered frames the eye skipped for a newer one (up to its last processed one,
+            # those before its first included)
             "frames_dropped": int(eye_log["dropped"]),
             "frames_valid": int(np.sum(eye_log["valid"])),
             # failed while the filter ran and left to the prediction (TrackConfig.defer_search)
