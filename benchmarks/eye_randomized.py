@@ -319,6 +319,23 @@ def table_lines(metrics: dict) -> list[str]:
     return rows
 
 
+def interval_lines(metrics: dict) -> list[str]:
+    """The Markdown table of each method's 95% bootstrap intervals over sequences
+    (:func:`accuracy.bootstrap_intervals`, in ``metrics[name]["intervals"]``).
+    """
+    keys = ("acquired_within_3_rate", "valid_rate", "velocity_rms_m_s", "gross_errors")
+    rows = [
+        "| method (95% interval, sequences resampled) | " + " | ".join(keys) + " |",
+        "|---" * (len(keys) + 1) + "|",
+    ]
+    for name in METHODS:
+        iv = metrics[name]["intervals"]
+        rows.append(
+            f"| {name} | " + " | ".join(f"{iv[k][0]:.3g}-{iv[k][1]:.3g}" for k in keys) + " |"
+        )
+    return rows
+
+
 def strata_lines(summaries: list[dict]) -> list[str]:
     """The Markdown table of the tracker's acquisition and valid frames per look and elevation
     band (:func:`accuracy.strata`), with the acquisition's 95% interval.
@@ -409,10 +426,13 @@ def main(argv=None) -> dict:
             np.concatenate([r["frame_ms"] for r in per["tracker"]]),
         )
         metrics["tracker"]["strata"] = accuracy.strata(summaries)
+        for name in METHODS:
+            metrics[name]["intervals"] = accuracy.bootstrap_intervals(summaries, name, seed=0)
         metrics |= {"split": a.split, "warmup_s": warmup_s, "run_s": run_s}
         write_json(folder / "metrics.json", metrics)
         write_json(folder / "sequences.json", summaries)
-        lines = table_lines(metrics) + [""] + time_lines(metrics["tracker"]["time_by_kind"])
+        lines = table_lines(metrics) + [""] + interval_lines(metrics)
+        lines += [""] + time_lines(metrics["tracker"]["time_by_kind"])
         lines += [""] + strata_lines(summaries)
         top = velocity_top_lines(summaries)
         lines += [""] + top if top else []

@@ -651,6 +651,23 @@ def test_the_eye_benchmark_s_strata_table_has_a_row_per_stratum():
     ]
 
 
+def test_the_eye_benchmark_s_interval_table_has_a_row_per_method():
+    """``benchmarks/eye_randomized.py``'s table of bootstrap intervals: one row per method with
+    each metric's (lo-hi) from ``metrics[name]["intervals"]``, in the table's column order."""
+    bench = _script("benchmarks/eye_randomized.py")
+    intervals = {
+        "acquired_within_3_rate": (0.875, 0.95),
+        "valid_rate": (0.8822, 0.9422),
+        "velocity_rms_m_s": (0.034, 0.0695),
+        "gross_errors": (18.0, 112.0),
+    }
+    metrics = {name: {"intervals": intervals} for name in bench.METHODS}
+    lines = bench.interval_lines(metrics)
+    assert len(lines) == 2 + len(bench.METHODS)
+    assert lines[0].split(" | ")[1:] == [*intervals][:-1] + ["gross_errors |"]
+    assert lines[2] == f"| {bench.METHODS[0]} | 0.875-0.95 | 0.882-0.942 | 0.034-0.0695 | 18-112 |"
+
+
 def test_the_eye_benchmark_s_splits_give_their_seeds():
     """``benchmarks/eye_randomized.py``'s seed ranges: dev and heldout by offset, dev-low-views
     the scenes from 5000 on that ``draw_scene`` draws as a low-contrast cube seen from under 12

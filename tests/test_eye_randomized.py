@@ -223,6 +223,54 @@ def test_wilson_interval_against_hand_worked_values():
             accuracy.wilson_interval(*bad)
 
 
+def test_bootstrap_intervals_against_known_cases():
+    """:func:`accuracy.bootstrap_intervals` over sequences: identical sequences give a point
+    interval at their pooled value; a binomial acquisition over 400 made-up sequences gives
+    about the Wilson interval (both estimate the same 95% interval of a rate); pooled velocity
+    RMS and gross counts bracket the full-set values; same seed, same intervals; bad input
+    refused."""
+
+    def seq(delay, valid=40, gross=0, sq=0.1, frames=40, visible=45):
+        result = {
+            "acquire_delay": delay,
+            "valid_visible": valid,
+            "gross": gross,
+            "vel_sq_sum": sq,
+            "vel_frames": frames,
+        }
+        return {"visible_frames": visible, "tracker": result}
+
+    same = accuracy.bootstrap_intervals([seq(0, gross=2)] * 30, draws=200)
+    assert same["acquired_within_3_rate"] == (1.0, 1.0)
+    np.testing.assert_allclose(same["valid_rate"], (40 / 45, 40 / 45), rtol=1e-12)
+    np.testing.assert_allclose(same["velocity_rms_m_s"], (0.05, 0.05), rtol=1e-12)
+    assert same["gross_errors"] == (60.0, 60.0)
+
+    rng = np.random.default_rng(7)
+    hits = rng.random(400) < 0.9
+    summaries = [
+        seq(0 if h else 10**6, gross=int(rng.integers(0, 3)) * (i % 7 == 0), sq=float(rng.random()))
+        for i, h in enumerate(hits)
+    ]
+    summaries.append(seq(None, valid=0, visible=0, frames=0, sq=0.0))  # never fully visible
+    iv = accuracy.bootstrap_intervals(summaries, draws=4000, seed=3)
+    wilson = accuracy.wilson_interval(int(hits.sum()), hits.size)
+    np.testing.assert_allclose(iv["acquired_within_3_rate"], wilson, atol=0.01)
+    rms = np.sqrt(sum(s["tracker"]["vel_sq_sum"] for s in summaries) / (40 * 400))
+    gross = sum(s["tracker"]["gross"] for s in summaries)
+    assert iv["velocity_rms_m_s"][0] < rms < iv["velocity_rms_m_s"][1]
+    assert iv["gross_errors"][0] < gross < iv["gross_errors"][1]
+    assert accuracy.bootstrap_intervals(summaries, draws=4000, seed=3) == iv
+    assert accuracy.bootstrap_intervals(summaries, draws=4000, seed=4) != iv
+
+    with pytest.raises(ValueError, match="no sequence"):
+        accuracy.bootstrap_intervals([])
+    with pytest.raises(ValueError, match="draws"):
+        accuracy.bootstrap_intervals(summaries, draws=10)
+    with pytest.raises(ValueError, match="lacks"):
+        accuracy.bootstrap_intervals([{"visible_frames": 45, "tracker": {"gross": 0}}])
+
+
 def test_strata_count_each_look_and_elevation_band():
     """:func:`accuracy.strata` against counts made by hand on made-up sequence summaries: a
     never-acquired sequence (a large delay) counts as not acquired, a never fully visible one

@@ -439,3 +439,75 @@ def strata(summaries: list[dict], method: str = "tracker", bands=ELEVATION_BANDS
     out += [row(look, lo, hi, [r for r in inside if r[0] == look]) for look in looks]
     out.append(row("all", lo, hi, inside))
     return out
+
+
+def bootstrap_intervals(
+    summaries: list[dict],
+    method: str = "tracker",
+    draws: int = 10_000,
+    seed: int = 0,
+    level: float = 0.95,
+) -> dict[str, tuple[float, float]]:
+    """Percentile-bootstrap intervals of the pooled target metrics, resampling whole sequences.
+
+    The frames of one sequence are not independent (one scene, one track), so the sequence is the
+    unit: each draw takes as many sequences as there are, with replacement, and pools them as
+    :func:`target_table` does. The intervals say how far another set of scenes from the same
+    distribution could move the numbers; they do not cover timing.
+
+    Args:
+        summaries: one dict a sequence, as the randomized benchmark's ``sequences.json``, with
+            ``visible_frames`` and ``summaries[i][method]`` holding ``acquire_delay`` (None: never
+            fully visible), ``valid_visible``, ``gross``, ``vel_sq_sum`` and ``vel_frames``.
+        method: which method's results.
+        draws: bootstrap resamples, >= 100.
+        seed: NumPy generator seed (same seed, same intervals).
+        level: central coverage in (0, 1).
+
+    Returns:
+        {metric: (lo, hi)} for ``acquired_within_3_rate`` (over the resampled sequences ever
+        fully visible), ``valid_rate``, ``velocity_rms_m_s`` and ``gross_errors``.
+
+    Raises:
+        ValueError: no summaries, a summary without the fields above, ``draws`` < 100 or
+            ``level`` outside (0, 1).
+    """
+    if not summaries:
+        raise ValueError("no sequence summaries to resample")
+    if draws < 100 or not 0.0 < level < 1.0:
+        raise ValueError(f"need draws >= 100 and 0 < level < 1, got {draws}, {level}")
+    try:
+        res = [s[method] for s in summaries]
+        visible = np.array([s["visible_frames"] for s in summaries], float)
+        seen = np.array([r["acquire_delay"] is not None for r in res])
+        got = np.array(
+            [r["acquire_delay"] is not None and r["acquire_delay"] <= ACQUIRE_FRAMES for r in res]
+        )
+        valid = np.array([r["valid_visible"] for r in res], float)
+        gross = np.array([r["gross"] for r in res], float)
+        vel_sq = np.array([r["vel_sq_sum"] for r in res], float)
+        vel_n = np.array([r["vel_frames"] for r in res], float)
+    except (KeyError, TypeError) as e:
+        raise ValueError(
+            f"a summary lacks visible_frames or {method}'s acquire_delay, valid_visible, gross,"
+            " vel_sq_sum or vel_frames"
+        ) from e
+    rng = np.random.default_rng(seed)
+    # (draws, n) counts of each sequence in each resample: pooled sums are counts @ values
+    counts = np.stack(
+        [np.bincount(rng.integers(0, len(res), len(res)), minlength=len(res)) for _ in range(draws)]
+    ).astype(float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        samples = {
+            "acquired_within_3_rate": (counts @ got) / (counts @ seen),
+            "valid_rate": (counts @ valid) / np.maximum(counts @ visible, 1.0),
+            "velocity_rms_m_s": np.sqrt((counts @ vel_sq) / (counts @ vel_n)),
+            "gross_errors": counts @ gross,
+        }
+    tail = 50.0 * (1.0 - level)
+    out = {}
+    for key, x in samples.items():
+        x = x[np.isfinite(x)]
+        lo, hi = np.percentile(x, [tail, 100.0 - tail]) if x.size else (np.nan, np.nan)
+        out[key] = (float(lo), float(hi))
+    return out
