@@ -3,6 +3,7 @@ synthetic traces with known answers, the ablation switches, and the fixed-impeda
 """
 
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -293,3 +294,85 @@ def test_run_arms_end_to_end_with_bptt_on_a_tiny_protocol():
     loss = results["arms"]["bptt"]["bptt_loss_per_epoch"]
     assert len(loss) == 1 and len(loss[0]) == 2 and np.all(np.isfinite(loss))
     assert results["fixed_search"]["candidates"] == 4
+
+
+def test_merge_joins_disjoint_arms_as_one_run_and_refuses_mixed_runs(tmp_path, capsys):
+    """``experiments/paper_merge.py`` (:func:`paper_report.merge_runs`): two run folders with
+    disjoint arms give the table and metrics that one run of all the arms would have had (the
+    same entries, arms in ``ALL_ARMS`` order, the fixed search from the run that ran it); runs
+    of another protocol, other pendulums, a shared arm or an unfinished run are refused."""
+    from hec_jax.loop import paper_report as pr
+    from hec_jax.runs import run_folder, write_json
+
+    def summary(speed):
+        v = {"mean": speed, "std": 0.05, "n": 40}
+        return {"relative_speed_at_contact": v, "held": {"fraction": 0.0, "n": 40}, "runs": 40}
+
+    pendulums = {"training": {"cube_mass": [0.6, 0.7]}, "held_out": {"cube_mass": [0.8]}}
+    search = {"candidates": 147, "fixed_energy": [1.0, 0.0, 0.0]}
+    everything = {
+        "arms": {
+            "plain": {"summary": summary(1.3)},
+            "fixed_energy": {"summary": summary(0.585)},
+            "online": {"summary": summary(0.559)},
+            "bptt": {"summary": summary(1.15)},
+        },
+        "pendulums": pendulums,
+        "fixed_search": search,
+    }
+
+    def folder(name, arm_names, metrics, **protocol_changes):
+        protocol = dataclasses.asdict(
+            dataclasses.replace(arms.PaperProtocol(arms=arm_names), **protocol_changes)
+        )
+        settings = dict(protocol=protocol, preset="catching_paper", reduced=False, float32=False)
+        with run_folder(tmp_path / name, 0, settings) as f:
+            write_json(f / "metrics.json", metrics)
+        return tmp_path / name
+
+    def part(arm_names, with_search):
+        entries = everything["arms"] | {"frozen": {"summary": summary(1.28)}}
+        m = {"arms": {a: entries[a] for a in arm_names}, "pendulums": pendulums}
+        return m | ({"fixed_search": search} if with_search else {})
+
+    online = folder("online", ("online",), part(("online",), False))
+    fixed = folder("fixed", ("plain", "fixed_energy"), part(("plain", "fixed_energy"), True))
+    # the BPTT arm alone may have its own BPTT settings
+    bptt = folder("bptt", ("bptt",), part(("bptt",), False), bptt_epochs=6)
+    merged = pr.merge_main(
+        ["--runs", str(online), str(bptt), str(fixed), "--out", str(tmp_path / "m")]
+    )
+    assert json.loads(json.dumps(merged)) == everything
+    assert list(merged["arms"]) == ["plain", "fixed_energy", "online", "bptt"]
+    table = (tmp_path / "m" / "table.md").read_text()
+    assert table.strip() == arms.markdown_table(arms.table_rows(everything, "catching"))
+    config = json.loads((tmp_path / "m" / "config.json").read_text())
+    assert [s["arms"] for s in config["merged_from"]] == [
+        ["online"],
+        ["bptt"],
+        ["plain", "fixed_energy"],
+    ]
+    capsys.readouterr()
+
+    other_pendulums = dict(part(("frozen",), False), pendulums={"training": {}, "held_out": {}})
+    refused = {
+        "two runs": folder("again", ("online",), part(("online",), False)),
+        "pendulums": folder("pend", ("frozen",), other_pendulums),
+        "protocol": folder("held", ("frozen",), part(("frozen",), False), held_out=3),
+    }
+    for why, extra in refused.items():
+        with pytest.raises(SystemExit) as e:
+            pr.merge_main(
+                ["--runs", str(online), str(fixed), str(extra), "--out", str(tmp_path / "x")]
+            )
+        assert e.value.code == 2, why
+        assert "cannot merge" in capsys.readouterr().err, why
+    assert not (tmp_path / "x").exists()  # a refused merge writes nothing
+    unfinished = tmp_path / "unfinished"
+    unfinished.mkdir()
+    (unfinished / "metrics.json").write_text(json.dumps(part(("frozen",), False)))
+    (unfinished / "config.json").write_text(json.dumps({"status": "running"}))
+    with pytest.raises(SystemExit):
+        pr.merge_main(["--runs", str(online), str(unfinished), "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        pr.merge_main(["--runs", str(online), "--out", str(tmp_path / "x")])

@@ -181,3 +181,133 @@ def _figures(folder: Path, task: str, protocol: PaperProtocol, results: dict, lo
     fig.suptitle(f"{task}, paper preset, online arm: held-out pendulum 1, seed 0")
     fig.tight_layout()
     save_figure(fig, folder / f"fig_{task}_online.png")
+
+
+# protocol fields that only the BPTT arm reads: runs of other arms may differ in them
+_BPTT_FIELDS = ("bptt_epochs", "bptt_lr", "bptt_clip", "bptt_horizon_s")
+
+
+def merge_runs(parts: list[tuple[dict, dict]]) -> dict:
+    """One table's results from paper-protocol runs that each ran some of the arms (e.g. one
+    process per group of arms, ``scripts/gpu_paper.sh``).
+
+    Args:
+        parts: (``config.json``, ``metrics.json``) of each run folder, as loaded.
+
+    Returns:
+        The merged ``metrics.json``: ``arms`` in :data:`~hec_jax.loop.arms.ALL_ARMS` order,
+        ``pendulums`` (the runs'), ``fixed_search`` (from the run that ran a fixed arm, if any).
+
+    Raises:
+        ValueError: no parts; a run not complete; runs of another preset, precision, reduction or
+            protocol (the arms and the BPTT arm's own settings aside; those may differ only where
+            the BPTT arm is in one run alone); different pendulums; an arm in two runs; two
+            different fixed-impedance searches.
+    """
+    from hec_jax.loop.arms import ALL_ARMS
+
+    if not parts:
+        raise ValueError("no runs to merge")
+    arms: dict[str, dict] = {}
+    fixed_search = None
+
+    def key(config: dict) -> dict:
+        protocol = {k: v for k, v in config["protocol"].items() if k != "arms"}
+        has_bptt = "bptt" in config["protocol"]["arms"]
+        if not has_bptt:
+            protocol = {k: v for k, v in protocol.items() if k not in _BPTT_FIELDS}
+        return {
+            "preset": config["preset"],
+            "reduced": config["reduced"],
+            "float32": config["float32"],
+            "protocol": protocol,
+        }
+
+    first_config, first_metrics = parts[0]
+    for config, metrics in parts:
+        if config.get("status") != "complete":
+            raise ValueError(f"a run is not complete (status {config.get('status')!r})")
+        a, b = key(config), key(first_config)
+        shared = {k: v for k, v in a["protocol"].items() if k in b["protocol"]}
+        shared_first = {k: v for k, v in b["protocol"].items() if k in a["protocol"]}
+        if {**a, "protocol": shared} != {**b, "protocol": shared_first}:
+            raise ValueError("the runs differ in preset, precision, reduction or protocol")
+        if metrics["pendulums"] != first_metrics["pendulums"]:
+            raise ValueError("the runs drew different pendulums")
+        for arm, entry in metrics["arms"].items():
+            if arm in arms:
+                raise ValueError(f"arm {arm!r} is in two runs")
+            arms[arm] = entry
+        search = metrics.get("fixed_search")
+        if search is not None:
+            if fixed_search is not None and search != fixed_search:
+                raise ValueError("two runs hold different fixed-impedance searches")
+            fixed_search = search
+    ordered = {arm: arms[arm] for arm in ALL_ARMS if arm in arms}
+    out = {"arms": ordered, "pendulums": first_metrics["pendulums"]}
+    if fixed_search is not None:
+        out["fixed_search"] = fixed_search
+    return out
+
+
+@dataclass(frozen=True)
+class PaperMerge:
+    """Run folders of ``experiments/paper.py`` (one preset, disjoint arms) merged into one
+    table's run folder.
+    """
+
+    runs: tuple[Path, ...] = ()  # the run folders to merge (each with config.json, metrics.json)
+    out: Path = Path("runs/paper_merged")  # run folder (written complete or not at all)
+    overwrite: bool = False  # replace an existing non-empty --out
+
+
+@command
+def merge_main(argv=None, doc: str | None = None) -> dict:
+    """Parses ``argv`` (:class:`PaperMerge`), merges the runs (:func:`merge_runs`) and writes
+    ``table.md`` and ``metrics.json`` in ``--out``; its ``config.json`` names the source runs with
+    their own commits and devices. Returns the merged results.
+    """
+    import json
+
+    from hec_jax.loop.arms import markdown_table, table_rows
+    from hec_jax.runs import run_folder, write_json, write_text
+
+    run = parse(PaperMerge(), argv, doc)
+    if len(run.runs) < 2:
+        raise usage_error("--runs: give at least two run folders to merge")
+    parts = []
+    for folder in run.runs:
+        try:
+            config = json.loads((folder / "config.json").read_text())
+            metrics = json.loads((folder / "metrics.json").read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise usage_error(f"--runs: {folder} is not a readable run folder ({e})") from e
+        parts.append((config, metrics))
+    try:
+        merged = merge_runs(parts)
+    except (ValueError, KeyError) as e:
+        raise usage_error(f"--runs: cannot merge: {e}") from e
+    first = parts[0][0]
+    settings = dict(
+        preset=first["preset"],
+        merged_from=[
+            dict(
+                folder=str(folder),
+                arms=config["protocol"]["arms"],
+                code=config.get("code"),
+                device=config.get("device"),
+                started_utc=config.get("started_utc"),
+                finished_utc=config.get("finished_utc"),
+                protocol=config["protocol"],
+            )
+            for folder, (config, _) in zip(run.runs, parts, strict=True)
+        ],
+    )
+    task = "catching" if first["preset"] == "catching_paper" else "hitting"
+    with run_folder(run.out, first["seed"], settings, run.overwrite) as folder:
+        table = markdown_table(table_rows(merged, task))
+        write_text(folder / "table.md", table + "\n")
+        write_json(folder / "metrics.json", merged)
+    print(table)
+    print(f"run folder: {run.out}")
+    return merged
