@@ -200,9 +200,9 @@ def merge_runs(parts: list[tuple[dict, dict]]) -> dict:
 
     Raises:
         ValueError: no parts; a run not complete; runs of another preset, precision, reduction or
-            protocol (the arms and the BPTT arm's own settings aside; those may differ only where
-            the BPTT arm is in one run alone); different pendulums; an arm in two runs; two
-            different fixed-impedance searches.
+            protocol (the arms and the BPTT settings aside: only the run holding the BPTT arm
+            uses them); different pendulums; an arm in two runs; two different fixed-impedance
+            searches.
     """
     from hec_jax.loop.arms import ALL_ARMS
 
@@ -212,25 +212,16 @@ def merge_runs(parts: list[tuple[dict, dict]]) -> dict:
     fixed_search = None
 
     def key(config: dict) -> dict:
-        protocol = {k: v for k, v in config["protocol"].items() if k != "arms"}
-        has_bptt = "bptt" in config["protocol"]["arms"]
-        if not has_bptt:
-            protocol = {k: v for k, v in protocol.items() if k not in _BPTT_FIELDS}
-        return {
-            "preset": config["preset"],
-            "reduced": config["reduced"],
-            "float32": config["float32"],
-            "protocol": protocol,
-        }
+        # the arms differ by design; the BPTT settings matter only to the one run holding BPTT
+        skip = ("arms", *_BPTT_FIELDS)
+        protocol = {k: v for k, v in config["protocol"].items() if k not in skip}
+        return {k: config[k] for k in ("preset", "reduced", "float32")} | {"protocol": protocol}
 
     first_config, first_metrics = parts[0]
     for config, metrics in parts:
         if config.get("status") != "complete":
             raise ValueError(f"a run is not complete (status {config.get('status')!r})")
-        a, b = key(config), key(first_config)
-        shared = {k: v for k, v in a["protocol"].items() if k in b["protocol"]}
-        shared_first = {k: v for k, v in b["protocol"].items() if k in a["protocol"]}
-        if {**a, "protocol": shared} != {**b, "protocol": shared_first}:
+        if key(config) != key(first_config):
             raise ValueError("the runs differ in preset, precision, reduction or protocol")
         if metrics["pendulums"] != first_metrics["pendulums"]:
             raise ValueError("the runs drew different pendulums")
