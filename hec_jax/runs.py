@@ -1,7 +1,7 @@
 """Run folders: one folder per experiment or benchmark run, written atomically.
 
-Every run writes ``config.json`` (seed, command line, package versions, git commit, device, its
-own settings), then its metrics, plots (PNG) and videos (MP4), into the folder given by
+Every run writes ``config.json`` (seed, command line, package versions, git commit and a digest
+of the package's code, device, its own settings), then its metrics, plots (PNG) and videos (MP4), into the folder given by
 ``--out``. Files are written to a temporary name and moved into place, so an interrupted run
 never leaves a half-written file.
 """
@@ -9,6 +9,7 @@ never leaves a half-written file.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import itertools
 import json
 import os
@@ -50,12 +51,35 @@ def package_versions() -> dict[str, str]:
     return out
 
 
+def package_digest(root: str | os.PathLike | None = None) -> str:
+    """SHA-256 of a package's source: every file under ``root`` (default: this ``hec_jax``) but
+    ``__pycache__``, in sorted order, each as its relative path and its bytes.
+
+    The same code gives the same digest wherever it runs, git or not; so a run made from a copied
+    tree (a GPU machine, whose git base may be older than the code it ran) can be matched to a
+    commit by computing the digest of that commit's ``hec_jax/``.
+    """
+    root = Path(__file__).resolve().parent if root is None else Path(root)
+    digest = hashlib.sha256()
+    files = sorted(
+        p for p in root.rglob("*") if p.is_file() and "__pycache__" not in p.relative_to(root).parts
+    )
+    for path in files:
+        rel = path.relative_to(root).as_posix().encode()
+        data = path.read_bytes()
+        digest.update(len(rel).to_bytes(8, "little") + rel + len(data).to_bytes(8, "little"))
+        digest.update(data)
+    return digest.hexdigest()
+
+
 def code_version() -> dict[str, Any]:
     """The source tree the run imported ``hec_jax`` from: ``commit`` (git HEAD, 40 hex digits) and
-    ``dirty`` (tracked files changed since it); both None where that tree is not a git checkout
-    or git is not installed (e.g. a copied tree on a GPU machine).
+    ``dirty`` (tracked files changed since it), both None where that tree is not a git checkout
+    or git is not installed (e.g. a copied tree on a GPU machine); and ``package_sha256``
+    (:func:`package_digest`), which names the package's code whatever git says.
     """
     root = Path(__file__).resolve().parent.parent
+    digest = package_digest()
 
     def git(*args: str) -> str | None:
         try:
@@ -68,9 +92,11 @@ def code_version() -> dict[str, Any]:
 
     commit = git("rev-parse", "--verify", "HEAD")
     if commit is None or git("rev-parse", "--show-toplevel") != str(root):
-        return {"commit": None, "dirty": None}  # not this package's own checkout
+        # not this package's own checkout
+        return {"commit": None, "dirty": None, "package_sha256": digest}
     status = git("status", "--porcelain", "--untracked-files=no")
-    return {"commit": commit, "dirty": None if status is None else bool(status)}
+    dirty = None if status is None else bool(status)
+    return {"commit": commit, "dirty": dirty, "package_sha256": digest}
 
 
 def cpu_model() -> str | None:
@@ -322,8 +348,8 @@ def write_video(path: str | os.PathLike, frames, fps: float) -> str:
 def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Path:
     """Create the run folder and write its ``config.json``; returns the folder.
 
-    ``config.json`` holds ``seed``, ``command``, ``argv``, ``versions``, ``code`` (git commit,
-    :func:`code_version`), ``device`` and, at the top level beside them, the run's own
+    ``config.json`` holds ``seed``, ``command``, ``argv``, ``versions``, ``code`` (git commit and
+    the package's digest, :func:`code_version`), ``device`` and, at the top level beside them, the run's own
     ``settings`` (so e.g. ``m_e`` is ``config["m_e"]``).
     """
     reserved = {"seed", "command", "argv", "versions", "code", "device", "started_utc"}

@@ -128,16 +128,54 @@ def test_config_records_the_code_it_ran(tmp_path, monkeypatch):
         assert code["commit"] == git("rev-parse", "HEAD") and len(code["commit"]) == 40
         assert code["dirty"] == bool(git("status", "--porcelain", "--untracked-files=no"))
     else:  # a copied tree
-        assert code == {"commit": None, "dirty": None}
+        assert code["commit"] is None and code["dirty"] is None
+    assert code["package_sha256"] == runs.package_digest()
 
     # no git at all: recorded as unknown, the run goes on
     def no_git(*a, **k):
         raise FileNotFoundError("git")
 
     monkeypatch.setattr(runs.subprocess, "run", no_git)
-    assert runs.code_version() == {"commit": None, "dirty": None}
+    assert runs.code_version() == {
+        "commit": None,
+        "dirty": None,
+        "package_sha256": runs.package_digest(),
+    }
     with pytest.raises(ValueError, match="reserved keys"):
         runs.start_run(tmp_path / "other", 0, {"code": 1})
+
+
+def test_package_digest_names_the_code_not_where_it_lies(tmp_path):
+    """:func:`runs.package_digest` against hashlib on a made-up package: the same files in
+    another folder give the same digest; a changed byte, a renamed file, bytes moved from one
+    file to the next, an added file each give another; ``__pycache__`` is left out."""
+    import hashlib
+
+    def package(where, files):
+        for rel, data in files.items():
+            (where / rel).parent.mkdir(parents=True, exist_ok=True)
+            (where / rel).write_bytes(data)
+        return where
+
+    files = {"__init__.py": b"x = 1\n", "sub/a.py": b"ab", "sub/b.xml": b"<m/>"}
+    one = runs.package_digest(package(tmp_path / "one", files))
+    # by hand: sorted relative paths, each length-prefixed path and bytes
+    want = hashlib.sha256()
+    for rel in sorted(files):
+        r, d = rel.encode(), files[rel]
+        want.update(len(r).to_bytes(8, "little") + r + len(d).to_bytes(8, "little") + d)
+    assert one == want.hexdigest()
+    assert runs.package_digest(package(tmp_path / "two", files)) == one
+    package(tmp_path / "two", {"__pycache__/a.cpython-311.pyc": b"\0", "sub/__pycache__/b": b""})
+    assert runs.package_digest(tmp_path / "two") == one
+    others = [
+        files | {"sub/a.py": b"ac"},
+        {k.replace("a.py", "c.py"): v for k, v in files.items()},
+        files | {"sub/a.py": b"a", "sub/b.xml": b"b<m/>"},
+        files | {"sub/new.py": b""},
+    ]
+    digests = {runs.package_digest(package(tmp_path / f"o{i}", f)) for i, f in enumerate(others)}
+    assert len(digests) == len(others) and one not in digests
 
 
 def test_a_failed_run_never_looks_complete(tmp_path):
