@@ -376,3 +376,37 @@ def test_merge_joins_disjoint_arms_as_one_run_and_refuses_mixed_runs(tmp_path, c
         pr.merge_main(["--runs", str(online), str(unfinished), "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit):
         pr.merge_main(["--runs", str(online), "--out", str(tmp_path / "x")])
+
+
+def test_the_fixed_search_s_held_is_the_table_s():
+    """:func:`arms.held_in_one_contact` (jitted, the fixed-impedance search's "held") against
+    :func:`paper_metrics.catching_run_metrics`' ``held`` (NumPy, contact episodes) on random
+    contact traces built to sit near each rule's edges: gaps just under and at the merge length,
+    contact starting inside the settle window, bounces that come back to rest, no contact."""
+    dt, threshold, settle_s = 1e-3, 0.5, 0.01
+    tail, min_gap = 10, int(round(pm.CONTACT_MERGE_S / dt))
+    held = jax.jit(arms.held_in_one_contact, static_argnums=(1, 2))
+    rng = np.random.default_rng(11)
+    cases = {True: 0, False: 0}
+    for _ in range(300):
+        steps = int(rng.integers(30, 120))
+        on = np.zeros(steps, bool)
+        start = int(rng.integers(0, steps))
+        on[start:] = True
+        for _ in range(int(rng.integers(0, 3))):  # gaps around the merge length
+            g0 = int(rng.integers(start, steps))
+            on[g0 : g0 + int(rng.choice([1, min_gap - 1, min_gap, min_gap + 3]))] = False
+        if rng.random() < 0.1:
+            on[:] = False
+        f = np.where(on, 2.0, 0.0)
+        log = {
+            "f_contact": np.stack([f, 0 * f, 0 * f, 0 * f, 0 * f, 0 * f], -1),
+            "xd_o_true": np.zeros((steps, 2)),
+            "xd_e": np.zeros((steps, 2)),
+        }
+        want = pm.catching_run_metrics(log, dt, 2.0, threshold, settle_s)["held"]
+        assert bool(held(jnp.asarray(on), tail, min_gap)) == want, on.astype(int)
+        cases[want] += 1
+    assert min(cases.values()) > 30  # both answers tried
+    # the merge length longer than the swing: no gap can split it
+    assert bool(arms.held_in_one_contact(jnp.ones(5, bool), 2, 20))

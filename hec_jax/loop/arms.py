@@ -168,15 +168,39 @@ def fixed_candidates(task: TaskConfig, n: int, n_m: int) -> np.ndarray:
     return np.asarray(out)
 
 
+def held_in_one_contact(on: jax.Array, tail: int, min_gap: int) -> jax.Array:
+    """Whether a swing holds the cube, as :func:`paper_metrics.catching_run_metrics`' ``held``
+    says, in jittable form: some contact, in contact over the last ``tail`` samples, and no run
+    of ``min_gap`` or more samples out of contact after the first contact (shorter gaps are one
+    episode, as :func:`~hec_jax.loop.metrics.contact_events` merges them).
+
+    Args:
+        on: (steps,) bool, |F_int| above the contact threshold.
+        tail: samples of the settle window, >= 1.
+        min_gap: samples of the shortest gap that splits two contacts, >= 1.
+    """
+    steps = on.shape[0]
+    after_first = jnp.arange(steps) > jnp.argmax(on)
+    off = jnp.concatenate([jnp.zeros(1, jnp.int32), jnp.cumsum(~on & after_first)])
+    # out-of-contact samples in each window [i, i + min_gap) after the first contact
+    if min_gap > steps:
+        long_gap = jnp.asarray(False)
+    else:
+        long_gap = jnp.any(off[min_gap:] - off[:-min_gap] >= min_gap)
+    return jnp.any(on) & jnp.all(on[-tail:]) & ~long_gap
+
+
 def make_fixed_scores(loop: Loop):
     """``scores(fixed (C, 2, 3), conditions (P,)) -> dict of (C, P)``: per candidate and pendulum
     one swing with that constant impedance, reduced in the jitted function to the task energy
     integral ``loss`` [m^2/s + ...] (inside the sphere, as the learner's E), the relative speed at
-    the first contact ``rel_speed`` [m/s] (NaN: no contact), ``peak`` [N], and ``held`` (in
-    contact over the last settle window).
+    the first contact ``rel_speed`` [m/s] (NaN: no contact), ``peak`` [N], and ``held``
+    (:func:`held_in_one_contact`, the table's "held"; until 2026-12-04 only "in contact over the
+    last settle window", which a cube that bounced off and came back to rest also met).
     """
     cfg, dt, n = loop.config, loop.ids.timestep, loop.swing_steps
     tail = max(int(round(cfg.settle_s / dt)), 1)
+    min_gap = int(round(pm.CONTACT_MERGE_S / dt))
 
     def one(fixed, c):
         m = loop.model_for(c)
@@ -195,7 +219,7 @@ def make_fixed_scores(loop: Loop):
             loss=jnp.sum(jnp.where(aux["inside"], aux["energy"], 0.0)) * dt,
             rel_speed=jnp.where(jnp.any(on), rel, jnp.nan),
             peak=jnp.max(f),
-            held=jnp.all(on[-tail:]),
+            held=held_in_one_contact(on, tail, min_gap),
         )
 
     return jax.jit(jax.vmap(jax.vmap(one, in_axes=(None, 0)), in_axes=(0, None)))

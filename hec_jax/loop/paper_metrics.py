@@ -16,6 +16,8 @@ from hec_jax.loop.metrics import contact_events, hit_series, mean_std
 # [s] the impact transient: force samples within this time of the first contact are excluded from
 # the overshoot (Fig. 6's impact spike is the impact, not the force control's overshoot).
 IMPACT_TRANSIENT_S = 0.2
+# [s] contacts closer than this are one contact episode (one impact may chatter)
+CONTACT_MERGE_S = 0.02
 # F_cd band for "reached and stays": |F_int| within 20% of F_cd.
 FORCE_BAND = 0.2
 
@@ -47,7 +49,7 @@ def catching_run_metrics(
         the first contact on, merged over gaps under 20 ms).
     """
     f = _norm(log["f_contact"][:, [0, 2]])
-    events = contact_events(f, threshold, min_gap=int(round(0.02 / dt)))
+    events = contact_events(f, threshold, min_gap=int(round(CONTACT_MERGE_S / dt)))
     tail = max(int(round(settle_s / dt)), 1)
     inside = np.asarray(log["inside"]) if "inside" in log else np.zeros(0, bool)
     out = {
