@@ -293,7 +293,8 @@ def test_run_arms_end_to_end_with_bptt_on_a_tiny_protocol():
     assert [r["arm"] for r in rows] == ["plain", "fixed_energy", "bptt", "mu_0"]
     loss = results["arms"]["bptt"]["bptt_loss_per_epoch"]
     assert len(loss) == 1 and len(loss[0]) == 2 and np.all(np.isfinite(loss))
-    assert results["fixed_search"]["candidates"] == 4
+    # a 2-value grid per parameter gets zero (plain impedance) added: 3 x 3 x 1 candidates
+    assert results["fixed_search"]["candidates"] == 9
 
 
 def test_merge_joins_disjoint_arms_as_one_run_and_refuses_mixed_runs(tmp_path, capsys):
