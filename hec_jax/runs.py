@@ -2,8 +2,8 @@
 
 Every run writes ``config.json`` (seed, command line, package versions, git commit and a digest
 of the package's code, device, its own settings), then its metrics, plots (PNG) and videos
-(MP4), into the folder given by ``--out``. Files are written to a temporary name and moved into place, so an interrupted run
-never leaves a half-written file.
+(MP4), into the folder given by ``--out``. Files are written to a temporary name and moved
+into place, so an interrupted run never leaves a half-written file.
 """
 
 from __future__ import annotations
