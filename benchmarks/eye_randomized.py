@@ -42,8 +42,11 @@ so no longer untouched); ``--split fresh`` seeds 2_000_000, ... (first run 2026-
 reported numbers); ``--split dev-low-views`` the development seeds from
 5000 on whose scene is a low-contrast cube seen from under 12 deg, the stratum where the eye
 fails most (picked by ``draw_scene`` alone; the first 40 are docs/eye_randomized.md's LV-40).
-Writes config.json, metrics.json (the target table per method; the warm-up, i.e. compilation,
-time apart; the tracker's time by kind of frame, ``accuracy.time_by_kind``; its acquisition and
+The warm-up (compilation, timed apart) runs the first scene once and the smoother's
+``smooth.warm_up`` for every segment length (since session 67: before, a sequence whose segments
+had a length the first scene lacked compiled the smoother inside its timed run); JAX's
+compilations inside the timed sequences are counted (``metrics["timed_compilations"]``).
+Writes config.json, metrics.json (the target table per method; the tracker's time by kind of frame, ``accuracy.time_by_kind``; its acquisition and
 valid frames per look and elevation band with the acquisition's 95% interval,
 ``accuracy.strata``), sequences.json (per-sequence summaries) and table.md to --out.
 """
@@ -59,12 +62,13 @@ from typing import Literal
 import numpy as np
 
 from hec_jax.cli import command, parse, require
-from hec_jax.geometry import accuracy
+from hec_jax.geometry import accuracy, smooth
 from hec_jax.geometry.baselines import paper_two_frame_track, pnp_face_track
 from hec_jax.geometry.smooth import NO_EXTRAPOLATION
 from hec_jax.geometry.track import RANDOMIZED_BENCHMARK, track_box
 from hec_jax.mjx_scene.randomized import max_swing_speed_m_s
 from hec_jax.progress import ProgressBar
+from hec_jax.report import CompileMeter
 from hec_jax.runs import run_folder, write_json, write_text
 
 # seed ranges; "fresh" (2_000_000, ...) was first run on 2026-12-04, after the held-out range
@@ -286,6 +290,30 @@ def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:
     return res, summary
 
 
+def compilation_summary(summaries: list[dict]) -> dict:
+    """JAX's compilations inside the timed sequences (each summary's ``jax_compilations``, as
+    :class:`~hec_jax.report.CompileMeter` heard them): events, milliseconds and the seeds that
+    had any. After the warm-up there should be none; a compilation there is counted in that
+    sequence's time per frame.
+    """
+    rows = [s["jax_compilations"] for s in summaries]
+    return {
+        "events": int(sum(r["events"] for r in rows)),
+        "ms": float(sum(r["ms"] for r in rows)),
+        "seeds": [s["seed"] for s in summaries if s["jax_compilations"]["events"]],
+    }
+
+
+def compilation_line(c: dict) -> str:
+    """One line on :func:`compilation_summary`'s count, for the table."""
+    if not c["events"]:
+        return "No JAX compilation inside the timed sequences (the warm-up compiled every path)."
+    return (
+        f"JAX compiled {c['events']} times inside the timed sequences ({c['ms'] / 1e3:.1f} s, in"
+        f" the times per frame of seeds {', '.join(map(str, c['seeds']))})."
+    )
+
+
 def time_lines(by_kind: dict) -> list[str]:
     """The Markdown table of where the tracker's time goes (:func:`accuracy.time_by_kind`)."""
     rows = ["| tracker's frames | frames | mean ms | share of the time |", "|---|---|---|---|"]
@@ -400,12 +428,20 @@ def main(argv=None) -> dict:
             bar.update(description="warm-up (compilation) on the first scene")
             t0 = time.perf_counter()
             run_sequence(seeds[0], a)  # not counted
+            # the smoother's fits for every segment length (a first scene need not have them)
+            smooth.warm_up(settings["frames"], 1.0 / a.fps, smoother_config(a))
             warmup_s = time.perf_counter() - t0
+            meter = CompileMeter().install()  # compilations inside the timed sequences
             bar.log(f"warm-up (compilation) {warmup_s:.1f} s")
             t_start = time.perf_counter()
             for seed in seeds:
                 bar.update(description=f"seed {seed}")
+                compiled = meter.events, meter.ms
                 res, summary = run_sequence(seed, a)
+                summary["jax_compilations"] = {
+                    "events": meter.events - compiled[0],
+                    "ms": meter.ms - compiled[1],
+                }
                 for name in METHODS:
                     per[name].append(res[name])
                 summaries.append(summary)
@@ -420,6 +456,7 @@ def main(argv=None) -> dict:
                 )
                 bar.update(1)
             run_s = time.perf_counter() - t_start
+            meter.uninstall()
         metrics = {name: accuracy.target_table(per[name]) for name in METHODS}
         metrics["tracker"]["time_by_kind"] = accuracy.time_by_kind(
             np.concatenate([r["frame_kinds"] for r in per["tracker"]]),
@@ -429,9 +466,11 @@ def main(argv=None) -> dict:
         for name in METHODS:
             metrics[name]["intervals"] = accuracy.bootstrap_intervals(summaries, name, seed=0)
         metrics |= {"split": a.split, "warmup_s": warmup_s, "run_s": run_s}
+        metrics["timed_compilations"] = compilation_summary(summaries)
         write_json(folder / "metrics.json", metrics)
         write_json(folder / "sequences.json", summaries)
-        lines = table_lines(metrics) + [""] + interval_lines(metrics)
+        lines = table_lines(metrics) + [compilation_line(metrics["timed_compilations"])]
+        lines += [""] + interval_lines(metrics)
         lines += [""] + time_lines(metrics["tracker"]["time_by_kind"])
         lines += [""] + strata_lines(summaries)
         top = velocity_top_lines(summaries)

@@ -127,3 +127,35 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor()
+
+
+class CompileMeter:
+    """JAX's tracing, lowering and compiling in this process, summed from ``jax.monitoring``'s
+    duration events (``/jax/core/compile/...``; the backend's compile includes a load from the
+    persistent cache): ``ms`` [ms] and ``events`` since :meth:`install`, ``last_name`` the
+    function of the last event. A timed caller reads both around what it times: a function
+    traced or compiled on first use shows there (the real-time eye's ``jax_compile_ms`` per
+    frame; the randomized eye benchmark's compilations inside its timed sequences).
+    """
+
+    def __init__(self) -> None:
+        self.ms, self.events, self.last_name = 0.0, 0, ""
+
+    def _on_duration(self, event: str, duration_s: float, **kwargs) -> None:
+        if event.startswith("/jax/core/compile/"):
+            self.ms += 1e3 * float(duration_s)
+            self.events += 1
+            self.last_name = str(kwargs.get("fun_name", ""))
+
+    def install(self) -> CompileMeter:
+        """Register with ``jax.monitoring`` (once per meter); returns self."""
+        import jax.monitoring
+
+        jax.monitoring.register_event_duration_secs_listener(self._on_duration)
+        return self
+
+    def uninstall(self) -> None:
+        """Unregister from ``jax.monitoring`` (the counts stay)."""
+        import jax.monitoring
+
+        jax.monitoring.unregister_event_duration_listener(self._on_duration)

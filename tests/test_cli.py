@@ -668,6 +668,22 @@ def test_the_eye_benchmark_s_interval_table_has_a_row_per_method():
     assert lines[2] == f"| {bench.METHODS[0]} | 0.875-0.95 | 0.882-0.942 | 0.034-0.0695 | 18-112 |"
 
 
+def test_the_eye_benchmark_counts_compilations_inside_its_timed_sequences():
+    """``benchmarks/eye_randomized.py``'s count of JAX's compilations inside the timed sequences:
+    summed over the summaries, the seeds with any named, and said in one line either way."""
+    bench = _script("benchmarks/eye_randomized.py")
+    quiet = [{"seed": s, "jax_compilations": {"events": 0, "ms": 0.0}} for s in (7, 8)]
+    c = bench.compilation_summary(quiet)
+    assert c == {"events": 0, "ms": 0.0, "seeds": []}
+    assert bench.compilation_line(c).startswith("No JAX compilation")
+    loud = quiet + [{"seed": 9, "jax_compilations": {"events": 3, "ms": 5336.0}}]
+    c = bench.compilation_summary(loud)
+    assert c == {"events": 3, "ms": 5336.0, "seeds": [9]}
+    assert bench.compilation_line(c) == (
+        "JAX compiled 3 times inside the timed sequences (5.3 s, in the times per frame of seeds 9)."
+    )
+
+
 def test_the_eye_benchmark_s_splits_give_their_seeds():
     """``benchmarks/eye_randomized.py``'s seed ranges: dev and heldout by offset, dev-low-views
     the scenes from 5000 on that ``draw_scene`` draws as a low-contrast cube seen from under 12

@@ -578,3 +578,46 @@ def test_settings_differing_in_numbers_share_one_compilation_and_each_number_act
         np.testing.assert_allclose(
             getattr(traced, f), np.asarray(getattr(baked, f))[:50], atol=1e-9
         )
+
+
+def test_warm_up_compiles_every_fit_a_track_of_its_length_can_call():
+    """After ``warm_up(t_n, dt, cfg)``, smoothing tracks of t_n frames with gaps anywhere (so
+    segments of every length) compiles nothing; without it, the same tracks compile (the meter
+    hears JAX's compilations, so the check can fail). A frame interval no other test uses keeps
+    the compiled programs of other tests out of it."""
+    from hec_jax.report import CompileMeter
+
+    (_, _, _, _), (meas_rot, meas_pos, info) = _pendulum(t_n=45, seed=3)
+    rng = np.random.default_rng(0)
+    tracks = []
+    for _ in range(6):  # valid runs of random lengths between gaps longer than max_gap_s
+        valid = np.zeros(45, bool)
+        a = int(rng.integers(0, 10))
+        while a < 45:
+            b = min(45, a + int(rng.integers(4, 40)))
+            valid[a:b] = True
+            a = b + int(rng.integers(8, 15))
+        tracks.append(valid)
+    assert {int(np.diff(np.flatnonzero(np.diff(np.r_[0, v, 0]))).max()) > 32 for v in tracks} == {
+        True,
+        False,
+    }  # segments padded to 32 frames and to 64
+
+    def compilations(dt, cfg, tracks):
+        meter = CompileMeter().install()
+        try:
+            for valid in tracks:
+                smooth_track(meas_rot, meas_pos, info, valid, dt, cfg)
+        finally:
+            meter.uninstall()
+        return meter.events
+
+    # cold (one short segment, no whole-track fit: one program): compiles
+    assert compilations(1 / 29.37, SmootherConfig(max_gap_s=0.2), tracks[:1]) > 0
+    dt = 1 / 31.13
+    assert smooth_mod.warm_up(45, dt, NO_EXTRAPOLATION) == 2  # padded lengths 32 and 64
+    assert compilations(dt, NO_EXTRAPOLATION, tracks) == 0
+    with pytest.raises(ValueError, match="t_n"):
+        smooth_mod.warm_up(0, dt)
+    with pytest.raises(ValueError, match="dt"):
+        smooth_mod.warm_up(45, 0.0)

@@ -279,7 +279,7 @@ def test_local_search_recovers_a_sudden_turn_from_its_turned_starts(seq, keep, m
     first, rest = tracker._local
     centres = []
     tracker._local = (first, lambda *a, _f=rest: centres.append(a[1].shape[0]) or _f(*a))
-    from hec_jax.realtime.workers import CompileMeter
+    from hec_jax.report import CompileMeter
 
     meter = CompileMeter().install()  # JAX's own trace and compile events, any function
     try:

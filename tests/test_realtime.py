@@ -1003,7 +1003,7 @@ def test_slow_frames_are_the_ones_published_after_a_frame_period():
 def test_compile_meter_counts_a_first_use_and_not_a_cached_call():
     # ground truth: a function jitted here is traced, lowered and compiled on its first call,
     # and its second call with the same shapes hits JAX's in-memory cache: nothing recorded
-    from hec_jax.realtime.workers import CompileMeter
+    from hec_jax.report import CompileMeter
 
     meter = CompileMeter().install()
     try:

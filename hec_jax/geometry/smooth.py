@@ -713,6 +713,41 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
     return out._replace(jump_rejected=rejected)
 
 
+def warm_up(t_n: int, dt: float, cfg: SmootherConfig = SmootherConfig()) -> int:
+    """Compile every jitted fit that :func:`smooth_track` with ``dt`` and ``cfg`` can call on a
+    track of ``t_n`` frames, so that a timed caller does not time a compilation (each takes
+    seconds on first use): the per-segment fit for each padded segment length (a multiple of
+    ``PAD`` up to ``t_n``'s; a segment's length depends on where the gaps, restarts and jumps
+    fall) and, with ``cfg.hinge_whole_track``, the whole-track fit. Runs ``smooth_track`` on
+    synthetic tracks (a slow straight motion, one valid segment of each padded length) and
+    returns how many it ran; their results are discarded.
+
+    Raises:
+        ValueError: ``t_n`` not an integer >= 1 or ``dt`` not positive.
+    """
+    if isinstance(t_n, bool) or not isinstance(t_n, (int, np.integer)) or t_n < 1:
+        raise ValueError(f"t_n must be an integer >= 1, got {t_n!r}")
+    if not dt > 0:
+        raise ValueError(f"dt must be positive, got {dt!r}")
+    t_n = int(t_n)
+    # 1 cm/s along x, 1 m in front of the camera: no jump, no gap but the one made below
+    positions = np.zeros((t_n, 3))
+    positions[:, 0] = 0.01 * dt * np.arange(t_n)
+    positions[:, 2] = 1.0
+    rotations = np.tile(np.eye(3), (t_n, 1, 1))
+    information = np.tile(np.diag([1e4, 1e4, 1e4, 1e6, 1e6, 1e6]), (t_n, 1, 1))
+    runs = 0
+    for padded in range(PAD, -(-t_n // PAD) * PAD + 1, PAD):
+        length = min(padded, t_n)  # one valid segment of this length pads to ``padded``
+        if length < 4:  # too short to smooth: nothing is compiled for it
+            continue
+        valid = np.zeros(t_n, bool)
+        valid[:length] = True
+        smooth_track(rotations, positions, information, valid, dt, cfg, np.zeros(t_n, bool))
+        runs += 1
+    return runs
+
+
 def bound_speed(velocity: np.ndarray, max_speed: float) -> np.ndarray:
     """``velocity`` (..., 3) [m/s] with every vector faster than ``max_speed`` [m/s] scaled down
     to that speed, its direction kept: the projection onto the ball of the speeds an object

@@ -24,6 +24,7 @@ import traceback
 import numpy as np
 
 from hec_jax.realtime.clock import set_scheduling
+from hec_jax.report import CompileMeter
 
 ESTIMATE_FIELDS = {
     "frame": (),
@@ -47,37 +48,6 @@ def _stack(rows: list[dict]) -> dict[str, np.ndarray]:
     if not rows:
         return {}
     return {k: np.asarray([r[k] for r in rows]) for k in rows[0]}
-
-
-class CompileMeter:
-    """JAX's tracing, lowering and compiling in this process, summed from ``jax.monitoring``'s
-    duration events (``/jax/core/compile/...``; the backend's compile includes a load from the
-    persistent cache): ``ms`` [ms] and ``events`` since :meth:`install`. A real-time worker
-    reads both around each frame: a function traced or compiled on first use in mid-run shows
-    as that frame's ``jax_compile_ms`` (nothing else in a frame traces once warmed up).
-    """
-
-    def __init__(self) -> None:
-        self.ms, self.events, self.last_name = 0.0, 0, ""
-
-    def _on_duration(self, event: str, duration_s: float, **kwargs) -> None:
-        if event.startswith("/jax/core/compile/"):
-            self.ms += 1e3 * float(duration_s)
-            self.events += 1
-            self.last_name = str(kwargs.get("fun_name", ""))
-
-    def install(self) -> CompileMeter:
-        """Register with ``jax.monitoring`` (once per meter); returns self."""
-        import jax.monitoring
-
-        jax.monitoring.register_event_duration_secs_listener(self._on_duration)
-        return self
-
-    def uninstall(self) -> None:
-        """Unregister from ``jax.monitoring`` (the counts stay)."""
-        import jax.monitoring
-
-        jax.monitoring.unregister_event_duration_listener(self._on_duration)
 
 
 def _steal_delta(before: list[float], after: list[float]) -> np.ndarray:
