@@ -153,6 +153,9 @@ def parse(default: T, argv: Sequence[str] | None = None, description: str | None
         SystemExit: code 2 after one line on stderr for any bad argument; code 0 after
             ``--help``.
     """
+    from hec_jax.runs import note_parsed_args
+
+    note_parsed_args(sys.argv[1:] if argv is None else list(argv))  # config.json's parsed_args
     with _one_line_errors(None):
         config = tyro.cli(
             type(default),
@@ -255,11 +258,15 @@ def command(main: F) -> F:
     def wrapper(*args, **kwargs):
         if getattr(_state, "active", False):
             return main(*args, **kwargs)
+        from hec_jax.runs import note_parsed_args
+
         _state.active = True
+        note_parsed_args(None)  # no earlier script's arguments in this one's run folders
         try:
             with _clean_signals():
                 return main(*args, **kwargs)
         finally:
             _state.active = False
+            note_parsed_args(None)
 
     return wrapper  # type: ignore[return-value]

@@ -114,17 +114,45 @@ def cpu_model() -> str | None:
     return platform.processor() or None
 
 
+def cpu_id() -> str | None:
+    """The processor's family, model and stepping numbers from Linux's ``/proc/cpuinfo`` (e.g.
+    ``"family 25 model 17 stepping 1"``), or None where it does not say. The model name can be
+    the same for different processors ("AMD EPYC" for Zen 3 and Zen 4 guests), and XLA's CPU
+    code, with it the eye's tracks and timings, differs between them (docs/testing.md).
+    """
+    fields = {}
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if not line.strip():
+                    break  # the first processor's block only
+                key, _, value = line.partition(":")
+                fields[key.strip().lower()] = value.strip()
+    except OSError:
+        return None
+    parts = [(n, fields.get(k)) for n, k in (("family", "cpu family"), ("model", "model"))]
+    parts.append(("stepping", fields.get("stepping")))
+    if any(v is None for _, v in parts):
+        return None
+    return " ".join(f"{n} {v}" for n, v in parts)
+
+
 def device_description() -> dict[str, Any]:
-    """The machine and JAX backend the run used."""
+    """The machine and JAX backend the run used, and the environment's ``XLA_FLAGS`` (None where
+    unset): on a GPU they decide whether two runs of the same code give the same numbers
+    (``--xla_gpu_deterministic_ops``, docs/experiments.md).
+    """
     import jax
 
     return {
         "platform": platform.platform(),
         "python": sys.version.split()[0],
         "cpu_model": cpu_model(),
+        "cpu_id": cpu_id(),
         "cpu_count": os.cpu_count(),
         "jax_backend": jax.default_backend(),
         "jax_devices": [str(d) for d in jax.devices()],
+        "xla_flags": os.environ.get("XLA_FLAGS"),
     }
 
 
@@ -345,14 +373,39 @@ def write_video(path: str | os.PathLike, frames, fps: float) -> str:
     return codec
 
 
+# The arguments the last script's parser read in this thread (``hec_jax.cli.parse``): a script's
+# ``main(argv)`` called from Python parses ``argv``, not the process's ``sys.argv``.
+_parsed = threading.local()
+
+
+def note_parsed_args(args: list[str] | None) -> None:
+    """Remember ``args``, the arguments a script's parser just read (called by
+    :func:`hec_jax.cli.parse`), for the run folders this thread starts next; None forgets them
+    (:func:`hec_jax.cli.command` does, as a script's ``main`` starts and ends).
+    """
+    _parsed.args = None if args is None else [str(a) for a in args]
+
+
 def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Path:
     """Create the run folder and write its ``config.json``; returns the folder.
 
-    ``config.json`` holds ``seed``, ``command``, ``argv``, ``versions``, ``code`` (git commit and
-    the package's digest, :func:`code_version`), ``device`` and, at the top level beside them, the run's own
-    ``settings`` (so e.g. ``m_e`` is ``config["m_e"]``).
+    ``config.json`` holds ``seed``, ``command`` and ``argv`` (the process's), ``parsed_args``
+    (the arguments the script's parser read, :func:`note_parsed_args`; they differ from
+    ``argv[1:]`` where a script's ``main(argv)`` was called from Python; None where no parser
+    ran), ``versions``, ``code`` (git commit and the package's digest, :func:`code_version`),
+    ``device`` and, at the top level beside them, the run's own ``settings`` (so e.g. ``m_e``
+    is ``config["m_e"]``).
     """
-    reserved = {"seed", "command", "argv", "versions", "code", "device", "started_utc"}
+    reserved = {
+        "seed",
+        "command",
+        "argv",
+        "parsed_args",
+        "versions",
+        "code",
+        "device",
+        "started_utc",
+    }
     reserved &= set(settings)
     if reserved:
         raise ValueError(f"settings may not use the reserved keys {sorted(reserved)}")
@@ -365,6 +418,7 @@ def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Pa
             "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "command": " ".join([sys.executable, *sys.argv]),
             "argv": list(sys.argv),
+            "parsed_args": getattr(_parsed, "args", None),
             "versions": package_versions(),
             "code": code_version(),
             "device": device_description(),

@@ -448,7 +448,12 @@ def test_eye_experiment_without_a_usable_frame(tmp_path, monkeypatch):
     assert metrics["valid_rate"] == 0.0 and "no frame" in metrics["reason"]
     written = _strict((out / "metrics.json").read_text())
     assert written["frames"] == 3 and written["position_rms_mm"] is None
-    assert json.loads((out / "config.json").read_text())["status"] == "complete"
+    config = json.loads((out / "config.json").read_text())
+    assert config["status"] == "complete"
+    # main(argv) called from Python: the run records the arguments its parser read, beside the
+    # process's own command line (pytest's here)
+    assert config["parsed_args"] == ["--out", str(out), "--seconds", "0.1"]
+    assert config["argv"] == sys.argv and config["parsed_args"] != sys.argv[1:]
     # the nulls are exactly the error fields track_errors gives with a valid frame (a perfect
     # track made of the truth)
     from types import SimpleNamespace

@@ -3,6 +3,7 @@ the one video writer (H.264 through imageio-ffmpeg, OpenCV mp4v without)."""
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -145,6 +146,36 @@ def test_config_records_the_code_it_ran(tmp_path, monkeypatch):
         runs.start_run(tmp_path / "other", 0, {"code": 1})
 
 
+def test_config_records_the_arguments_a_script_parsed_and_no_earlier_script_s(tmp_path):
+    """A script's ``main(argv)`` called from Python: its run folder records ``argv`` (what its
+    parser read) as ``parsed_args`` beside the process's ``sys.argv``; once the script has
+    returned, a run folder started outside any script records None, not its arguments."""
+    from dataclasses import dataclass
+
+    from hec_jax import cli
+
+    @dataclass(frozen=True)
+    class Tiny:
+        out: str = "unused"
+        overwrite: bool = False
+        steps: int = 1
+
+    @cli.command
+    def main(argv=None):
+        a = cli.parse(Tiny(), argv)
+        with runs.run_folder(a.out, 0, {"steps": a.steps}) as folder:
+            return json.loads((folder / "config.json").read_text())
+
+    args = ["--out", str(tmp_path / "run"), "--steps", "3"]
+    config = main(args)
+    assert config["parsed_args"] == args and config["steps"] == 3
+    assert config["argv"] == sys.argv
+    with runs.run_folder(tmp_path / "later", 0, {}) as folder:
+        assert json.loads((folder / "config.json").read_text())["parsed_args"] is None
+    with pytest.raises(ValueError, match="reserved keys"):
+        runs.start_run(tmp_path / "other", 0, {"parsed_args": []})
+
+
 def test_package_digest_names_the_code_not_where_it_lies(tmp_path):
     """:func:`runs.package_digest` against hashlib on a made-up package: the same files in
     another folder give the same digest; a changed byte, a renamed file, bytes moved from one
@@ -268,6 +299,26 @@ def test_device_records_the_processor(tmp_path):
     if model is not None:
         assert device["cpu_model"] == model
     assert device["cpu_count"] >= 1
+    # family, model and stepping: what tells apart two processors of one model name
+    try:
+        text = runs.Path("/proc/cpuinfo").read_text()
+    except OSError:
+        text = ""
+    numbers = re.findall(r"^(cpu family|model|stepping)\s*:\s*(\S+)", text, re.M)[:3]
+    if len(numbers) == 3:
+        want = dict(numbers)
+        assert device["cpu_id"] == (
+            f"family {want['cpu family']} model {want['model']} stepping {want['stepping']}"
+        )
+
+
+def test_device_records_the_xla_flags(tmp_path, monkeypatch):
+    # XLA_FLAGS decide on a GPU whether two runs give the same numbers: recorded, None unset
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_deterministic_ops=true")
+    assert runs.device_description()["xla_flags"] == "--xla_gpu_deterministic_ops=true"
+    monkeypatch.delenv("XLA_FLAGS")
+    with runs.run_folder(tmp_path / "run", 0, _settings()) as folder:
+        assert json.loads((folder / "config.json").read_text())["device"]["xla_flags"] is None
 
 
 def test_the_umask_is_read_as_set():
