@@ -260,8 +260,8 @@ def test_local_search_runs_its_turned_starts_only_when_the_predicted_rotation_fa
     ],
 )
 def test_local_search_recovers_a_sudden_turn_from_its_turned_starts(seq, keep, merge):
-    # the last rotations turned by 25 deg (as by an impact): the tracked fit and the predicted
-    # rotation fail, a turned start finds the cube; with ``local_keep`` 4 only the 4 best
+    # the last rotations turned by 25 deg (as by an impact): the tracked fit fails and, with the
+    # predicted rotation's stage made to fail (below), a turned start finds the cube; with ``local_keep`` 4 only the 4 best
     # turned starts after the coarse gates go through the fine ones (a fraction of the time);
     # with ``local_merge`` the turns start at the predicted centre alone where the last fitted
     # one is that close (mid-swing the two are ~4 cm apart: 0.1 box sizes keeps both, 10
@@ -278,7 +278,17 @@ def test_local_search_recovers_a_sudden_turn_from_its_turned_starts(seq, keep, m
     tracker._rot_prev, tracker._rot_prev2 = turn @ tracker._rot_prev, turn @ tracker._rot_prev2
     first, rest = tracker._local
     centres = []
-    tracker._local = (first, lambda *a, _f=rest: centres.append(a[1].shape[0]) or _f(*a))
+
+    def first_stage_failing(*a, _f=first):
+        # Whether the predicted rotation's own stage fails 25 deg off depends on the CPU: it
+        # did on Zen 4, and on Zen 3 it recovered the turn itself (docs/testing.md, session 66).
+        # This test is about the turned starts, so that stage is run and then made to fail.
+        return _f(*a)._replace(valid=False)
+
+    tracker._local = (
+        first_stage_failing,
+        lambda *a, _f=rest: centres.append(a[1].shape[0]) or _f(*a),
+    )
     from hec_jax.report import CompileMeter
 
     meter = CompileMeter().install()  # JAX's own trace and compile events, any function
