@@ -256,17 +256,16 @@ def command(main: F) -> F:
 
     @functools.wraps(main)
     def wrapper(*args, **kwargs):
-        if getattr(_state, "active", False):
-            return main(*args, **kwargs)
-        from hec_jax.runs import note_parsed_args
+        from hec_jax.runs import script_arguments  # the arguments its run folders record
 
+        if getattr(_state, "active", False):
+            with script_arguments():
+                return main(*args, **kwargs)
         _state.active = True
-        note_parsed_args(None)  # no earlier script's arguments in this one's run folders
         try:
-            with _clean_signals():
+            with _clean_signals(), script_arguments():
                 return main(*args, **kwargs)
         finally:
             _state.active = False
-            note_parsed_args(None)
 
     return wrapper  # type: ignore[return-value]

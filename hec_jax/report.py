@@ -132,19 +132,22 @@ def cpu_model() -> str:
 class CompileMeter:
     """JAX's tracing, lowering and compiling in this process, summed from ``jax.monitoring``'s
     duration events (``/jax/core/compile/...``; the backend's compile includes a load from the
-    persistent cache): ``ms`` [ms] and ``events`` since :meth:`install`, ``last_name`` the
-    function of the last event. A timed caller reads both around what it times: a function
+    persistent cache) since :meth:`install`: ``ms`` [ms] of all of them, ``events`` (a program
+    compiled on first use gives three: its trace, its lowering and the backend's compile),
+    ``compilations`` (the backend's compiles alone: programs compiled) and ``last_name``, the
+    function of the last event. A timed caller reads them around what it times: a function
     traced or compiled on first use shows there (the real-time eye's ``jax_compile_ms`` per
-    frame; the randomized eye benchmark's compilations inside its timed sequences).
+    frame; the randomized eye benchmark's compilations while its timed sequences run).
     """
 
     def __init__(self) -> None:
-        self.ms, self.events, self.last_name = 0.0, 0, ""
+        self.ms, self.events, self.compilations, self.last_name = 0.0, 0, 0, ""
 
     def _on_duration(self, event: str, duration_s: float, **kwargs) -> None:
         if event.startswith("/jax/core/compile/"):
             self.ms += 1e3 * float(duration_s)
             self.events += 1
+            self.compilations += event == "/jax/core/compile/backend_compile_duration"
             self.last_name = str(kwargs.get("fun_name", ""))
 
     def install(self) -> CompileMeter:

@@ -373,26 +373,44 @@ def write_video(path: str | os.PathLike, frames, fps: float) -> str:
     return codec
 
 
-# The arguments the last script's parser read in this thread (``hec_jax.cli.parse``): a script's
-# ``main(argv)`` called from Python parses ``argv``, not the process's ``sys.argv``.
+# The arguments the running script's parser read in this thread (``hec_jax.cli.parse``): a
+# script's ``main(argv)`` called from Python parses ``argv``, not the process's ``sys.argv``.
+# ``.args`` the arguments, ``.depth`` how many ``script_arguments`` scopes are open.
 _parsed = threading.local()
 
 
-def note_parsed_args(args: list[str] | None) -> None:
+def note_parsed_args(args: list[str]) -> None:
     """Remember ``args``, the arguments a script's parser just read (called by
-    :func:`hec_jax.cli.parse`), for the run folders this thread starts next; None forgets them
-    (:func:`hec_jax.cli.command` does, as a script's ``main`` starts and ends).
+    :func:`hec_jax.cli.parse`), for the run folders the script starts (inside
+    :func:`script_arguments`; outside one they are not recorded).
     """
-    _parsed.args = None if args is None else [str(a) for a in args]
+    _parsed.args = [str(a) for a in args]
+
+
+@contextlib.contextmanager
+def script_arguments():
+    """The scope of one script's ``main`` (:func:`hec_jax.cli.command`): the arguments its
+    parser notes are what its run folders record as ``parsed_args``; a script's ``main`` called
+    inside another's notes its own for its folders, and the outer script's are back when it
+    returns. Outside every scope a run folder records None.
+    """
+    saved = getattr(_parsed, "args", None), getattr(_parsed, "depth", 0)
+    if saved[1] == 0:  # the outermost script: nothing parsed outside it is its own
+        _parsed.args = None
+    _parsed.depth = saved[1] + 1
+    try:
+        yield
+    finally:
+        _parsed.args, _parsed.depth = saved
 
 
 def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Path:
     """Create the run folder and write its ``config.json``; returns the folder.
 
     ``config.json`` holds ``seed``, ``command`` and ``argv`` (the process's), ``parsed_args``
-    (the arguments the script's parser read, :func:`note_parsed_args`; they differ from
-    ``argv[1:]`` where a script's ``main(argv)`` was called from Python; None where no parser
-    ran), ``versions``, ``code`` (git commit and the package's digest, :func:`code_version`),
+    (the arguments the running script's parser read, :func:`note_parsed_args`; they differ from
+    ``argv[1:]`` where a script's ``main(argv)`` was called from Python; None outside a script's
+    ``main`` (:func:`script_arguments`) or before its parser ran, and in another thread), ``versions``, ``code`` (git commit and the package's digest, :func:`code_version`),
     ``device`` and, at the top level beside them, the run's own ``settings`` (so e.g. ``m_e``
     is ``config["m_e"]``).
     """
@@ -418,7 +436,7 @@ def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Pa
             "started_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "command": " ".join([sys.executable, *sys.argv]),
             "argv": list(sys.argv),
-            "parsed_args": getattr(_parsed, "args", None),
+            "parsed_args": getattr(_parsed, "args", None) if getattr(_parsed, "depth", 0) else None,
             "versions": package_versions(),
             "code": code_version(),
             "device": device_description(),

@@ -17,9 +17,10 @@ while (($#)) && [[ $1 != -- ]]; do groups+=("$1"); shift; done
 mkdir -p "$out"
 export XLA_PYTHON_CLIENT_PREALLOCATE=false PYTHONUNBUFFERED=1
 # Reproducible GPU numerics (unless XLA_FLAGS is set): with XLA's defaults two runs of the same
-# code on one H200 gave round-off-level differences (1e-10) in catching, but learned networks
+# code on one H200 gave round-off-level differences (7e-11) in catching, but learned networks
 # that hit differently in hitting (every held-out run's largest pulse moved, by up to 101 N);
-# with deterministic ops three runs were identical (docs/experiments.md, session 67).
+# with deterministic ops three runs were identical (docs/experiments.md, session 67). An
+# XLA_FLAGS given in the environment replaces this (add the flag to it to keep it).
 export XLA_FLAGS=${XLA_FLAGS:---xla_gpu_deterministic_ops=true}
 py=${PYTHON:-python3}
 i=0

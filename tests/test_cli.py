@@ -673,20 +673,42 @@ def test_the_eye_benchmark_s_interval_table_has_a_row_per_method():
     assert lines[2] == f"| {bench.METHODS[0]} | 0.875-0.95 | 0.882-0.942 | 0.034-0.0695 | 18-112 |"
 
 
-def test_the_eye_benchmark_counts_compilations_inside_its_timed_sequences():
-    """``benchmarks/eye_randomized.py``'s count of JAX's compilations inside the timed sequences:
-    summed over the summaries, the seeds with any named, and said in one line either way."""
+def test_the_eye_benchmark_counts_compilations_while_its_timed_sequences_run():
+    """``benchmarks/eye_randomized.py``'s count of JAX's compilations while the timed sequences
+    run: programs, events and milliseconds summed over the summaries, the seeds with any named,
+    and said in one line either way."""
     bench = _script("benchmarks/eye_randomized.py")
-    quiet = [{"seed": s, "jax_compilations": {"events": 0, "ms": 0.0}} for s in (7, 8)]
+    none = {"programs": 0, "events": 0, "ms": 0.0}
+    quiet = [{"seed": s, "jax_compilations": none} for s in (7, 8)]
     c = bench.compilation_summary(quiet)
-    assert c == {"events": 0, "ms": 0.0, "seeds": []}
+    assert c == {"programs": 0, "events": 0, "ms": 0.0, "seeds": []}
     assert bench.compilation_line(c).startswith("No JAX compilation")
-    loud = quiet + [{"seed": 9, "jax_compilations": {"events": 3, "ms": 5336.0}}]
+    one = {"programs": 1, "events": 3, "ms": 5336.0}  # one program: trace, lowering, compile
+    loud = quiet + [{"seed": 9, "jax_compilations": one}]
     c = bench.compilation_summary(loud)
-    assert c == {"events": 3, "ms": 5336.0, "seeds": [9]}
-    assert bench.compilation_line(c) == (
-        "JAX compiled 3 times inside the timed sequences (5.3 s, in the times per frame of seeds 9)."
+    assert c == {"programs": 1, "events": 3, "ms": 5336.0, "seeds": [9]}
+    assert bench.compilation_line(c).startswith(
+        "JAX compiled 1 programs while the timed sequences ran (5.3 s of tracing, lowering and"
+        " compiling; seeds 9:"
     )
+
+
+@pytest.mark.slow  # a minute: the tracker's and the smoother's compilation, two scenes
+def test_the_eye_benchmark_compiles_nothing_while_its_timed_sequences_run(tmp_path):
+    """``benchmarks/eye_randomized.py`` end to end on development scenes 19 and 20: the warm-up
+    (the first scene, then ``smooth.warm_up``) leaves nothing to compile while the timed
+    sequences run, and each sequence's count is in ``sequences.json``. Scene 20 has a segment
+    length that scene 19 lacks: without ``smooth.warm_up`` it compiles the smoother (checked
+    when written)."""
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    bench = _script("benchmarks/eye_randomized.py")
+    out = tmp_path / "bench"
+    metrics = bench.main(["--split", "dev", "--first", "19", "--sequences", "2", "--out", str(out)])
+    assert metrics["timed_compilations"] == {"programs": 0, "events": 0, "ms": 0.0, "seeds": []}
+    rows = json.loads((out / "sequences.json").read_text())
+    assert [r["seed"] for r in rows] == [19, 20]
+    assert all(r["jax_compilations"]["events"] == 0 for r in rows)
+    assert "No JAX compilation" in (out / "table.md").read_text()
 
 
 def test_the_eye_benchmark_s_splits_give_their_seeds():

@@ -603,20 +603,20 @@ def test_warm_up_compiles_every_fit_a_track_of_its_length_can_call():
         False,
     }  # segments padded to 32 frames and to 64
 
-    def compilations(dt, cfg, tracks):
+    def compilations(dt):
         meter = CompileMeter().install()
         try:
             for valid in tracks:
-                smooth_track(meas_rot, meas_pos, info, valid, dt, cfg)
+                smooth_track(meas_rot, meas_pos, info, valid, dt, NO_EXTRAPOLATION)
         finally:
             meter.uninstall()
-        return meter.events
+        return meter.compilations
 
-    # cold (one short segment, no whole-track fit: one program): compiles
-    assert compilations(1 / 29.37, SmootherConfig(max_gap_s=0.2), tracks[:1]) > 0
+    # cold: the segment fits padded to 32 and to 64 frames and the whole-track fit
+    assert compilations(1 / 29.37) == 3
     dt = 1 / 31.13
     assert smooth_mod.warm_up(45, dt, NO_EXTRAPOLATION) == 2  # padded lengths 32 and 64
-    assert compilations(dt, NO_EXTRAPOLATION, tracks) == 0
+    assert compilations(dt) == 0
     with pytest.raises(ValueError, match="t_n"):
         smooth_mod.warm_up(0, dt)
     with pytest.raises(ValueError, match="dt"):

@@ -1005,16 +1005,18 @@ def test_compile_meter_counts_a_first_use_and_not_a_cached_call():
     # and its second call with the same shapes hits JAX's in-memory cache: nothing recorded
     from hec_jax.report import CompileMeter
 
+    x3, x4 = jnp.ones(3), jnp.ones(4)  # made (and their programs compiled) before the meter
     meter = CompileMeter().install()
     try:
         fn = jax.jit(lambda x: jnp.sin(x) * 2.5)  # a new function object: never traced
-        fn(jnp.ones(3)).block_until_ready()
+        fn(x3).block_until_ready()
         first_ms, first_events = meter.ms, meter.events
-        assert first_events >= 3 and first_ms > 0  # trace, lowering, backend compile
-        fn(jnp.ones(3)).block_until_ready()
-        assert (meter.ms, meter.events) == (first_ms, first_events)
-        fn(jnp.ones(4)).block_until_ready()  # a new shape: traced and compiled again
-        assert meter.events >= first_events + 3
+        # one program: its trace, its lowering and the backend's compile
+        assert (first_events, meter.compilations) == (3, 1) and first_ms > 0
+        fn(x3).block_until_ready()
+        assert (meter.ms, meter.events, meter.compilations) == (first_ms, 3, 1)
+        fn(x4).block_until_ready()  # a new shape: traced and compiled again
+        assert (meter.events, meter.compilations) == (6, 2)
     finally:
         meter.uninstall()
 

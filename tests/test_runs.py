@@ -146,10 +146,11 @@ def test_config_records_the_code_it_ran(tmp_path, monkeypatch):
         runs.start_run(tmp_path / "other", 0, {"code": 1})
 
 
-def test_config_records_the_arguments_a_script_parsed_and_no_earlier_script_s(tmp_path):
-    """A script's ``main(argv)`` called from Python: its run folder records ``argv`` (what its
-    parser read) as ``parsed_args`` beside the process's ``sys.argv``; once the script has
-    returned, a run folder started outside any script records None, not its arguments."""
+def test_config_records_the_arguments_a_script_parsed_and_no_other_script_s(tmp_path):
+    """A script's ``main(argv)`` called from Python: its run folders record ``argv`` (what its
+    parser read) as ``parsed_args`` beside the process's ``sys.argv``. A script called inside
+    another records its own, and the outer one's later folders the outer's. Outside every
+    script's ``main`` a folder records None, also after a parse there."""
     from dataclasses import dataclass
 
     from hec_jax import cli
@@ -160,18 +161,32 @@ def test_config_records_the_arguments_a_script_parsed_and_no_earlier_script_s(tm
         overwrite: bool = False
         steps: int = 1
 
+    def config(folder):
+        return json.loads((folder / "config.json").read_text())
+
     @cli.command
-    def main(argv=None):
+    def inner(argv=None):
         a = cli.parse(Tiny(), argv)
         with runs.run_folder(a.out, 0, {"steps": a.steps}) as folder:
-            return json.loads((folder / "config.json").read_text())
+            return config(folder)
+
+    @cli.command
+    def outer(argv=None):
+        a = cli.parse(Tiny(), argv)
+        got = [inner(["--out", str(tmp_path / "inner"), "--steps", "7"])]
+        with runs.run_folder(a.out, 0, {"steps": a.steps}) as folder:
+            return got + [config(folder)]
 
     args = ["--out", str(tmp_path / "run"), "--steps", "3"]
-    config = main(args)
-    assert config["parsed_args"] == args and config["steps"] == 3
-    assert config["argv"] == sys.argv
+    first = inner(args)
+    assert first["parsed_args"] == args and first["steps"] == 3
+    assert first["argv"] == sys.argv
+    nested, after = outer(["--out", str(tmp_path / "outer"), "--steps", "5"])
+    assert nested["parsed_args"] == ["--out", str(tmp_path / "inner"), "--steps", "7"]
+    assert after["parsed_args"] == ["--out", str(tmp_path / "outer"), "--steps", "5"]
+    cli.parse(Tiny(), ["--steps", "9"])  # a parse outside any script's main
     with runs.run_folder(tmp_path / "later", 0, {}) as folder:
-        assert json.loads((folder / "config.json").read_text())["parsed_args"] is None
+        assert config(folder)["parsed_args"] is None
     with pytest.raises(ValueError, match="reserved keys"):
         runs.start_run(tmp_path / "other", 0, {"parsed_args": []})
 

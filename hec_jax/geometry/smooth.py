@@ -718,9 +718,10 @@ def warm_up(t_n: int, dt: float, cfg: SmootherConfig = SmootherConfig()) -> int:
     track of ``t_n`` frames, so that a timed caller does not time a compilation (each takes
     seconds on first use): the per-segment fit for each padded segment length (a multiple of
     ``PAD`` up to ``t_n``'s; a segment's length depends on where the gaps, restarts and jumps
-    fall) and, with ``cfg.hinge_whole_track``, the whole-track fit. Runs ``smooth_track`` on
-    synthetic tracks (a slow straight motion, one valid segment of each padded length) and
-    returns how many it ran; their results are discarded.
+    fall) and, with ``cfg.hinge`` and ``cfg.hinge_whole_track``, the whole-track fit. Runs
+    ``smooth_track`` on synthetic tracks (a slow straight motion, one valid segment of each
+    padded length) and returns how many tracks it ran (not how many programs compiled: a
+    program compiled earlier is not compiled again); their results are discarded.
 
     Raises:
         ValueError: ``t_n`` not an integer >= 1 or ``dt`` not positive.
