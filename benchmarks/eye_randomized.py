@@ -48,7 +48,8 @@ had a length the first scene lacked compiled the smoother inside its timed run);
 compilations while the timed sequences run are counted (``metrics["timed_compilations"]``).
 Writes config.json, metrics.json (the target table per method; the tracker's time by kind of
 frame, ``accuracy.time_by_kind``; its acquisition and valid frames per look and elevation
-band with the acquisition's 95% interval, ``accuracy.strata``), sequences.json (per-sequence summaries) and table.md to --out.
+band with the acquisition's 95% interval, ``accuracy.strata``), sequences.json (per-sequence
+summaries) and table.md to --out.
 """
 
 from __future__ import annotations
