@@ -410,7 +410,8 @@ def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Pa
     ``config.json`` holds ``seed``, ``command`` and ``argv`` (the process's), ``parsed_args``
     (the arguments the running script's parser read, :func:`note_parsed_args`; they differ from
     ``argv[1:]`` where a script's ``main(argv)`` was called from Python; None outside a script's
-    ``main`` (:func:`script_arguments`) or before its parser ran, and in another thread), ``versions``, ``code`` (git commit and the package's digest, :func:`code_version`),
+    ``main`` (:func:`script_arguments`) or before its parser ran, and in another thread),
+    ``versions``, ``code`` (git commit and the package's digest, :func:`code_version`),
     ``device`` and, at the top level beside them, the run's own ``settings`` (so e.g. ``m_e``
     is ``config["m_e"]``).
     """
