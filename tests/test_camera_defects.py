@@ -148,14 +148,41 @@ def test_intrinsics_error_is_the_eye_s_not_the_renderer_s(monkeypatch):
 
 def test_jitter_stays_within_its_bound_and_is_seeded():
     d = tl.CameraDefects(jitter_s=0.003)
-    draws = [he.stamp_jitter(d, rng) for rng in [he.defects_rng(d, 0, 0)] for _ in range(2000)]
+    draws = [
+        he.stamp_jitter(d, rng) for rng in [he.defects_rng(d, 0, 0, "jitter")] for _ in range(2000)
+    ]
     draws = np.array(draws)
     assert np.all(np.abs(draws) <= 0.003) and np.abs(draws).max() > 0.0029
     assert abs(draws.mean()) < 2e-4
-    again = he.defects_rng(d, 0, 0)
+    again = he.defects_rng(d, 0, 0, "jitter")
     np.testing.assert_array_equal(draws[:10], [he.stamp_jitter(d, again) for _ in range(10)])
-    other = he.defects_rng(d, 0, "final")
+    other = he.defects_rng(d, 0, "final", "jitter")
     assert he.stamp_jitter(d, other) != draws[0]
+
+
+def test_noise_and_jitter_draw_from_their_own_streams(camera):
+    """Turning the stamp jitter on leaves the noisy frames as they were (the loop draws each
+    frame's jitter between its frames); the noise stream is the single generator's of before
+    (runs without jitter unchanged); the two streams differ."""
+    cam, q = camera
+    noisy = tl.CameraDefects(noise_grey=3.0)
+    both = dataclasses.replace(noisy, jitter_s=0.003)
+
+    def frames(d):
+        noise, jitter = he.defects_rng(d, 1, 2), he.defects_rng(d, 1, 2, "jitter")
+        out = []
+        for _ in range(3):
+            out.append(he.camera_frame(cam, q[None], d, noise))
+            he.stamp_jitter(d, jitter)
+        return out
+
+    for a, b in zip(frames(noisy), frames(both), strict=True):
+        np.testing.assert_array_equal(a, b)
+    before = np.random.default_rng([noisy.defect_seed, 1, 2])  # the generator before streams
+    np.testing.assert_array_equal(he.defects_rng(noisy, 1, 2).random(5), before.random(5))
+    assert he.defects_rng(both, 1, 2, "jitter").random() != he.defects_rng(both, 1, 2).random()
+    with pytest.raises(ValueError, match="stream"):
+        he.defects_rng(noisy, 1, 2, "blur")
 
 
 def test_defect_flags_reach_the_config():

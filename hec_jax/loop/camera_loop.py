@@ -110,13 +110,28 @@ def eye_intrinsics(k: np.ndarray, defects: CameraDefects) -> np.ndarray:
     return out
 
 
-def defects_rng(defects: CameraDefects, seed_index: int, swing: int | str) -> np.random.Generator:
+DEFECT_STREAMS = ("noise", "jitter")
+
+
+def defects_rng(
+    defects: CameraDefects, seed_index: int, swing: int | str, stream: str = "noise"
+) -> np.random.Generator:
     """The generator of one seed's frames in one swing (``"final"``: the continuous run;
     ``"background"``: the calibration shot of the empty scene): seeded by
-    ``defects.defect_seed``, the seed's index in the batch and the swing.
+    ``defects.defect_seed``, the seed's index in the batch and the swing. ``stream``: the sensor
+    noise's (``"noise"``) or the time stamps' (``"jitter"``) own generator, so that turning
+    one defect on or off leaves the other's draws as they were (since session 67: before, one
+    generator served both, and a jitter ablation also changed the noise). The noise stream's
+    seed is the one the single generator had, so runs without jitter give the same frames.
+
+    Raises:
+        ValueError: ``stream`` not one of ``DEFECT_STREAMS``.
     """
+    if stream not in DEFECT_STREAMS:
+        raise ValueError(f"stream must be one of {DEFECT_STREAMS}, got {stream!r}")
     swing_id = {"final": 1_000_000, "background": 1_000_001}.get(swing, swing)
-    return np.random.default_rng([defects.defect_seed, seed_index, swing_id])
+    key = [defects.defect_seed, seed_index, swing_id]
+    return np.random.default_rng(key if stream == "noise" else key + [1])
 
 
 def stamp_jitter(defects: CameraDefects, rng: np.random.Generator) -> float:
@@ -489,7 +504,8 @@ def run_camera(
         f_prev = jnp.zeros((n_seeds, 3), dtype)
         for tr in trackers:
             tr.reset()
-        rngs = [defects_rng(defects, i, index) for i in range(n_seeds)]
+        rngs = [defects_rng(defects, i, index) for i in range(n_seeds)]  # the sensor noise's
+        jitter_rngs = [defects_rng(defects, i, index, "jitter") for i in range(n_seeds)]
         queues: list[list[_Estimate]] = [[] for _ in range(n_seeds)]
         misses = np.zeros(n_seeds, int)  # frames since the last valid fit
         qpos_hist = np.zeros((n_seeds, steps, m_c.nq))
@@ -537,7 +553,7 @@ def run_camera(
                 rec["render_ms"][i, j] = 1e3 * (t1 - t0)
                 rec["eye_ms"][i, j] = 1e3 * (time.perf_counter() - t1)
                 rec["t_stamp"][i, j] = s_img * dt
-                jitter = stamp_jitter(defects, rngs[i])
+                jitter = stamp_jitter(defects, jitter_rngs[i])
                 rec["stamp_error_s"][i, j] = jitter
                 rec["valid"][i, j] = bool(st.valid)
                 rec["initialised"][i, j] = bool(st.initialised)

@@ -147,8 +147,9 @@ class CameraDefects:
     (:mod:`hec_jax.loop.camera_loop`); every defect is off by default (the perfect rendered camera).
 
     The renderer always uses the true camera; the eye (tracker, self-mask, overlay) uses the
-    perturbed intrinsics. Noise and jitter are drawn from a generator seeded by ``defect_seed``,
-    the seed's index in the batch and the swing: the same settings give the same frames.
+    perturbed intrinsics. Noise and jitter are drawn from two generators (one each, so that one
+    can be turned off without changing the other's draws) seeded by ``defect_seed``, the seed's
+    index in the batch and the swing: the same settings give the same frames.
     """
 
     noise_grey: float = 0.0  # sensor noise: Gaussian, standard deviation [grey levels of 255]
