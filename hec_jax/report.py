@@ -7,13 +7,13 @@ array so that a script reports their mean or minimum as it says.
 
 from __future__ import annotations
 
-import platform
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
+
+from hec_jax.runs import cpu_model  # noqa: F401  (the scripts' tables read it from here)
 
 T = TypeVar("T")
 
@@ -116,17 +116,6 @@ def tile_batch(x: np.ndarray, batch: int) -> np.ndarray:
     """``x`` (n, ...) repeated along its leading axis and cut to ``batch`` rows."""
     x = np.asarray(x)
     return np.resize(x, (batch, *x.shape[1:]))
-
-
-def cpu_model() -> str:
-    """The CPU's model name (Linux ``/proc/cpuinfo``; else ``platform.processor()``)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
 
 
 class CompileMeter:
