@@ -394,6 +394,12 @@ def _check_report(result):
     phases = np.stack([tt[k][ticked] for k in ("t_wake", "t_obs", "t_step", "t_write")])
     assert np.all(np.diff(phases, axis=0) >= 0)
     assert np.all(np.diff(tt["t_write"][ticked][tt["episode"][ticked] == 0]) > 0)
+    # the clock waited for the step after the previous tick's (t_due); the plant returned it,
+    # or after a stall a later one
+    rows = np.flatnonzero(ticked)
+    first = np.r_[True, tt["episode"][rows][1:] != tt["episode"][rows][:-1]]
+    want = np.where(first, 0, np.r_[0, tt["index"][rows][:-1] + 1]) * dt
+    np.testing.assert_allclose(tt["t_due"][rows], want, rtol=0, atol=1e-12)
     # a tick is late exactly when its torques came at or after its deadline
     late = tt["t_write"][ticked] >= (tt["index"][ticked] + 1) * dt  # the plant's comparison
     assert n["late"] == n["late_from_recorded_times"] == late.sum()
@@ -444,6 +450,11 @@ def _check_report(result):
     assert causes["late"] == n["late"] == sum(causes["counts"].values())
     assert causes["events"] == sum(causes["event_counts"].values()) <= n["missed"]
     assert (causes["events"] > 0) == (n["missed"] > 0)
+    # the control thread's page faults: counted for every tick, at most one run per event
+    faults = cpu["faults"]
+    assert np.isfinite(tt["faults_major"][ticked]).all()
+    assert faults["major"] == int(tt["faults_major"][ticked].sum()) >= faults["ticks_with_major"]
+    assert faults["missed_events_with_major"] <= causes["events"]
     print("\n".join(RT.report.deadline_table(result.report)))
 
 
@@ -767,6 +778,81 @@ def test_late_ticks_are_given_the_part_of_their_latency_that_grew():
     on_time = {k: v[:2] for k, v in tt.items()}
     none = miss_causes(on_time, dt)
     assert none["events"] == 0 and none["counts"] == {"woke_late": 0, "cpu_work": 0, "off_cpu": 0}
+
+
+def test_a_stall_before_the_plant_read_is_given_its_cause_from_the_step_waited_for():
+    """Hand-made ticks (dt 1 ms) with ``t_due``, the step the clock waited for. The usual tick
+    wakes on time, runs 250 us on the CPU and takes 300 us to its torques. Stall A: the clock
+    waits for step 3 and the thread wakes at 7.4 ms; the plant catches up (its read 500 us of
+    CPU) and returns sample 7, late (steps 3-6 skipped). Stall B: the clock waits for step 12,
+    the thread wakes on time, and is held off the CPU until 15.05 ms before its read; the
+    plant returns sample 15, on time for its own step (steps 12-14 skipped). Stall C: tick 18
+    runs 1.2 ms on the CPU (late), and the plant then returns 20 (step 19 skipped). Without
+    ``t_due`` stall A counts as CPU work (the catch-up) and B as a late wake-up: the old
+    records cannot tell them apart."""
+    import numpy as np
+
+    from hec_jax.realtime.report import latency_parts, miss_causes, page_faults
+
+    dt, n = 1e-3, 24
+    index = np.arange(n)
+    skipped = np.isin(index, [3, 4, 5, 6, 12, 13, 14, 19])
+    nan = np.nan
+    due = np.where(skipped, nan, index * dt)
+    due[7], due[15], due[20] = 3e-3, 12e-3, 19e-3
+    t_wake = due.copy()
+    t_wake[7] = 7.4e-3  # woke 4.4 ms after step 3's time
+    read = np.where(skipped, nan, 75e3)
+    read[7] = 500e3  # [ns] the catch-up's integration
+    step = np.where(skipped, nan, 100e3)
+    step[18] = 1200e3
+    cpu = (read + 75e3 + step) * 1e-9
+    off = np.where(skipped, nan, 50e-6)
+    off[15] = 15.05e-3 - 12e-3  # held off the CPU between the wake-up and the read
+    t_write = t_wake + cpu + off
+    late = t_write >= (index + 1) * dt
+    kind = np.where(skipped, 2, np.where(late, 1, 0))
+    assert kind[7] == 1 and kind[15] == 0 and kind[18] == 1 and kind[20] == 0
+    tt = {
+        "index": index,
+        "episode": np.zeros(n, int),
+        "kind": kind,
+        "t_due": due,
+        "t_wake": t_wake,
+        "t_write": t_write,
+        "cpu_read": read,
+        "cpu_observe": np.where(skipped, nan, 75e3),
+        "cpu_step": step,
+    }
+    parts = latency_parts(tt, dt)
+    ok = ~skipped
+    # the parts span each tick's stretch from the step it waited for
+    np.testing.assert_allclose(sum(parts.values())[ok], (t_write - due)[ok], atol=1e-12)
+    assert parts["woke_late"][7] == pytest.approx(4.4e-3)
+    causes = miss_causes(tt, dt)
+    assert causes["late"] == 2  # ticks 7 and 18
+    assert causes["counts"] == {"woke_late": 1, "cpu_work": 1, "off_cpu": 0}
+    # events {3..7} (ended by tick 7: woke late), {12..14} (ended by tick 15, on time for its
+    # own step: held off the CPU), {18, 19} (tick 18's CPU work)
+    assert causes["events"] == 3
+    assert causes["event_counts"] == {"woke_late": 1, "cpu_work": 1, "off_cpu": 1}
+    assert causes["late_us"]["woke_late"]["max"] == pytest.approx(4400)
+    # the same ticks as recorded before t_due: stall A is the catch-up's CPU work, B a
+    # late wake-up by default
+    old = {k: v for k, v in tt.items() if k != "t_due"}
+    causes = miss_causes(old, dt)
+    assert causes["event_counts"] == {"woke_late": 1, "cpu_work": 2, "off_cpu": 0}
+    # page faults: a major one in the wait before tick 7 (stall A) and one in tick 10 (on
+    # time); minor ones in every tick
+    tt["faults_major"] = np.where(skipped, nan, np.isin(index, [7, 10]).astype(float))
+    tt["faults_minor"] = np.where(skipped, nan, 2.0)
+    faults = page_faults(tt, ~skipped)
+    assert faults == {
+        "major": 2,
+        "minor": 2 * (n - skipped.sum()),
+        "ticks_with_major": 2,
+        "missed_events_with_major": 1,
+    }
 
 
 def test_every_step_s_deadline_counts_the_skipped_ones():

@@ -192,7 +192,28 @@ def cpu_report(tt: dict, ticked: np.ndarray) -> dict:
     out["other_threads_mean_us"] = float(np.mean(other) * 1e-3) if other.size else None
     for k in ("switches_voluntary", "switches_involuntary"):
         out[f"{k}_per_tick"] = float(np.mean(tt[k][ticked])) if ticked.any() else None
+    if "faults_major" in tt:  # runs recorded since 2026-12-04
+        out["faults"] = page_faults(tt, ticked)
     return out
+
+
+def page_faults(tt: dict, ticked: np.ndarray) -> dict:
+    """The control thread's page faults over the run (each tick's count spans the previous
+    tick's torques to its own): ``major`` and ``minor`` totals, ``ticks_with_major``, and
+    ``missed_events_with_major``: runs of missed steps (as :func:`miss_causes` groups them)
+    (:func:`missed_runs_ended_by`) whose ending tick's count has a major fault, i.e. one fell
+    in the stretch from the last tick on time to the torques that ended the run. A major fault waits for a read from disk
+    (a code page or mapped file the kernel had dropped), typically 0.1-10 ms.
+    """
+    major = np.where(ticked, tt["faults_major"], 0)
+    ended_by = missed_runs_ended_by(tt, ticked)
+    with_major = int(np.sum((ended_by >= 0) & (major[np.maximum(ended_by, 0)] > 0)))
+    return {
+        "major": int(major.sum()),
+        "minor": int(np.where(ticked, tt["faults_minor"], 0).sum()),
+        "ticks_with_major": int((major > 0).sum()),
+        "missed_events_with_major": int(with_major),
+    }
 
 
 # the parts of a tick's latency (:func:`miss_causes`)
@@ -204,8 +225,9 @@ PATH_STAGES = ("cpu_read", "cpu_observe", "cpu_step")
 def latency_parts(tt: dict, dt: float) -> dict[str, np.ndarray]:
     """Each tick's latency [s] (NaN where no tick) as the sum of three parts.
 
-    * ``woke_late``: the wake-up after the tick's time, t_wake - j dt (the clock's wait, the
-      kernel's and the host's scheduling, or the previous tick still running);
+    * ``woke_late``: the wake-up after the time the clock waited for, t_wake - t_due (the
+      clock's wait, the kernel's and the host's scheduling, or the previous tick still
+      running). Runs recorded before ``t_due`` existed (2026-12-04) use the row's own j dt;
     * ``cpu_work``: the control thread's CPU time from the wake-up to the torques (plant read,
       observation, jitted step). In a virtual machine this includes any time the host takes
       the virtual CPU away without the guest accounting it as steal: a tick whose CPU time is
@@ -216,11 +238,15 @@ def latency_parts(tt: dict, dt: float) -> dict[str, np.ndarray]:
       running (preempted, by the host's hypervisor or a thread of higher priority, or waiting
       for XLA's threads), plus the few microseconds of the clock reads.
 
-    A tick's row is the sample the plant returned (j), which is later than the step the clock
-    waited for when the plant caught up on skipped steps; ``woke_late`` is then negative and
-    the stretch from the wake-up on is counted in the other two parts.
+    A tick's row is the sample the plant returned (j). After a stall the plant catches up on
+    the skipped steps and j is later than the step the clock waited for: the three parts then
+    sum to t_write - t_due, the stall from the first skipped step's deadline on (that step's
+    deadline latency), not to the row's own latency t_write - j dt; a thread that woke that
+    late has ``woke_late`` the size of the stall. Without ``t_due`` such a stall was not
+    seen in ``woke_late`` and the catch-up's integration counted as ``cpu_work``.
     """
-    woke = tt["t_wake"] - tt["index"] * dt
+    due = tt["t_due"] if "t_due" in tt else tt["index"] * dt
+    woke = tt["t_wake"] - due
     cpu = sum(tt[k] for k in PATH_STAGES) * 1e-9
     return {"woke_late": woke, "cpu_work": cpu, "off_cpu": tt["t_write"] - tt["t_wake"] - cpu}
 
@@ -232,10 +258,13 @@ def miss_causes(tt: dict, dt: float) -> dict:
     the part that exceeds that part's median over all ticks by the most. One stall of the
     thread makes several misses in a row (the ticks after it wake late, steps are skipped), so
     the misses are also grouped into events: runs of consecutive missed steps (late or skipped,
-    ``tt["kind"]`` 1 or 2) of one episode, each counted under the cause of its first late tick.
-    An event with no late tick (only skipped steps, the tick after them on time) is counted as
-    ``woke_late``: the thread ran after the steps' deadlines, whether it woke late or was held
-    off the CPU between its wake-up and the plant's read, which the records cannot tell apart.
+    ``tt["kind"]`` 1 or 2) of one episode, each counted under the cause of the tick that ended
+    its first stall: its first tick, late or, after skipped steps only, on time for its own
+    step. With ``t_due`` that tick's parts span the stall from the step it waited for, so a
+    thread that woke late, ran long or was held off the CPU before the plant's read is told
+    apart. Runs recorded without ``t_due`` count an event with no late tick as ``woke_late``
+    (the records cannot tell those three apart) and give an event that starts with a late
+    tick that tick's cause, whose parts leave out the skipped steps' stretch.
 
     Returns ``late`` (count), ``counts`` {cause: late ticks}, ``events`` (count),
     ``event_counts`` {cause: events}, ``late_us`` {cause: percentiles over the late ticks [us]}
@@ -245,30 +274,42 @@ def miss_causes(tt: dict, dt: float) -> dict:
     parts = latency_parts(tt, dt)
     late = ticked & (tt["t_write"] >= (tt["index"] + 1) * dt)
     median = {k: float(np.median(parts[k][ticked])) if ticked.any() else 0.0 for k in parts}
-    excess = np.stack([np.where(late, parts[k] - median[k], -np.inf) for k in MISS_CAUSES])
+    excess_all = np.stack([np.where(ticked, parts[k] - median[k], -np.inf) for k in MISS_CAUSES])
+    excess = np.where(late, excess_all, -np.inf)
     cause = np.where(late, np.argmax(excess, axis=0), -1)
-    # events: runs of missed steps within an episode
-    missed = np.asarray(tt["kind"]) != 0
-    episode = np.asarray(tt.get("episode", np.zeros(missed.size, int)))
-    continues = np.zeros(missed.size, bool)
-    continues[1:] = missed[:-1] & (episode[1:] == episode[:-1])
-    starts = np.flatnonzero(missed & ~continues)
-    ends = np.append(starts[1:], missed.size)[: starts.size]  # (none without an event)
+    has_due = "t_due" in tt
     event_cause = []
-    for a, b in zip(starts, ends, strict=True):
-        # the steps from one event's start to the next: the event's own, then on-time ticks
-        # (cause -1, like the skipped steps), so its first cause is its first late tick's
-        first = cause[a:b][cause[a:b] >= 0]
-        event_cause.append(int(first[0]) if first.size else 0)
+    for row in missed_runs_ended_by(tt, ticked):
+        if row >= 0 and (late[row] or has_due):
+            event_cause.append(int(np.argmax(excess_all[:, row])))
+        else:
+            event_cause.append(0)
     event_cause = np.asarray(event_cause, int)
     return {
         "late": int(late.sum()),
         "counts": {k: int(np.sum(cause == i)) for i, k in enumerate(MISS_CAUSES)},
-        "events": int(starts.size),
+        "events": int(event_cause.size),
         "event_counts": {k: int(np.sum(event_cause == i)) for i, k in enumerate(MISS_CAUSES)},
         "late_us": {k: percentiles(parts[k][late], 1e6) for k in MISS_CAUSES},
         "median_us": {k: median[k] * 1e6 for k in MISS_CAUSES},
     }
+
+
+def missed_runs_ended_by(tt: dict, ticked: np.ndarray) -> np.ndarray:
+    """The runs of consecutive missed steps (plant ``kind`` 1 late or 2 skipped) within an
+    episode, one entry each: the row of the tick that ended the run's first stall, i.e. the
+    first tick of the episode from the run's start on (late, or on time for its own step after
+    skipped steps); -1 where the episode ended first.
+    """
+    missed = np.asarray(tt["kind"]) != 0
+    episode = np.asarray(tt.get("episode", np.zeros(missed.size, int)))
+    continues = np.zeros(missed.size, bool)
+    continues[1:] = missed[:-1] & (episode[1:] == episode[:-1])
+    out = []
+    for a in np.flatnonzero(missed & ~continues):
+        rows = a + np.flatnonzero(ticked[a:] & (episode[a:] == episode[a]))
+        out.append(int(rows[0]) if rows.size else -1)
+    return np.asarray(out, int)
 
 
 def in_contact(run, tt: dict) -> np.ndarray | None:
@@ -589,8 +630,8 @@ def deadline_table(report: dict) -> list[str]:
                     " / ".join(str(n_c[k]) for k in MISS_CAUSES) + f" (of {causes['late']})",
                 ),
                 (
-                    "runs of missed steps by the cause of their first late tick (the same; "
-                    "none late: woke late)",
+                    "runs of missed steps by the cause of the tick that ended them, timed "
+                    "from the step it waited for (the same)",
                     " / ".join(str(n_e[k]) for k in MISS_CAUSES) + f" (of {causes['events']})",
                 ),
             ]
@@ -606,6 +647,17 @@ def deadline_table(report: dict) -> list[str]:
                 f"{cpu['switches_involuntary_per_tick']:.2f}",
             ),
         ]
+        faults = cpu.get("faults")
+        if faults:
+            rows.append(
+                (
+                    "control thread page faults: major / minor; ticks with a major one; "
+                    "runs of missed steps with one",
+                    f"{faults['major']} / {faults['minor']}; {faults['ticks_with_major']}; "
+                    f"{faults['missed_events_with_major']}"
+                    + (f" (of {causes['events']})" if causes else ""),
+                )
+            )
     eye = report.get("eye")
     if eye:
 

@@ -90,8 +90,9 @@ from hec_jax.realtime.shared import _CTX, Board, wait_for
 # Per-tick records of :func:`run_loop` (``LoopRun.ticks``): clock times [s] of the tick's phases,
 # and the control thread's CPU time [ns] per stage (load-insensitive: time the thread ran, not
 # time it waited), the CPU time of the process's other threads (XLA's pool running parts of the
-# jitted step) and the control thread's context switches during the tick's work.
-TICK_TIMES = ("t_wake", "t_obs", "t_step", "t_write", "t_stamp")
+# jitted step), the control thread's context switches during the tick's work and its page
+# faults since the previous tick's torques (the wait for this tick included).
+TICK_TIMES = ("t_due", "t_wake", "t_obs", "t_step", "t_write", "t_stamp")
 TICK_CPU = (
     "cpu_read",
     "cpu_observe",
@@ -100,6 +101,8 @@ TICK_CPU = (
     "cpu_other_threads",
     "switches_voluntary",
     "switches_involuntary",
+    "faults_major",
+    "faults_minor",
 )
 _thread_ns, _process_ns = time.thread_time_ns, time.process_time_ns
 # [s] before tick 0 at which the dry ticks of an episode's lead stop (one takes about 0.3 ms)
@@ -351,10 +354,12 @@ class LoopRun:
         logs: per episode, the simulated loops' log names (``x_e``, ``f_contact``, ``t``,
             ``qpos``, ...), one row per physics step (rows of steps without a controller call
             repeat the last call's signals).
-        ticks: per episode, one row per physics step j: ``t_wake``, ``t_obs``, ``t_step``,
-            ``t_write`` [s] (clock times of the wake-up, the observation ready, the jitted step
-            done, the torques taken by the plant; NaN where the step had no tick; after a
-            catch-up the wake-up precedes j dt), ``kind`` (plant: 0 fresh, 1 late, 2 skipped),
+        ticks: per episode, one row per physics step j: ``t_due``, ``t_wake``, ``t_obs``,
+            ``t_step``, ``t_write`` [s] (clock times of the step the clock waited for, the
+            wake-up, the observation ready, the jitted step done, the torques taken by the
+            plant; NaN where the step had no tick; after a stall the plant catches up and
+            returns a later sample than the one waited for, so ``t_due`` < j dt, and the
+            wake-up may precede j dt), ``kind`` (plant: 0 fresh, 1 late, 2 skipped),
             ``t_stamp`` [s] (exposure of the eye's estimate in force, NaN: none); the control
             thread's CPU time [ns] of each stage, ``cpu_read`` (plant read), ``cpu_observe``
             (eye estimate, arm model, observation vector), ``cpu_step`` (the jitted call, its
@@ -362,7 +367,10 @@ class LoopRun:
             integrates the physics step in it); ``cpu_other_threads`` [ns] the CPU time of the
             process's other threads meanwhile (XLA's pool threads running parts of the step);
             ``switches_voluntary`` / ``switches_involuntary``: the control thread's context
-            switches during the tick's work (waits for XLA's threads / preemptions).
+            switches during the tick's work (waits for XLA's threads / preemptions);
+            ``faults_major`` / ``faults_minor``: the control thread's page faults from the
+            previous tick's torques to this tick's (a major fault reads the page from disk:
+            code or a mapped file the kernel had dropped).
         arrivals: per episode, one row per eye estimate taken: ``tick``, ``t_tick`` [s],
             ``t_stamp`` [s], ``frame``, ``number`` (in the episode; 0: the release frame,
             answered before the release), ``seen``, ``t_wall_exposure``, ``t_wall_done``,
@@ -500,8 +508,10 @@ def run_loop(
             np.asarray(fns.step(jnp.array(ps_vec), sw_vec, warm_obs.copy(), one_step)[1])
         try:
             j = j_last = 0  # the policy state's previous sample: the release's, step 0
+            u_prev = _rusage(_THREAD)  # the page faults of the lead count toward tick 0
             while j < n:
-                t_wake = clock.wait_until(j * dt)
+                t_due = j * dt  # the step the clock waits for; the plant may return a later one
+                t_wake = clock.wait_until(t_due)
                 c0, p0, u0 = _thread_ns(), _process_ns(), _rusage(_THREAD)
                 s = plant.read()
                 j = s.index
@@ -548,13 +558,16 @@ def run_loop(
                 c4, p4, u4 = _thread_ns(), _process_ns(), _rusage(_THREAD)
                 rows[j] = row
                 ticked[j] = True
-                rec["t_wake"][j], rec["t_obs"][j] = t_wake, t_obs
+                rec["t_due"][j], rec["t_wake"][j], rec["t_obs"][j] = t_due, t_wake, t_obs
                 rec["t_step"][j], rec["t_write"][j], rec["t_stamp"][j] = t_step, t_write, stamp
                 rec["cpu_read"][j], rec["cpu_observe"][j] = c1 - c0, c2 - c1
                 rec["cpu_step"][j], rec["cpu_write"][j] = c3 - c2, c4 - c3
                 rec["cpu_other_threads"][j] = (p4 - p0) - (c4 - c0)
                 rec["switches_voluntary"][j] = u4.ru_nvcsw - u0.ru_nvcsw
                 rec["switches_involuntary"][j] = u4.ru_nivcsw - u0.ru_nivcsw
+                rec["faults_major"][j] = u4.ru_majflt - u_prev.ru_majflt
+                rec["faults_minor"][j] = u4.ru_minflt - u_prev.ru_minflt
+                u_prev = u4
                 j += 1
         finally:
             if gc_off:
