@@ -197,6 +197,12 @@ def test_the_loop_gives_the_policy_the_steps_a_stall_skipped():
     assert ticks == [1.0] * 5 + [4.0] + [1.0] * 11
     np.testing.assert_array_equal(run.ticks[0]["kind"][5:8], 2)  # skipped
     assert run.counts[0].skipped == 3
+    # the tick after the stall waited for step 5 and woke at 8.1 ms; the others for their own
+    due = run.ticks[0]["t_due"]
+    assert due[8] == pytest.approx(5e-3) and run.ticks[0]["t_wake"][8] >= 8.1e-3
+    np.testing.assert_allclose(
+        np.delete(due, [5, 6, 7, 8]), np.delete(np.arange(20), [5, 6, 7, 8]) * 1e-3
+    )
 
 
 @pytest.mark.slow
@@ -400,6 +406,7 @@ def _check_report(result):
     first = np.r_[True, tt["episode"][rows][1:] != tt["episode"][rows][:-1]]
     want = np.where(first, 0, np.r_[0, tt["index"][rows][:-1] + 1]) * dt
     np.testing.assert_allclose(tt["t_due"][rows], want, rtol=0, atol=1e-12)
+    assert np.all(tt["t_due"][rows] <= tt["index"][rows] * dt + 1e-12)
     # a tick is late exactly when its torques came at or after its deadline
     late = tt["t_write"][ticked] >= (tt["index"][ticked] + 1) * dt  # the plant's comparison
     assert n["late"] == n["late_from_recorded_times"] == late.sum()
@@ -787,7 +794,7 @@ def test_a_stall_before_the_plant_read_is_given_its_cause_from_the_step_waited_f
     CPU) and returns sample 7, late (steps 3-6 skipped). Stall B: the clock waits for step 12,
     the thread wakes on time, and is held off the CPU until 15.05 ms before its read; the
     plant returns sample 15, on time for its own step (steps 12-14 skipped). Stall C: tick 18
-    runs 1.2 ms on the CPU (late), and the plant then returns 20 (step 19 skipped). Without
+    runs 2.2 ms on the CPU (late), and the plant then returns 20 (step 19 skipped). Without
     ``t_due`` stall A counts as CPU work (the catch-up) and B as a late wake-up: the old
     records cannot tell them apart."""
     import numpy as np
@@ -805,11 +812,14 @@ def test_a_stall_before_the_plant_read_is_given_its_cause_from_the_step_waited_f
     read = np.where(skipped, nan, 75e3)
     read[7] = 500e3  # [ns] the catch-up's integration
     step = np.where(skipped, nan, 100e3)
-    step[18] = 1200e3
+    step[18] = 2200e3
     cpu = (read + 75e3 + step) * 1e-9
     off = np.where(skipped, nan, 50e-6)
     off[15] = 15.05e-3 - 12e-3  # held off the CPU between the wake-up and the read
     t_write = t_wake + cpu + off
+    for j in (8, 20):  # the tick after a late one wakes when that one has written
+        t_wake[j] = t_write[j - 1 if j == 8 else 18]
+        t_write[j] = t_wake[j] + cpu[j] + off[j]
     late = t_write >= (index + 1) * dt
     kind = np.where(skipped, 2, np.where(late, 1, 0))
     assert kind[7] == 1 and kind[15] == 0 and kind[18] == 1 and kind[20] == 0

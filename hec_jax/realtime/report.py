@@ -141,7 +141,8 @@ def deadline_report(run, dt: float, fps: float | None, camera_log=None, eye_log=
         "latency_us": percentiles(lat, 1e6),
         # every physics step's deadline, the skipped steps included (the target's measure)
         "deadline_latency_us": percentiles(deadline_latency(tt, dt), 1e6),
-        "wake_jitter_us": percentiles((tt["t_wake"] - t_sched)[ticked], 1e6),
+        # from the step the clock waited for (t_due; records before it: the row's own step)
+        "wake_jitter_us": percentiles((tt["t_wake"] - tt.get("t_due", t_sched))[ticked], 1e6),
         "observe_us": percentiles((tt["t_obs"] - tt["t_wake"])[ticked], 1e6),
         "step_us": percentiles((tt["t_step"] - tt["t_obs"])[ticked], 1e6),
         "write_us": percentiles((tt["t_write"] - tt["t_step"])[ticked], 1e6),
@@ -200,10 +201,10 @@ def cpu_report(tt: dict, ticked: np.ndarray) -> dict:
 def page_faults(tt: dict, ticked: np.ndarray) -> dict:
     """The control thread's page faults over the run (each tick's count spans the previous
     tick's torques to its own): ``major`` and ``minor`` totals, ``ticks_with_major``, and
-    ``missed_events_with_major``: runs of missed steps (as :func:`miss_causes` groups them)
-    (:func:`missed_runs_ended_by`) whose ending tick's count has a major fault, i.e. one fell
-    in the stretch from the last tick on time to the torques that ended the run. A major fault waits for a read from disk
-    (a code page or mapped file the kernel had dropped), typically 0.1-10 ms.
+    ``missed_events_with_major``: runs of missed steps (:func:`missed_runs_ended_by`) whose
+    first tick's count has a major fault, i.e. one fell between the last tick before the run
+    and the torques of its first tick. A major fault waits for a read from disk (a code page or
+    mapped file the kernel had dropped), typically 0.1-10 ms.
     """
     major = np.where(ticked, tt["faults_major"], 0)
     ended_by = missed_runs_ended_by(tt, ticked)
@@ -630,8 +631,8 @@ def deadline_table(report: dict) -> list[str]:
                     " / ".join(str(n_c[k]) for k in MISS_CAUSES) + f" (of {causes['late']})",
                 ),
                 (
-                    "runs of missed steps by the cause of the tick that ended them, timed "
-                    "from the step it waited for (the same)",
+                    "runs of missed steps by the cause of their first tick (timed from the "
+                    "step it waited for, where recorded)",
                     " / ".join(str(n_e[k]) for k in MISS_CAUSES) + f" (of {causes['events']})",
                 ),
             ]

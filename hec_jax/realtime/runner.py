@@ -508,7 +508,7 @@ def run_loop(
             np.asarray(fns.step(jnp.array(ps_vec), sw_vec, warm_obs.copy(), one_step)[1])
         try:
             j = j_last = 0  # the policy state's previous sample: the release's, step 0
-            u_prev = _rusage(_THREAD)  # the page faults of the lead count toward tick 0
+            u_prev = _rusage(_THREAD)  # tick 0's page faults count from here (after the lead)
             while j < n:
                 t_due = j * dt  # the step the clock waits for; the plant may return a later one
                 t_wake = clock.wait_until(t_due)
