@@ -225,3 +225,38 @@ def test_bad_msaa_is_refused(msaa):
     with pytest.raises(ValueError, match="--msaa: must be None or an integer in 0..16"):
         tl.CameraConfig(msaa=msaa)
     assert tl.CameraConfig(msaa=0).msaa == 0 and tl.CameraConfig().msaa is None
+
+
+def test_a_defect_flag_at_the_perfect_value_turns_that_defect_off_under_the_industrial_camera(
+    tmp_path,
+):
+    """Under the industrial camera (the default) a flag given at the perfect camera's value
+    (``--focal-error 0``) turns that one defect off; before, it read as unset and the run kept
+    the industrial 1% (a main job asked for without it ran with it). Flags not given stay the
+    industrial ones; a flag given at another value keeps it, as before."""
+    from hec_jax.loop.cli import given_defect_fields, parse_task
+
+    ind = tl.CameraDefects.industrial()
+    argv = ["--focal-error", "0", "--jitter-s=0", "--seeds", "2", "--out", str(tmp_path / "r")]
+    assert given_defect_fields(argv) == ("focal_error", "jitter_s")
+    assert given_defect_fields(["--experiment.camera.defects.noise-grey", "1"]) == ("noise_grey",)
+    run = parse_task("catching", argv)
+    cam = run.experiment.camera
+    assert cam.camera_model == "industrial" and cam.defects_given == ("focal_error", "jitter_s")
+    assert cam.applied_defects == dataclasses.replace(ind, focal_error=0.0, jitter_s=0.0)
+    # what a run folder records runs the same
+    assert cam.resolved().applied_defects == cam.applied_defects
+    # the same flags without the record: the old reading, the industrial values
+    assert dataclasses.replace(cam, defects_given=()).applied_defects == ind
+    # another value, and no defect flag at all
+    other = parse_task("catching", ["--centre-error-px", "-1.5", "--out", str(tmp_path / "s")])
+    assert other.experiment.camera.applied_defects == dataclasses.replace(ind, centre_error_px=-1.5)
+    plain = parse_task("catching", ["--out", str(tmp_path / "t")])
+    assert plain.experiment.camera.defects_given == ()
+    assert plain.experiment.camera.applied_defects == ind
+    # under the perfect camera the flags are as given, with or without the record
+    argv = ["--camera-model", "perfect", "--focal-error", "0", "--out", str(tmp_path / "u")]
+    perfect = parse_task("catching", argv)
+    assert perfect.experiment.camera.applied_defects == tl.CameraDefects()
+    with pytest.raises(ValueError, match="defects_given"):
+        tl.CameraConfig(defects_given=("focal",))

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from hec_jax.cli import command, parse
 from hec_jax.loop.config import (
+    DEFECT_FIELDS,
     PRESETS,
     REALTIME_DEFECTS,
     CameraConfig,
@@ -51,6 +52,32 @@ def task_default(preset: str, argv=None) -> TaskRun:
     return TaskRun(experiment=experiment, out=Path(f"runs/{preset}"))
 
 
+def given_defect_fields(argv) -> tuple[str, ...]:
+    """The ``CameraDefects`` fields whose flag is in ``argv`` (``--focal-error 0``,
+    ``--focal_error=0``, a prefixed ``--experiment.camera.defects.focal-error``), in field order.
+    """
+    named = set()
+    for arg in argv:
+        if arg.startswith("--"):
+            named.add(arg[2:].split("=", 1)[0].rsplit(".", 1)[-1].replace("-", "_"))
+    return tuple(name for name in DEFECT_FIELDS if name in named)
+
+
+def parse_task(preset: str, argv=None, doc: str | None = None) -> TaskRun:
+    """``argv`` (default: ``sys.argv[1:]``) over the named preset, with the camera's defect
+    flags given on it recorded in ``CameraConfig.defects_given``: under the industrial camera a
+    flag given at the perfect camera's value (``--focal-error 0``) turns that defect off rather
+    than reading as unset.
+    """
+    args = sys.argv[1:] if argv is None else list(argv)
+    run = parse(task_default(preset, args), args, doc)
+    given = given_defect_fields(args)
+    if not given:
+        return run
+    camera = dataclasses.replace(run.experiment.camera, defects_given=given)
+    return dataclasses.replace(run, experiment=dataclasses.replace(run.experiment, camera=camera))
+
+
 @command
 def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
     """Parses ``argv`` over the named preset, runs the experiment and writes its run folder.
@@ -59,7 +86,7 @@ def main_for(preset: str, doc: str | None = None, argv=None) -> dict:
     code 2 before anything is compiled; Ctrl-C or SIGTERM in a failed run folder and exit code
     130 or 143 (:func:`hec_jax.cli.command`).
     """
-    run = parse(task_default(preset, argv), argv, doc)
+    run = parse_task(preset, argv, doc)
     import jax
 
     jax.config.update("jax_enable_x64", not run.float32)

@@ -209,6 +209,10 @@ class CameraDefects:
             )
 
 
+# the names of CameraDefects' fields (``CameraConfig.defects_given``)
+DEFECT_FIELDS = tuple(f.name for f in dataclasses.fields(CameraDefects))
+
+
 # The issue-24 checks of ``UNSEEN_SCENES`` that the loop's tracker takes in the lab scene
 # (``min_region_fraction`` stays off: in the loop the moving arm is the largest blob)
 LAB_CHECKS = (
@@ -311,6 +315,11 @@ class CameraConfig:
     # what runs is :attr:`applied_defects` (camera_model "industrial", the default: the flags
     # left unset take its values)
     defects: CameraDefects = field(default_factory=CameraDefects)
+    # the ``defects`` fields set explicitly: with camera_model "industrial" each keeps its value
+    # even where that is the perfect camera's, so ``--focal-error 0`` turns that one defect off
+    # (without it a flag at the perfect camera's value reads as unset). The task scripts fill it
+    # from the flags on their command line (``hec_jax.loop.cli.parse_task``)
+    defects_given: Annotated[tuple[str, ...], tyro.conf.Suppress] = ()
 
     @classmethod
     def void_perfect(cls, **overrides) -> CameraConfig:
@@ -328,10 +337,11 @@ class CameraConfig:
     @property
     def applied_defects(self) -> CameraDefects:
         """The defects the loop applies: ``defects`` (the flags) with ``camera_model``'s values
-        for the flags left at their defaults (``"perfect"``: the flags as given).
+        for the flags left at their defaults and not named in ``defects_given``
+        (``"perfect"``: the flags as given).
         """
         if self.camera_model == "industrial":
-            return _industrial_over(self.defects)
+            return _industrial_over(self.defects, self.defects_given)
         return self.defects
 
     def resolved(self) -> CameraConfig:
@@ -361,6 +371,12 @@ class CameraConfig:
             raise ValueError(
                 f"--plane-grid-m: must be None or a number > 0 [m], got {self.plane_grid_m!r}"
             )
+        unknown = set(self.defects_given) - set(DEFECT_FIELDS)
+        if unknown:
+            raise ValueError(
+                f"defects_given: not fields of CameraDefects: {sorted(unknown)} "
+                f"(fields: {', '.join(DEFECT_FIELDS)})"
+            )
         applied = self.applied_defects
         if not applied.jitter_s < 0.5 / self.fps:
             raise ValueError(
@@ -376,16 +392,18 @@ class CameraConfig:
             raise ValueError("--blur-renders above 1 needs --exposure-s > 0")
 
 
-def _industrial_over(given: CameraDefects) -> CameraDefects:
-    """``CameraDefects.industrial()`` with every field of ``given`` that differs from its default."""
+def _industrial_over(given: CameraDefects, keep: tuple[str, ...] = ()) -> CameraDefects:
+    """``CameraDefects.industrial()`` with every field of ``given`` that differs from its
+    default or is named in ``keep``.
+    """
     base = CameraDefects.industrial()
     off = CameraDefects()
     return dataclasses.replace(
         base,
         **{
-            f.name: getattr(given, f.name)
-            for f in dataclasses.fields(CameraDefects)
-            if getattr(given, f.name) != getattr(off, f.name)
+            name: getattr(given, name)
+            for name in DEFECT_FIELDS
+            if name in keep or getattr(given, name) != getattr(off, name)
         },
     )
 
