@@ -42,6 +42,9 @@ class TickProfile:
     # poll instead of halting); None: nothing asked
     cpu_latency_us: int | None = None
     pin_cpus: bool = False  # the process on its first CPU while it runs
+    # with rt_priority 0: the process's other threads (XLA's pool) under SCHED_IDLE while it
+    # runs (``RealtimeConfig.pool_idle``; the real-time run does so with pin_cpus)
+    pool_idle: bool = False
     async_dispatch: bool = False  # JAX's default CPU dispatch (default: inline)
     float32: bool = False  # float32 (default float64)
 
@@ -89,7 +92,7 @@ def main(argv=None) -> dict:
 
     results = {}
     latency = cpu_latency_request(args.cpu_latency_us)
-    with pinned(cpus), realtime_priority(args.rt_priority), latency:
+    with pinned(cpus), realtime_priority(args.rt_priority, args.pool_idle), latency:
         for name, clock in (
             ("hot", FreeClock()),
             ("after idle", IdleClock(args.idle_us * 1e-6, args.spin_us * 1e-6)),
@@ -97,7 +100,8 @@ def main(argv=None) -> dict:
             results[name] = stage_table(run(clock, [args.ticks]).ticks)
     print(
         f"load average {os.getloadavg()}; async dispatch {args.async_dispatch}; "
-        f"rt priority {args.rt_priority}; pinned {cpus}; cpu latency {args.cpu_latency_us} us; "
+        f"rt priority {args.rt_priority}; pool idle {args.pool_idle}; pinned {cpus}; "
+        f"cpu latency {args.cpu_latency_us} us; "
         f"float{'32' if args.float32 else '64'}"
     )
     for name in ("hot", "after idle"):

@@ -643,6 +643,36 @@ def test_realtime_refused_says_why_and_leaves_the_scheduling(monkeypatch):
     assert "SCHED_FIFO 50" in why and "--rt-priority" in why
 
 
+def test_pool_idle_puts_the_other_threads_under_sched_idle_only_without_real_time_priority():
+    import os
+    import threading
+
+    from hec_jax.realtime.clock import realtime_priority
+    from hec_jax.realtime.config import RealtimeConfig
+
+    with pytest.raises(ValueError, match="pool_idle must be a bool"):
+        RealtimeConfig(pool_idle=1)
+    go = threading.Event()
+    other = threading.Thread(target=go.wait)
+    other.start()
+    try:
+        me, tid = threading.get_native_id(), other.native_id
+        assert os.sched_getscheduler(me) == os.sched_getscheduler(tid) == os.SCHED_OTHER
+        with realtime_priority(0, pool_idle=True) as p:
+            assert p.pool_idle
+            assert os.sched_getscheduler(tid) == os.SCHED_IDLE
+            assert os.sched_getscheduler(me) == os.SCHED_OTHER  # the loop keeps its own
+        assert os.sched_getscheduler(tid) == os.SCHED_OTHER
+        with realtime_priority(0) as p:  # off: nothing changes
+            assert not p.pool_idle and os.sched_getscheduler(tid) == os.SCHED_OTHER
+        # with real-time priority the pool runs one below the loop instead (not constructed
+        # here: entering it needs the privilege)
+        assert not realtime_priority(50, pool_idle=True).pool_idle
+    finally:
+        go.set()
+        other.join()
+
+
 def test_children_are_pinned_off_the_control_cpu_unless_the_eye_may_share_it():
     import os
     import subprocess

@@ -202,23 +202,38 @@ class realtime_priority:
     (``sched_rt_runtime_us``, 95% by default) still leaves the other processes some time if the
     loop spins. Threads started inside the block inherit the calling thread's.
 
+    ``pool_idle`` (with ``priority`` 0, where ``SCHED_FIFO`` is refused): every thread but the
+    calling one under ``SCHED_IDLE`` instead, which needs no privilege. The same order as above
+    among the process's threads: XLA's threads run while the loop waits for them and give way
+    the moment it is runnable (without it they share its CPU as equals and preempt it while it
+    spins for its next tick: docs/realtime.md, "XLA's pool under SCHED_IDLE"). But they then
+    wait behind every ordinary process on their CPU, and the loop waits for them: a loop whose
+    CPU is not its own alone (``pinned`` to an isolated CPU) stalls for another process's whole
+    burst there.
+
     Raises:
         PermissionError: not allowed to change the scheduling.
     """
 
-    def __init__(self, priority: int):
+    def __init__(self, priority: int, pool_idle: bool = False):
         if not 0 <= priority <= 99:
             raise ValueError(f"priority must be in 0..99, got {priority}")
         self.priority = int(priority)
+        self.pool_idle = bool(pool_idle) and not self.priority
 
     def __enter__(self):
         if self.priority:
             set_scheduling(os.SCHED_FIFO, max(self.priority - 1, 1))
             set_thread_scheduling(threading.get_native_id(), os.SCHED_FIFO, self.priority)
+        elif self.pool_idle:
+            me = threading.get_native_id()
+            for tid in _threads():
+                if tid != me:
+                    set_thread_scheduling(tid, os.SCHED_IDLE, 0)
         return self
 
     def __exit__(self, *exc):
-        if self.priority:
+        if self.priority or self.pool_idle:
             set_scheduling(os.SCHED_OTHER, 0)
 
 

@@ -46,6 +46,16 @@ class RealtimeConfig:
     # SCHED_FIFO priority of the control loop while it runs (1-99); 0: normal scheduling (other
     # processes on the machine may preempt the loop)
     rt_priority: int = 0
+    # with rt_priority 0 and pin_cpus: the control process's other threads (XLA's pool, which
+    # runs parts of each jitted step while the loop waits) under SCHED_IDLE while the loop runs,
+    # so they give way to the loop as they do one priority below it at SCHED_FIFO; needs no
+    # privilege. For a loop with a CPU of its own (isolated): without it, a loop spinning
+    # through its period is preempted by the pool about 2.5 times a tick. The hazard: while the
+    # loop waits for the pool, another process's burst on the loop's CPU stalls the pool, and so
+    # the loop, for the whole burst instead of a share of it. Measured (both) in
+    # docs/realtime.md, "XLA's pool under SCHED_IDLE". False: the pool at the loop's own
+    # scheduling
+    pool_idle: bool = False
     # [us] the CPUs' wake-up latency asked of the kernel while the loop runs (Linux PM QoS,
     # /dev/cpu_dma_latency; root): 0 makes idle CPUs poll instead of halting, as cyclictest
     # does. On the 2-core KVM guest this took the missed deadlines from 0.35-1.0% to 0.01-0.05%
@@ -191,6 +201,8 @@ class RealtimeConfig:
                 "eye_on_control_cpu needs pin_cpus and rt_priority > 0: without real-time "
                 "priority the eye would compete with the control loop for its CPU"
             )
+        if not isinstance(self.pool_idle, bool):
+            raise ValueError(f"pool_idle must be a bool, got {self.pool_idle!r}")
         if not (isinstance(self.child_nice, int) and -20 <= self.child_nice <= 19):
             raise ValueError(f"child_nice must be an integer in -20..19, got {self.child_nice}")
         if self.camera_msaa is not None and not (

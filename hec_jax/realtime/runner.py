@@ -927,7 +927,9 @@ def run_realtime(
             load["start"] = os.getloadavg()
             steal_start = host_steal_ms()
             latency = cpu_latency_request(rt.cpu_latency_us if rt.timed else None)
-            priority = realtime_priority(rt.rt_priority if rt.timed else 0)
+            priority = realtime_priority(
+                rt.rt_priority if rt.timed else 0, rt.pool_idle and control_cpus is not None
+            )
             others = set(os.sched_getaffinity(0)) - (control_cpus or set())
             filler = idle_filler(rt.idle_filler if control_cpus else None, others)
             with filler, pinned(control_cpus), priority, latency:
@@ -966,6 +968,8 @@ def run_realtime(
         **children,
         "cpus": os.cpu_count(),
         "rt_priority": rt.rt_priority if rt.timed else 0,
+        # the other threads under SCHED_IDLE while the loop ran (with rt_priority 0)
+        "pool_idle": priority.pool_idle,
         # the CPUs' wake-up latency asked of the kernel while the loop ran (None: nothing)
         "cpu_latency_us": rt.cpu_latency_us if rt.timed else None,
         # the other CPUs kept busy at SCHED_IDLE while the loop ran (None: not)
