@@ -29,7 +29,7 @@ from hec_jax.loop.config import (
     CameraDefects,
     ExperimentConfig,
 )
-from hec_jax.realtime.clock import cpu_latency_refused, realtime_refused
+from hec_jax.realtime.clock import cpu_latency_refused, pool_idle_refused, realtime_refused
 from hec_jax.realtime.config import RealtimeConfig
 
 
@@ -52,6 +52,9 @@ class RealtimeRun:
         if refused:
             raise ValueError(refused)
         refused = cpu_latency_refused(rt.cpu_latency_us if rt.timed else None)
+        if refused:
+            raise ValueError(refused)
+        refused = pool_idle_refused(rt.pool_idle and rt.timed and not rt.rt_priority)
         if refused:
             raise ValueError(refused)
 

@@ -643,32 +643,94 @@ def test_realtime_refused_says_why_and_leaves_the_scheduling(monkeypatch):
     assert "SCHED_FIFO 50" in why and "--rt-priority" in why
 
 
-def test_pool_idle_puts_the_other_threads_under_sched_idle_only_without_real_time_priority():
+def _waiting_thread():
+    """A started thread that waits on its event (set it, then join)."""
+    import threading
+
+    go = threading.Event()
+    t = threading.Thread(target=go.wait)
+    t.start()
+    return t, go
+
+
+def test_pool_idle_puts_the_other_threads_under_sched_idle_and_restores_their_own():
     import os
     import threading
 
-    from hec_jax.realtime.clock import realtime_priority
+    from hec_jax.realtime.clock import pool_idle_refused, realtime_priority
     from hec_jax.realtime.config import RealtimeConfig
 
     with pytest.raises(ValueError, match="pool_idle must be a bool"):
         RealtimeConfig(pool_idle=1)
-    go = threading.Event()
-    other = threading.Thread(target=go.wait)
-    other.start()
+    assert pool_idle_refused(False) is None
+    # with real-time priority the pool runs one below the loop instead (not entered here: it
+    # needs the privilege)
+    assert not realtime_priority(50, pool_idle=True).pool_idle
+    why = pool_idle_refused(True)
+    if why is not None:  # not root here: refused before a run, with the reason
+        assert "--pool-idle" in why and "nice limit" in why
+        pytest.skip("leaving SCHED_IDLE is not permitted here: " + why)
+    other, go = _waiting_thread()
+    batch, go_b = _waiting_thread()
     try:
         me, tid = threading.get_native_id(), other.native_id
+        os.sched_setscheduler(batch.native_id, os.SCHED_BATCH, os.sched_param(0))
         assert os.sched_getscheduler(me) == os.sched_getscheduler(tid) == os.SCHED_OTHER
         with realtime_priority(0, pool_idle=True) as p:
             assert p.pool_idle
+            assert os.sched_getscheduler(tid) == os.sched_getscheduler(batch.native_id)
             assert os.sched_getscheduler(tid) == os.SCHED_IDLE
             assert os.sched_getscheduler(me) == os.SCHED_OTHER  # the loop keeps its own
+        # each thread gets its own back (not SCHED_OTHER for all)
         assert os.sched_getscheduler(tid) == os.SCHED_OTHER
+        assert os.sched_getscheduler(batch.native_id) == os.SCHED_BATCH
         with realtime_priority(0) as p:  # off: nothing changes
             assert not p.pool_idle and os.sched_getscheduler(tid) == os.SCHED_OTHER
-        # with real-time priority the pool runs one below the loop instead (not constructed
-        # here: entering it needs the privilege)
-        assert not realtime_priority(50, pool_idle=True).pool_idle
+        with pytest.raises(KeyError), realtime_priority(0, pool_idle=True):
+            raise KeyError("the run failed")  # restored on the way out, the error kept
+        assert os.sched_getscheduler(tid) == os.SCHED_OTHER
     finally:
+        go.set()
+        go_b.set()
+        other.join()
+        batch.join()
+
+
+def test_pool_idle_that_cannot_be_undone_is_refused_before_a_run_and_raises_on_exit(
+    monkeypatch,
+):
+    import contextlib
+    import os
+
+    from hec_jax.realtime import clock
+
+    real = os.sched_setscheduler
+    # this process's threads can be put back for real afterwards (else only the refusal)
+    privileged = clock.pool_idle_refused(True) is None
+    before = {t: (os.sched_getscheduler(t), os.sched_getparam(t)) for t in clock._threads()}
+
+    def unprivileged(tid, policy, param):  # as Linux without CAP_SYS_NICE or a nice limit
+        if policy != os.SCHED_IDLE and clock.os.sched_getscheduler(tid) == os.SCHED_IDLE:
+            raise PermissionError(1, "Operation not permitted")
+        real(tid, policy, param)
+
+    monkeypatch.setattr(clock.os, "sched_setscheduler", unprivileged)
+    why = clock.pool_idle_refused(True)
+    assert why is not None and "--pool-idle" in why and "not permitted" in why
+    if not privileged:
+        return
+    other, go = _waiting_thread()
+    try:
+        with pytest.raises(PermissionError, match="stay under SCHED_IDLE"):
+            with clock.realtime_priority(0, pool_idle=True):
+                pass
+        with pytest.raises(KeyError):  # an error on its way is not replaced
+            with clock.realtime_priority(0, pool_idle=True):
+                raise KeyError("the run failed")
+    finally:
+        for tid, (policy, param) in before.items():  # this process's threads put back
+            with contextlib.suppress(ProcessLookupError):
+                real(tid, policy, param)
         go.set()
         other.join()
 

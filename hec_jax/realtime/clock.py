@@ -203,16 +203,18 @@ class realtime_priority:
     loop spins. Threads started inside the block inherit the calling thread's.
 
     ``pool_idle`` (with ``priority`` 0, where ``SCHED_FIFO`` is refused): every thread but the
-    calling one under ``SCHED_IDLE`` instead, which needs no privilege. The same order as above
-    among the process's threads: XLA's threads run while the loop waits for them and give way
-    the moment it is runnable (without it they share its CPU as equals and preempt it while it
-    spins for its next tick: docs/realtime.md, "XLA's pool under SCHED_IDLE"). But they then
-    wait behind every ordinary process on their CPU, and the loop waits for them: a loop whose
-    CPU is not its own alone (``pinned`` to an isolated CPU) stalls for another process's whole
-    burst there.
+    calling one under ``SCHED_IDLE`` instead. The same order as above among the process's
+    threads: XLA's threads run while the loop waits for them and give way the moment it is
+    runnable (without it they share its CPU as equals and preempt it while it spins for its next
+    tick: docs/realtime.md, "XLA's pool under SCHED_IDLE"). But they then wait behind every
+    ordinary process on their CPU, and the loop waits for them: a loop whose CPU is not its own
+    alone (``pinned`` to an isolated CPU) stalls for another process's whole burst there. On
+    exit each thread gets its own scheduling back, which Linux allows only with CAP_SYS_NICE or
+    a nice limit (RLIMIT_NICE) of 20: :func:`pool_idle_refused` says beforehand.
 
     Raises:
-        PermissionError: not allowed to change the scheduling.
+        PermissionError: not allowed to change the scheduling (on exit, with ``pool_idle``: not
+            allowed to restore a thread's, unless an exception is already on its way).
     """
 
     def __init__(self, priority: int, pool_idle: bool = False):
@@ -220,6 +222,7 @@ class realtime_priority:
             raise ValueError(f"priority must be in 0..99, got {priority}")
         self.priority = int(priority)
         self.pool_idle = bool(pool_idle) and not self.priority
+        self._saved: dict[int, tuple[int, int]] = {}
 
     def __enter__(self):
         if self.priority:
@@ -228,13 +231,31 @@ class realtime_priority:
         elif self.pool_idle:
             me = threading.get_native_id()
             for tid in _threads():
-                if tid != me:
-                    set_thread_scheduling(tid, os.SCHED_IDLE, 0)
+                if tid == me:
+                    continue
+                with contextlib.suppress(ProcessLookupError):
+                    saved = os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority
+                    os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+                    self._saved[tid] = saved
         return self
 
-    def __exit__(self, *exc):
-        if self.priority or self.pool_idle:
+    def __exit__(self, exc_type, *exc):
+        if self.priority:
             set_scheduling(os.SCHED_OTHER, 0)
+        failed = []
+        for tid, (policy, prio) in self._saved.items():
+            try:
+                os.sched_setscheduler(tid, policy, os.sched_param(prio))
+            except ProcessLookupError:
+                pass
+            except PermissionError:
+                failed.append(tid)
+        self._saved = {}
+        if failed and exc_type is None:
+            raise PermissionError(
+                f"{len(failed)} threads stay under SCHED_IDLE: leaving it needs CAP_SYS_NICE or a "
+                "nice limit of 20 (pool_idle_refused says so before a run)"
+            )
 
 
 # the kernel's real-time bandwidth (Linux): real-time threads of a CPU run at most
@@ -304,6 +325,35 @@ def realtime_refused(priority: int) -> str | None:
             " run without --rt-priority, --camera-priority and --eye-priority"
         )
     os.sched_setscheduler(0, policy, param)
+    return None
+
+
+def pool_idle_refused(pool_idle: bool) -> str | None:
+    """Why :class:`realtime_priority`'s ``pool_idle`` cannot be undone here, as one line (None:
+    it can, or ``pool_idle`` is False). A thread is put under ``SCHED_IDLE`` and back at once:
+    leaving it needs CAP_SYS_NICE or a nice limit (RLIMIT_NICE) of 20.
+    """
+    if not pool_idle or not hasattr(os, "SCHED_IDLE"):
+        return None if not pool_idle else "SCHED_IDLE needs Linux: run without --pool-idle"
+    why: list[str] = []
+
+    def probe():
+        tid = threading.get_native_id()
+        policy, param = os.sched_getscheduler(tid), os.sched_getparam(tid)
+        os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+        try:
+            os.sched_setscheduler(tid, policy, param)
+        except PermissionError as err:
+            why.append(err.strerror)
+
+    t = threading.Thread(target=probe)  # a thread of its own: one left idle harms nothing
+    t.start()
+    t.join()
+    if why:
+        return (
+            f"--pool-idle could not be undone here ({why[0]}): leaving SCHED_IDLE needs "
+            "CAP_SYS_NICE or a nice limit (ulimit -e) of 20; run without --pool-idle"
+        )
     return None
 
 

@@ -48,13 +48,14 @@ class RealtimeConfig:
     rt_priority: int = 0
     # with rt_priority 0 and pin_cpus: the control process's other threads (XLA's pool, which
     # runs parts of each jitted step while the loop waits) under SCHED_IDLE while the loop runs,
-    # so they give way to the loop as they do one priority below it at SCHED_FIFO; needs no
-    # privilege. For a loop with a CPU of its own (isolated): without it, a loop spinning
-    # through its period is preempted by the pool about 2.5 times a tick. The hazard: while the
-    # loop waits for the pool, another process's burst on the loop's CPU stalls the pool, and so
-    # the loop, for the whole burst instead of a share of it. Measured (both) in
+    # so they give way to the loop as they do one priority below it at SCHED_FIFO. Entering it
+    # needs no privilege, undoing it CAP_SYS_NICE or a nice limit of 20 (a run checks first:
+    # clock.pool_idle_refused). For a loop with a CPU of its own (isolated): without it, a loop
+    # spinning through its period is preempted by the pool about 2.5 times a tick. The hazard:
+    # while the loop waits for the pool, another process's burst on the loop's CPU stalls the
+    # pool, and so the loop, for the whole burst instead of a share of it. Measured (both) in
     # docs/realtime.md, "XLA's pool under SCHED_IDLE". False: the pool at the loop's own
-    # scheduling
+    # scheduling. Ignored with rt_priority > 0 (the pool then runs one priority below the loop)
     pool_idle: bool = False
     # [us] the CPUs' wake-up latency asked of the kernel while the loop runs (Linux PM QoS,
     # /dev/cpu_dma_latency; root): 0 makes idle CPUs poll instead of halting, as cyclictest

@@ -72,6 +72,7 @@ from hec_jax.realtime.clock import (
     monotonic_s,
     pin_process,
     pinned,
+    pool_idle_refused,
     realtime_priority,
     rt_budget_rest_s,
 )
@@ -870,7 +871,8 @@ def run_realtime(
     Raises:
         ValueError: un-timed mode with the camera (the camera loop in simulated time is
             :func:`hec_jax.loop.run_camera`); ``eye="paper"``; with ``eye="camera"``, camera
-            defects (simulated time only).
+            defects (simulated time only); ``rt.pool_idle`` where it could not be undone
+            (:func:`~hec_jax.realtime.clock.pool_idle_refused`).
     """
     rt = RealtimeConfig() if rt is None else rt
     exp = realtime_experiment(exp, rt)
@@ -881,6 +883,9 @@ def run_realtime(
     # the camera (unused with the truth eye) has no defects in real time
     if exp.eye == "camera" and exp.camera.applied_defects != CameraDefects():
         raise ValueError(REALTIME_DEFECTS)
+    refused = pool_idle_refused(rt.pool_idle and rt.timed and rt.pin_cpus and not rt.rt_priority)
+    if refused:
+        raise ValueError(refused)
     task = exp.task
     loop = build_loop(task)
     key = jax.random.split(jax.random.PRNGKey(exp.seed), 1)[0]
