@@ -54,7 +54,9 @@ class RealtimeRun:
         refused = cpu_latency_refused(rt.cpu_latency_us if rt.timed else None)
         if refused:
             raise ValueError(refused)
-        refused = pool_idle_refused(rt.pool_idle and rt.timed and not rt.rt_priority)
+        refused = pool_idle_refused(
+            rt.pool_idle and rt.timed and rt.pin_cpus and not rt.rt_priority
+        )
         if refused:
             raise ValueError(refused)
 
