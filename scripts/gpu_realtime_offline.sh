@@ -14,6 +14,9 @@ tag=${1:?usage: scripts/gpu_realtime_offline.sh TAG [RUNS] [flags]}
 n=${2:-1}
 shift $(($# < 2 ? $# : 2))
 out=${OUT:?set OUT to the output folder}
+# the loaders go into /: only on the GPU machine it is meant for
+command -v nvidia-smi >/dev/null || { echo "nvidia-smi not found: this is for a GPU machine" >&2; exit 1; }
+[ "$(id -u)" = 0 ] || { echo "needs root (the GL loaders are unpacked into /)" >&2; exit 1; }
 mkdir -p "$out"
 for f in .gl/*.deb; do dpkg -x "$f" /; done
 ldconfig
