@@ -54,9 +54,7 @@ class RealtimeRun:
         refused = cpu_latency_refused(rt.cpu_latency_us if rt.timed else None)
         if refused:
             raise ValueError(refused)
-        refused = pool_idle_refused(
-            rt.pool_idle and rt.timed and rt.pin_cpus and not rt.rt_priority
-        )
+        refused = pool_idle_refused(rt.pool_idle_applies)
         if refused:
             raise ValueError(refused)
 

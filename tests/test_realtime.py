@@ -663,6 +663,14 @@ def test_pool_idle_puts_the_other_threads_under_sched_idle_and_restores_their_ow
     with pytest.raises(ValueError, match="pool_idle must be a bool"):
         RealtimeConfig(pool_idle=1)
     assert pool_idle_refused(False) is None
+    assert RealtimeConfig(pool_idle=True).pool_idle_applies
+    for off in (
+        dict(pool_idle=False),
+        dict(rt_priority=50),
+        dict(timed=False),
+        dict(pin_cpus=False),
+    ):
+        assert not RealtimeConfig(**{"pool_idle": True, **off}).pool_idle_applies
     # with real-time priority the pool runs one below the loop instead (not entered here: it
     # needs the privilege)
     assert not realtime_priority(50, pool_idle=True).pool_idle

@@ -333,8 +333,10 @@ def pool_idle_refused(pool_idle: bool) -> str | None:
     it can, or ``pool_idle`` is False). A thread is put under ``SCHED_IDLE`` and back at once:
     leaving it needs CAP_SYS_NICE or a nice limit (RLIMIT_NICE) of 20.
     """
-    if not pool_idle or not hasattr(os, "SCHED_IDLE"):
-        return None if not pool_idle else "SCHED_IDLE needs Linux: run without --pool-idle"
+    if not pool_idle:
+        return None
+    if not hasattr(os, "SCHED_IDLE"):
+        return "SCHED_IDLE needs Linux: run without --pool-idle"
     why: list[str] = []
 
     def probe():

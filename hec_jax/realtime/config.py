@@ -164,6 +164,11 @@ class RealtimeConfig:
     # frames (docs/realtime.md, "The other CPU kept busy": not shown to help the loop)
     idle_filler: Literal["spin", "memory"] | None = None
 
+    @property
+    def pool_idle_applies(self) -> bool:
+        """``pool_idle`` takes effect: set, timed, pinned and without real-time priority."""
+        return self.pool_idle and self.timed and self.pin_cpus and not self.rt_priority
+
     def __post_init__(self):
         if self.duration_s is not None and not (
             math.isfinite(self.duration_s) and self.duration_s > 0

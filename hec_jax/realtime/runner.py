@@ -883,7 +883,7 @@ def run_realtime(
     # the camera (unused with the truth eye) has no defects in real time
     if exp.eye == "camera" and exp.camera.applied_defects != CameraDefects():
         raise ValueError(REALTIME_DEFECTS)
-    refused = pool_idle_refused(rt.pool_idle and rt.timed and rt.pin_cpus and not rt.rt_priority)
+    refused = pool_idle_refused(rt.pool_idle_applies)
     if refused:
         raise ValueError(refused)
     task = exp.task
