@@ -932,8 +932,9 @@ def run_realtime(
             load["start"] = os.getloadavg()
             steal_start = host_steal_ms()
             latency = cpu_latency_request(rt.cpu_latency_us if rt.timed else None)
+            # pool_idle where it applies (the condition checked above) and the CPUs got pinned
             priority = realtime_priority(
-                rt.rt_priority if rt.timed else 0, rt.pool_idle and control_cpus is not None
+                rt.rt_priority if rt.timed else 0, rt.pool_idle_applies and control_cpus is not None
             )
             others = set(os.sched_getaffinity(0)) - (control_cpus or set())
             filler = idle_filler(rt.idle_filler if control_cpus else None, others)
