@@ -30,7 +30,10 @@ Methods, on the same frames:
   defaults, which the hand-eye loop uses, have them off): its
   offline smoothed output and its causal one (``BoxTracker``); the smoothed row's time per frame
   is the causal tracker's plus the smoother's (``timing_ms["smoothing_ms"]``, since 2026-12-04;
-  before, the causal time alone);
+  before, the causal time alone); with ``--extend-backward`` (off by default) the offline pass
+  also tracks backward from re-acquisitions (``hec_jax.geometry.backward``, its time in the
+  smoother's), the smoothed row counts ``BoxTrack.offline_valid`` frames and keeps the forward
+  tracker's acquisition;
 * ``opencv_pnp``: the visible face as a quadrilateral (``baselines.face_quad``) and
   ``cv2.solvePnP(IPPE_SQUARE)`` per frame, velocity by differences;
 * ``paper``: the paper's two-frame method (Eqs. 1-38, closed form) on the face's opposite sides in
@@ -145,6 +148,11 @@ class EyeRandomized:
     # fit's steps checked")
     hinge_step_check: bool = SMOOTH.hinge_step_check
     hinge_iters: int = SMOOTH.hinge_iters
+    # SmootherConfig.extend_backward (the preset's, off): the offline pass also tracks backward
+    # from each re-acquisition the whole-track model explains (hec_jax.geometry.backward); the
+    # smoothed row's frames are then BoxTrack.offline_valid, its acquisition still the forward
+    # tracker's (docs/eye_randomized.md, "Tracking backward from each re-acquisition")
+    extend_backward: bool = SMOOTH.extend_backward
 
     def __post_init__(self):
         require(self, "count", "sequences", "width", "height", "threads")
@@ -214,6 +222,7 @@ def smoother_config(a: EyeRandomized):
         hinge_max_cost=a.hinge_max_cost,
         hinge_step_check=a.hinge_step_check,
         hinge_iters=a.hinge_iters,
+        extend_backward=a.extend_backward,
     )
 
 
@@ -233,10 +242,16 @@ def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:
     t_smoothed_ms = t_ms + tr.timing_ms["smoothing_ms"]  # the offline smoother's time added
     pnp = pnp_face_track(seq.frames, k, size, a.fps, bg)
     paper = paper_two_frame_track(pnp.quads, k, size, a.fps)
-    res = {
-        "tracker": accuracy.sequence_errors(
+    smoothed = accuracy.sequence_errors(
+        tr.position, tr.pose_rotation, tr.velocity, tr.offline_valid, seq, vis, t_smoothed_ms
+    )
+    if tr.backward_filled.any():  # acquisition is online: the forward tracker's frames only
+        forward = accuracy.sequence_errors(
             tr.position, tr.pose_rotation, tr.velocity, tr.valid, seq, vis, t_smoothed_ms
-        ),
+        )
+        smoothed["acquire_delay"] = forward["acquire_delay"]
+    res = {
+        "tracker": smoothed,
         "tracker_causal": accuracy.sequence_errors(
             tr.causal_position,
             tr.causal_pose_rotation,
@@ -285,6 +300,8 @@ def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:
             "vel_frames": vel_frames,
         }
     summary["tracker"]["search_skipped"] = int(tr.search_skipped.sum())
+    summary["tracker"]["backward_filled"] = int(tr.backward_filled.sum())
+    summary["tracker"]["backward_ms"] = tr.timing_ms["backward_ms"]
     kinds = accuracy.frame_kinds(tr.valid, tr.fit_source, tr.initialised, tr.search_skipped)
     summary["tracker"]["time_by_kind"] = accuracy.time_by_kind(kinds, tr.frame_ms)
     res["tracker"] |= {"frame_kinds": kinds, "frame_ms": tr.frame_ms}

@@ -260,6 +260,10 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     assert two.blob_scales == (2.0, 3.0)
     with pytest.raises(SystemExit):
         parse(bench.EyeRandomized(), ["--blob-scales", "0"])
+    # the guarded backward pass: off by default, on with its flag
+    assert not smooth.extend_backward
+    back = bench.smoother_config(parse(bench.EyeRandomized(), ["--extend-backward"]))
+    assert back == dataclasses.replace(smooth, extend_backward=True)
 
 
 def test_a_folder_of_another_sweep_is_refused_up_front(tmp_path, capsys):
@@ -728,3 +732,26 @@ def test_the_eye_benchmark_s_splits_give_their_seeds():
         scene = draw_scene(seed)
         assert (seed in low) == (scene.look == "low_contrast" and scene.elevation_deg < 12)
     assert seeds("--split", "dev-low-views", "--sequences", "2", "--first", "1") == low[1:]
+
+
+def test_the_eye_benchmark_counts_backward_frames_but_not_as_an_acquisition():
+    """``benchmarks/eye_randomized.py --extend-backward`` on development scene 5, where the
+    forward tracker finds the cube 2 frames after it is fully visible (session 70's scratch run:
+    the backward pass fills the frames before): the smoothed row gains the filled frames and
+    keeps the forward acquisition; the causal row and the baselines are the same."""
+    from hec_jax.cli import parse
+
+    bench = _script("benchmarks/eye_randomized.py")
+    off = parse(bench.EyeRandomized(), ["--split", "dev"])
+    on = dataclasses.replace(off, extend_backward=True)
+    (res_off, sum_off), (res_on, sum_on) = (bench.run_sequence(5, a) for a in (off, on))
+    filled = sum_on["tracker"]["backward_filled"]
+    assert filled >= 1 and sum_off["tracker"]["backward_filled"] == 0
+    assert sum_on["tracker"]["backward_ms"] > 0.0 == sum_off["tracker"]["backward_ms"]
+    assert sum_on["tracker"]["valid_visible"] == sum_off["tracker"]["valid_visible"] + filled
+    assert sum_off["tracker"]["acquire_delay"] >= 1  # the frames before were not found forward
+    assert sum_on["tracker"]["acquire_delay"] == sum_off["tracker"]["acquire_delay"]
+    assert sum_on["tracker"]["gross"] == sum_off["tracker"]["gross"] == 0
+    for name in ("tracker_causal", "opencv_pnp", "paper"):
+        for key in ("acquire_delay", "valid_visible", "gross", "pos_median_mm"):
+            assert sum_on[name][key] == sum_off[name][key], (name, key)

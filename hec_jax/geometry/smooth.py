@@ -164,6 +164,14 @@ class SmootherConfig:
         jump_slack_m: the fits' own error allowed on top of that distance [m]: at 0.1, a jump
             between two fits means at least one of them is over 5 cm off (the benchmark's
             gross error) when the speed bound holds.
+        extend_backward: after smoothing, track backward in time from each re-acquisition that
+            the accepted whole-track model explains, and smooth again with the frames found,
+            keeping only those the model counts as inliers (:mod:`hec_jax.geometry.backward`).
+            Offline only: read by :func:`hec_jax.geometry.track.track_box`, which has the
+            frames; :func:`smooth_track` ignores it. Needs ``hinge_whole_track`` to find
+            anything. False (the default, and :data:`NO_EXTRAPOLATION`'s): chosen on the
+            randomized benchmark's development seeds 0-199 and not yet tried on a held-out
+            range (docs/eye_randomized.md, "Tracking backward from each re-acquisition").
     """
 
     angular_accel_psd: float = 20.0
@@ -183,6 +191,7 @@ class SmootherConfig:
     hinge_min_frames: int = 8
     max_speed_m_s: float | None = None
     jump_slack_m: float = 0.1
+    extend_backward: bool = False
 
 
 # The smoother of the randomized benchmark (``benchmarks/eye_randomized.py``): no extrapolation
@@ -201,6 +210,8 @@ class SmoothedTrack(NamedTuple):
     otherwise; None from the per-segment pass); jump_rejected (T,) bool, valid frames whose fit
     the jump test (``SmootherConfig.max_speed_m_s``) took as wrong: their state is bridged
     from the fits around them (all False where the test is off; None from the per-segment
+    pass); hinge_modelled (T,) bool, the frames that took the accepted whole-track model's
+    state (``SmootherConfig.hinge_whole_track``; all False otherwise; None from the per-segment
     pass).
     """
 
@@ -214,6 +225,7 @@ class SmoothedTrack(NamedTuple):
     hinge_cost: Array
     hinge_outlier: Array | None = None
     jump_rejected: Array | None = None
+    hinge_modelled: Array | None = None
 
 
 SINGULAR_TT = 1e-9  # a frame's Lambda_tt whose eigenvalues span more than 1 / this is singular
@@ -637,17 +649,23 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
         np.float64(np.nan),
         np.zeros(t_n, bool),
         np.zeros(t_n, bool),
+        np.zeros(t_n, bool),
     )
     idx = np.flatnonzero(valid)
     if idx.size < 4:
         return out
     if cfg.max_gap_s is None and not split and cfg.max_speed_m_s is None:
         seg = _smooth_segment(rotations, positions, information, valid, dt, cfg)
-        out = seg._replace(hinge_outlier=np.zeros(t_n, bool), jump_rejected=np.zeros(t_n, bool))
+        out = seg._replace(
+            hinge_outlier=np.zeros(t_n, bool),
+            jump_rejected=np.zeros(t_n, bool),
+            hinge_modelled=np.zeros(t_n, bool),
+        )
         if cfg.hinge and cfg.hinge_whole_track:
-            out, _ = _whole_track(
+            out, modelled = _whole_track(
                 out, rotations, positions, information, valid, [(0, t_n)], dt, cfg
             )
+            out = out._replace(hinge_modelled=modelled)
         return out
     gap = t_n if cfg.max_gap_s is None else max(int(np.floor(cfg.max_gap_s / dt + 1e-9)), 1)
     rejected = np.zeros(t_n, bool)
@@ -702,6 +720,7 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
             out, rotations, positions, information, valid, model_segments, dt, cfg
         )
         inside |= modelled  # the model's state across a jump inside a segment it agrees with
+        out = out._replace(hinge_modelled=modelled)
     # frames outside every segment hold the nearest segment end (no extrapolation)
     for t in np.flatnonzero(~inside):
         e = ends_all[np.argmin(np.abs(ends_all - t))]
@@ -769,11 +788,16 @@ def _jumps(positions: np.ndarray, idx: np.ndarray, dt: float, cfg: SmootherConfi
 
 
 def _unsplit(cfg: SmootherConfig) -> SmootherConfig:
-    """``cfg`` with the fields that only split segments (not used inside the jitted fits) at
-    their defaults: one compilation for all their values.
+    """``cfg`` with the fields that only split segments or act outside the smoother (not used
+    inside the jitted fits) at their defaults: one compilation for all their values.
     """
     return dataclasses.replace(
-        cfg, max_gap_s=None, split_at_restarts=False, max_speed_m_s=None, jump_slack_m=0.1
+        cfg,
+        max_gap_s=None,
+        split_at_restarts=False,
+        max_speed_m_s=None,
+        jump_slack_m=0.1,
+        extend_backward=False,
     )
 
 

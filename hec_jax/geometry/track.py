@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from hec_jax.geometry import detect
+from hec_jax.geometry import backward, detect
 from hec_jax.geometry import filter as kf
 from hec_jax.geometry.box_model import (
     EDGE_FACES,
@@ -1274,7 +1274,9 @@ class BoxTrack(NamedTuple):
         segments: (T, M, 2, 2) the associated segments (clipped) [px], NaN where unassigned.
         edge_ids: (T, M) their model edge ids (-1 where unassigned).
         timing_ms: dict of mean per-frame times [ms]: detection, estimation (incl. the causal
-            filter), total = detection + estimation, smoothing (offline pass, per frame).
+            filter), total = detection + estimation, smoothing (offline pass, per frame,
+            the backward pass included), backward (that pass alone; 0 unless
+            ``SmootherConfig.extend_backward``).
         hinge: bool, the main fields come from the fixed-axis model (:func:`smooth.fit_hinge`).
         hinge_axis: (3,) its unit axis in the camera frame (NaN if not fitted).
         causal_pose_rotation: (T, 3, 3) R_cam_box of the per-frame fits (coasted where not valid;
@@ -1289,6 +1291,14 @@ class BoxTrack(NamedTuple):
         fit_source: (T,) str, ``TrackStep.fit_source`` ("" where not valid).
         initialised: (T,) bool, ``TrackStep.initialised``: the causal filter holds a state
             after the frame (an invalid frame with it set failed while the track ran).
+        offline_valid: (T,) bool, the frames the main (offline) fields rest on a fit of:
+            ``valid`` plus ``backward_filled``. The same as ``valid`` unless
+            ``SmootherConfig.extend_backward``.
+        backward_filled: (T,) bool, frames not valid forward whose fit the guarded backward
+            pass found and kept (:mod:`hec_jax.geometry.backward`; offline, no online
+            acquisition; all False unless ``SmootherConfig.extend_backward``). Their
+            ``measured_position``, ``information`` and the other per-frame fields stay the
+            forward tracker's.
     """
 
     position: np.ndarray
@@ -1316,6 +1326,8 @@ class BoxTrack(NamedTuple):
     frame_ms: np.ndarray
     fit_source: np.ndarray
     initialised: np.ndarray
+    offline_valid: np.ndarray | None = None
+    backward_filled: np.ndarray | None = None
 
 
 def cube_symmetries() -> np.ndarray:
@@ -1808,6 +1820,62 @@ class BoxTracker:
                 else:  # no angular velocity is known over a longer gap: stop turning
                     self._rot_prev2 = None
             self._frame += 1
+
+    def reverse_time(
+        self,
+        position,
+        velocity,
+        acceleration,
+        covariance,
+        rotation,
+        following_rotation=None,
+    ) -> None:
+        """Run the track backward in time from here: the following :meth:`update` calls take
+        the frames before the last processed one, latest first (offline only,
+        :mod:`hec_jax.geometry.backward`).
+
+        The filter is set to the given state with its velocity negated (time reversed; the
+        acceleration keeps its sign) and the covariance ``T P T`` with ``T`` negating the
+        velocity block; the rotation history to ``rotation`` and, one frame earlier in reversed
+        time, ``following_rotation`` (so the coasted angular velocity is reversed too). The
+        track counts as running (no misses). The frame count moves on as before: each frame of
+        reversed time is one frame later for the loss gate.
+
+        Args:
+            position: (3,) the box's centre at the last processed frame [m] (e.g. a
+                smoother's).
+            velocity: (3,) its velocity in forward time [m/s].
+            acceleration: (3,) its acceleration [m/s^2].
+            covariance: (9, 9) its covariance in forward time (position, velocity, acceleration).
+            rotation: (3, 3) R_cam_box at the last processed frame.
+            following_rotation: (3, 3) R_cam_box one frame after it in forward time, or None.
+
+        Raises:
+            ValueError: arguments of the wrong shape or not finite.
+        """
+        mean = np.concatenate([np.ravel(position), -np.ravel(velocity), np.ravel(acceleration)])
+        cov = np.asarray(covariance, np.float64)
+        rotation = np.asarray(rotation, np.float64)
+        if mean.shape != (9,) or cov.shape != (9, 9) or rotation.shape != (3, 3):
+            raise ValueError(
+                "reverse_time needs (3,) position, velocity, acceleration, (9, 9) covariance "
+                f"and (3, 3) rotation; got {mean.shape} state, {cov.shape}, {rotation.shape}"
+            )
+        if following_rotation is not None:
+            following_rotation = np.asarray(following_rotation, np.float64)
+            if following_rotation.shape != (3, 3):
+                raise ValueError(
+                    f"following_rotation must be (3, 3), got {following_rotation.shape}"
+                )
+        if not (np.isfinite(mean).all() and np.isfinite(cov).all() and np.isfinite(rotation).all()):
+            raise ValueError("reverse_time needs a finite state, covariance and rotation")
+        flip = np.diag([1.0, 1, 1, -1, -1, -1, 1, 1, 1])
+        cov = flip @ cov @ flip
+        f, q = self._f, self._q
+        self._state = kf.FilterState(mean, cov)
+        self._predicted = kf.FilterState(f @ mean, f @ cov @ f.T + q)
+        self._rot_prev, self._rot_prev2 = rotation, following_rotation
+        self._misses, self._started = 0, True
 
     def _acquire(self, gray, gate):
         """Search from scratch: (prior (R, t), segments, mask, texture) of the best valid
@@ -2643,7 +2711,9 @@ def track_box(
         size: the cube's edge [m].
         fps: frame rate [1/s].
         config: tracker parameters.
-        smoother: offline smoother parameters (default: ``SmootherConfig()``).
+        smoother: offline smoother parameters (default: ``SmootherConfig()``); with its
+            ``extend_backward`` the offline pass also tracks backward from re-acquisitions
+            (:mod:`hec_jax.geometry.backward`).
         background: the static scene without the box ((H, W) gray or (H, W, 3) RGB uint8), or
             None: then the per-pixel median of the sequence (5 frames or more) is used.
 
@@ -2663,7 +2733,11 @@ def track_box(
     if background is None and t_n >= 5:
         background = detect.background_model(frames)
     tracker = BoxTracker(intrinsics, size, fps, cfg, background)
-    steps = [tracker.update(f) for f in frames]
+    steps, snapshots = [], []
+    for f in frames:
+        steps.append(tracker.update(f))
+        if scfg.extend_backward:
+            snapshots.append(tracker.snapshot())
     valid = np.array([s.valid for s in steps], bool)
     stack = lambda name: np.stack([getattr(s, name) for s in steps])  # noqa: E731
     out = {
@@ -2697,6 +2771,34 @@ def track_box(
         scfg,
         restarts=out["restarted"],
     )
+    filled = np.zeros(t_n, bool)
+    t_backward = 0.0
+    if scfg.extend_backward:
+        t4 = time.perf_counter()
+        fits = backward.Fits(
+            valid,
+            causal_pose_rotation,
+            out["measured_position"],
+            out["information"],
+            out["restarted"],
+        )
+
+        def track_backward(start, end, state):
+            # the tracker as it was after the segment's first frame, its time reversed; the
+            # covariance of a few frames into the segment (settled after the re-acquisition)
+            tracker.restore(snapshots[start])
+            settled = snapshots[min(start + 3, end)]["_state"].cov
+            following = steps[start + 1].pose_rotation if start + 1 <= end else None
+            tracker.reverse_time(*state, settled, steps[start].pose_rotation, following)
+            for t in range(start - 1, -1, -1):
+                st = tracker.update(frames[t])
+                yield backward.BackwardFit(
+                    bool(st.valid), st.pose_rotation, st.measured_position, st.information
+                )
+
+        fill = backward.guarded_backward_fill(fits, 1.0 / fps, scfg, track_backward, first=sm)
+        sm, filled = fill.smoothed, fill.filled
+        t_backward = time.perf_counter() - t4
     t_smooth = time.perf_counter() - t3
 
     def relative(pose_rotation):
@@ -2708,7 +2810,8 @@ def track_box(
         key: float(np.mean([s.timing_ms[key] for s in steps]))
         for key in ("detection_ms", "estimation_ms")
     }
-    timing["smoothing_ms"] = 1e3 * t_smooth / t_n
+    timing["smoothing_ms"] = 1e3 * t_smooth / t_n  # the backward pass included
+    timing["backward_ms"] = 1e3 * t_backward / t_n
     timing["total_ms"] = timing["detection_ms"] + timing["estimation_ms"]
     return BoxTrack(
         position=sm.position,
@@ -2721,5 +2824,7 @@ def track_box(
         hinge=np.bool_(sm.hinge),
         hinge_axis=np.asarray(sm.hinge_axis),
         causal_pose_rotation=causal_pose_rotation,
+        offline_valid=valid | filled,
+        backward_filled=filled,
         **out,
     )
