@@ -169,9 +169,10 @@ class SmootherConfig:
             keeping only those the model counts as inliers (:mod:`hec_jax.geometry.backward`).
             Offline only: read by :func:`hec_jax.geometry.track.track_box`, which has the
             frames; :func:`smooth_track` ignores it. Needs ``hinge_whole_track`` to find
-            anything. False (the default, and :data:`NO_EXTRAPOLATION`'s): chosen on the
-            randomized benchmark's development seeds 0-199 and not yet tried on a held-out
-            range (docs/eye_randomized.md, "Tracking backward from each re-acquisition").
+            anything. It trusts that model: frames it admits are as far off as the model.
+            False (the default, and :data:`NO_EXTRAPOLATION`'s): on the randomized
+            benchmark's fresh range it added valid frames and a few gross ones
+            (docs/eye_randomized.md, "Tracking backward from each re-acquisition").
     """
 
     angular_accel_psd: float = 20.0
