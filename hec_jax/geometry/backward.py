@@ -15,8 +15,8 @@ pendulum model the smoother fits over the whole track (``SmootherConfig.hinge_wh
    segment took the model's state (``SmoothedTrack.hinge_modelled`` at its first frame);
 2. the track is smoothed again with the frames found; a found frame is kept only if that
    smoothing accepted the model again and counts the frame as an inlier
-   (``hinge_modelled`` and not ``hinge_outlier``); if any is dropped, the track is smoothed once
-   more without them.
+   (``hinge_modelled``, and neither ``hinge_outlier`` nor ``jump_rejected``); if any is
+   dropped, the track is smoothed once more without them.
 
 The frames a causal tracker found are never changed or dropped: the pass adds frames, and only in
 the gaps before a valid segment. It is offline: a found frame is no online acquisition.
@@ -42,7 +42,7 @@ class Fits(NamedTuple):
     Attributes:
         valid: (T,) bool, the frame's fit passed the tracker's checks.
         pose_rotation: (T, 3, 3) R_cam_box of the fit (any rotation where not valid).
-        position: (T, 3) the fit's centre [m] (any finite value where not valid).
+        position: (T, 3) the fit's centre [m] (any value, NaN included, where not valid).
         information: (T, 6, 6) information of the fit over (dw, dt) [1/rad^2, 1/m^2].
         restarted: (T,) bool, the frames where a new filter started (``TrackStep.restarted``).
     """
@@ -153,6 +153,9 @@ def guarded_backward_fill(
         if np.shape(getattr(fits, name)) != shape:
             raise ValueError(f"fits.{name} has shape {np.shape(getattr(fits, name))}, not {shape}")
 
+    given = fits
+    fits = fits._replace(valid=valid, restarted=np.asarray(fits.restarted, bool))
+
     def smooth(f: Fits) -> SmoothedTrack:
         rot = np.array(f.pose_rotation, np.float64)
         if f.valid.any():  # before the first valid frame, its rotation (track_box's convention)
@@ -183,7 +186,7 @@ def guarded_backward_fill(
             if t < 0 or valid[t]:
                 break
     if not filled.any():
-        return BackwardFill(fits, filled, first, first, tried, 0)
+        return BackwardFill(given, filled, first, first, tried, 0)
 
     def merged(keep: np.ndarray) -> Fits:
         return Fits(
@@ -198,12 +201,16 @@ def guarded_backward_fill(
     second = smooth(out)
     inlier = np.zeros(t_n, bool)
     if second.hinge_modelled is not None:
-        inlier = second.hinge_modelled & ~second.hinge_outlier
-    keep = filled & inlier  # guard 2: the model, fitted again, agrees with each kept frame
+        # the model's inliers among the fits the smoother used (the jump test's rejected fits
+        # left out of it: SmootherConfig.max_speed_m_s)
+        inlier = second.hinge_modelled & ~second.hinge_outlier & ~second.jump_rejected
+    # guard 2: the model, fitted again, agrees with each kept frame (judged frame by frame: a
+    # frame kept beyond a dropped one in the same extension is an inlier of the model too)
+    keep = filled & inlier
     dropped = int(np.sum(filled & ~keep))
     if dropped == 0:
         return BackwardFill(out, filled, second, first, tried, 0)
     if not keep.any():
-        return BackwardFill(fits, keep, first, first, tried, dropped)
+        return BackwardFill(given, keep, first, first, tried, dropped)
     out = merged(keep)
     return BackwardFill(out, keep, smooth(out), first, tried, dropped)

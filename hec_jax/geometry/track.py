@@ -1260,7 +1260,8 @@ class BoxTrack(NamedTuple):
     Attributes:
         position: (T, 3) box centre [m] (smoothed).
         rotation: (T, 3, 3) rotation of the box from the first valid frame to frame t (Phi of
-            Eq. 1, smoothed).
+            Eq. 1, smoothed; the first ``valid`` frame, also where ``backward_filled`` frames
+            come before it).
         velocity: (T, 3) [m/s], acceleration: (T, 3) [m/s^2] of the centre (smoothed).
         valid: (T,) bool, the frame's own measurement passed the checks.
         pose_rotation: (T, 3, 3) R_cam_box, smoothed (object axes chosen at the first valid frame).
@@ -1326,8 +1327,8 @@ class BoxTrack(NamedTuple):
     frame_ms: np.ndarray
     fit_source: np.ndarray
     initialised: np.ndarray
-    offline_valid: np.ndarray | None = None
-    backward_filled: np.ndarray | None = None
+    offline_valid: np.ndarray
+    backward_filled: np.ndarray
 
 
 def cube_symmetries() -> np.ndarray:
@@ -1839,7 +1840,10 @@ class BoxTracker:
         velocity block; the rotation history to ``rotation`` and, one frame earlier in reversed
         time, ``following_rotation`` (so the coasted angular velocity is reversed too). The
         track counts as running (no misses). The frame count moves on as before: each frame of
-        reversed time is one frame later for the loss gate.
+        reversed time is one frame later for the loss gate. Only on a track whose last
+        processed frame was valid (e.g. just after :meth:`restore` of a snapshot taken there):
+        its memory of that frame (the loss gate's last good centre, the labelling reference)
+        is kept.
 
         Args:
             position: (3,) the box's centre at the last processed frame [m] (e.g. a
@@ -1851,8 +1855,11 @@ class BoxTracker:
             following_rotation: (3, 3) R_cam_box one frame after it in forward time, or None.
 
         Raises:
-            ValueError: arguments of the wrong shape or not finite.
+            ValueError: arguments of the wrong shape or not finite; the last processed frame
+                was not valid.
         """
+        if self._last_good is None or self._last_good[0] != self._frame - 1:
+            raise ValueError("reverse_time needs a track whose last processed frame was valid")
         mean = np.concatenate([np.ravel(position), -np.ravel(velocity), np.ravel(acceleration)])
         cov = np.asarray(covariance, np.float64)
         rotation = np.asarray(rotation, np.float64)
@@ -1867,8 +1874,11 @@ class BoxTracker:
                 raise ValueError(
                     f"following_rotation must be (3, 3), got {following_rotation.shape}"
                 )
-        if not (np.isfinite(mean).all() and np.isfinite(cov).all() and np.isfinite(rotation).all()):
-            raise ValueError("reverse_time needs a finite state, covariance and rotation")
+        finite = [mean, cov, rotation] + (
+            [] if following_rotation is None else [following_rotation]
+        )
+        if not all(np.isfinite(x).all() for x in finite):
+            raise ValueError("reverse_time needs a finite state, covariance and rotations")
         flip = np.diag([1.0, 1, 1, -1, -1, -1, 1, 1, 1])
         cov = flip @ cov @ flip
         f, q = self._f, self._q
