@@ -185,16 +185,31 @@ def test_the_loop_gives_the_policy_the_steps_a_stall_skipped():
     arm = RT.ArmModel(RT.plant_model(exp.task), loop.ids)
     sw = L.switches("learned")
     fns = RT.make_step_fns(loop, loop.learner_init(key, float_dtype()), sw)
-    gaps = []
+    gaps, marks = [], []
+    marker = np.full(4, -1, np.int64)  # what pool_rescue's watchdog reads
 
     def step(ps_vec, sw_vec, obs_vec, steps_elapsed):
         gaps.append(float(steps_elapsed))
+        marks.append(int(marker[0]))
         return fns.step(ps_vec, sw_vec, obs_vec, steps_elapsed)
 
     clock = _StallingClock(5e-3, 8.1e-3)
-    run = RT.run_loop(loop, plant, clock, key, "learned", [20], arm, fns=fns._replace(step=step))
+    run = RT.run_loop(
+        loop,
+        plant,
+        clock,
+        key,
+        "learned",
+        [20],
+        arm,
+        fns=fns._replace(step=step),
+        step_marker=marker,
+    )
     ticks = gaps[-(20 - 3) :]  # the last 17 calls: the ticks (before them, the warm-up's)
     assert ticks == [1.0] * 5 + [4.0] + [1.0] * 11
+    # each tick's call began with its start on the marker, cleared after it; warm-up calls: none
+    assert marks[: -(20 - 3)] == [-1] * (len(marks) - 17) and marker[0] == 0
+    assert min(marks[-17:]) > 0 and np.all(np.diff(marks[-17:]) > 0)
     np.testing.assert_array_equal(run.ticks[0]["kind"][5:8], 2)  # skipped
     assert run.counts[0].skipped == 3
     # the tick after the stall waited for step 5 and woke at 8.1 ms; the others for their own
@@ -203,6 +218,28 @@ def test_the_loop_gives_the_policy_the_steps_a_stall_skipped():
     np.testing.assert_allclose(
         np.delete(due, [5, 6, 7, 8]), np.delete(np.arange(20), [5, 6, 7, 8]) * 1e-3
     )
+
+
+def test_realtime_run_with_an_idle_pool_runs_its_watchdog_and_restores_every_thread():
+    from hec_jax.realtime import clock
+
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("pool_idle needs the CPUs pinned (two or more)")
+    why = clock.pool_idle_refused(True)
+    if why is not None:
+        pytest.skip("leaving SCHED_IDLE is not permitted here: " + why)
+    before = {t: os.sched_getscheduler(t) for t in clock._threads()}
+    exp = L.replace(L.catching(eye="truth"), swings=1, swing_s=0.5, settle_s=0.3)
+    result = RT.run_realtime(exp, RT.RealtimeConfig(twin="none", pool_idle=True), progress=False)
+    placement = result.report["placement"]
+    assert placement["pool_idle"]
+    rescue = placement["pool_rescue"]
+    assert rescue["after_us"] == 500.0 and rescue["alive_to_the_end"]
+    assert rescue["rescues"] >= 0 and rescue["rescued_ms"] >= 0
+    # the watchdog stopped before the threads got their own scheduling back
+    after = {t: os.sched_getscheduler(t) for t in clock._threads() if t in before}
+    assert after == before
+    assert result.loop_run.counts[0].fresh > 0
 
 
 @pytest.mark.slow
@@ -494,6 +531,7 @@ def test_realtime_run_reports_itself(tmp_path, capsys):
     _check_report(result)
     # normal scheduling: no rest before the lead, recorded as such
     assert result.loop_run.rest_s == [0.0] and result.report["placement"]["rt_budget_rest_s"] == 0
+    assert result.report["placement"]["pool_rescue"] is None  # no pool_idle: no watchdog
     assert result.logs["x_e"].shape == (1, 1, 1000, 2)
     assert result.metrics["peak_force"]["mean"] > 0
     # the host's steal over the run: per CPU where the kernel accounts it, never negative
@@ -702,6 +740,107 @@ def test_pool_idle_puts_the_other_threads_under_sched_idle_and_restores_their_ow
         go_b.set()
         other.join()
         batch.join()
+
+
+def _burner(cpu: int, seconds: float):
+    """A process that spins on ``cpu`` for ``seconds`` at normal scheduling, started: it has
+    begun spinning when this returns."""
+    import subprocess
+    import sys
+
+    code = (
+        f"import os, time\nos.sched_setaffinity(0, {{{cpu}}})\nt = time.monotonic()\n"
+        f"print(flush=True)\nwhile time.monotonic() - t < {seconds}:\n    pass\n"
+    )
+    p = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE)
+    p.stdout.readline()
+    return p
+
+
+def _step_through_idle_pool(rescue_after_us):
+    """[s] one stand-in step: the calling thread (the loop) hands 1 ms of CPU work to another
+    thread of this process under SCHED_IDLE and waits for it, with a process spinning on their
+    CPU; with ``rescue_after_us`` (not None) under :class:`pool_rescue`. Returns the wait and
+    the watchdog's summary."""
+    import os
+    import threading
+    import time
+
+    from hec_jax.realtime import clock
+
+    cpus = sorted(os.sched_getaffinity(0))
+    ask, done, finish = threading.Event(), threading.Event(), threading.Event()
+
+    def pool():
+        ask.wait()
+        t = time.thread_time()
+        while time.thread_time() - t < 1e-3:
+            pass
+        done.set()
+        finish.wait()  # alive (its scheduling readable) until the end
+
+    worker = threading.Thread(target=pool)
+    worker.start()
+    burner = None
+    try:
+        with clock.pinned({cpus[0]}), clock.realtime_priority(0, pool_idle=True) as prio:
+            assert os.sched_getscheduler(worker.native_id) == os.SCHED_IDLE
+            with clock.pool_rescue(
+                prio.idle_threads, rescue_after_us, 250.0, cpus=[cpus[1]]
+            ) as rescue:
+                burner = _burner(cpus[0], 0.6)
+                time.sleep(0.02)
+                if rescue.marker is not None:
+                    rescue.marker[0] = time.monotonic_ns()
+                t0 = time.monotonic()
+                ask.set()
+                done.wait(5.0)
+                waited = time.monotonic() - t0
+                if rescue.marker is not None:
+                    rescue.marker[0] = 0
+                    # the step done: the watchdog puts the pool under SCHED_IDLE again
+                    end = time.monotonic() + 1.0
+                    while os.sched_getscheduler(worker.native_id) != os.SCHED_IDLE:
+                        assert time.monotonic() < end, "the pool was not put back under SCHED_IDLE"
+                        time.sleep(1e-3)
+        return waited, rescue.summary
+    finally:
+        ask.set()
+        finish.set()
+        worker.join()
+        if burner is not None:
+            burner.kill()
+            burner.wait()
+
+
+def test_pool_rescue_bounds_a_step_that_waits_for_an_idle_pool_behind_another_process():
+    """The hazard of pool_idle reproduced with a stand-in pool thread (1 ms of work) and a
+    process spinning 0.6 s on its CPU: without the watchdog the step waits for the burst, with
+    it (rescued after 1 ms) for a few ms; the thread goes back under SCHED_IDLE after."""
+    import os
+
+    from hec_jax.realtime import clock
+    from hec_jax.realtime.config import RealtimeConfig
+
+    with pytest.raises(ValueError, match="after_us"):
+        clock.pool_rescue({1: (0, 0)}, 0.0)
+    with pytest.raises(ValueError, match="pool_rescue_us"):
+        RealtimeConfig(pool_rescue_us=-1.0)
+    with clock.pool_rescue({1: (0, 0)}, None) as off:  # None: no watchdog, no marker
+        assert off.marker is None
+    assert off.summary is None
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("the watchdog needs a CPU other than the loop's")
+    why = clock.pool_idle_refused(True)
+    if why is not None:
+        pytest.skip("leaving SCHED_IDLE is not permitted here: " + why)
+    stalled, none = _step_through_idle_pool(None)
+    assert none is None
+    assert stalled > 0.15  # the hazard: the idle pool waited for much of the burst (0.34-0.37 s)
+    rescued, summary = _step_through_idle_pool(1000.0)
+    assert rescued < 0.1, f"rescued step waited {rescued:.3f} s"
+    assert summary["rescues"] == 1 and summary["alive_to_the_end"]
+    assert 0 < summary["rescued_ms"] < 100
 
 
 def test_pool_idle_that_cannot_be_undone_is_refused_before_a_run_and_raises_on_exit(

@@ -12,13 +12,18 @@ inputs (the un-timed mode of :mod:`hec_jax.realtime.runner`).
 from __future__ import annotations
 
 import contextlib
+import math
+import mmap
 import os
 import struct
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from typing import Protocol
+
+import numpy as np
 
 
 def monotonic_s() -> float:
@@ -224,6 +229,13 @@ class realtime_priority:
         self.pool_idle = bool(pool_idle) and not self.priority
         self._saved: dict[int, tuple[int, int]] = {}
 
+    @property
+    def idle_threads(self) -> dict[int, tuple[int, int]]:
+        """Inside the block with ``pool_idle``: the threads put under ``SCHED_IDLE``, each with
+        its own (policy, priority) from before (empty otherwise).
+        """
+        return dict(self._saved)
+
     def __enter__(self):
         if self.priority:
             set_scheduling(os.SCHED_FIFO, max(self.priority - 1, 1))
@@ -256,6 +268,158 @@ class realtime_priority:
                 f"{len(failed)} threads stay under SCHED_IDLE: leaving it needs CAP_SYS_NICE or a "
                 "nice limit of 20 (pool_idle_refused says so before a run)"
             )
+
+
+# the pool's watchdog (:class:`pool_rescue`), run by this Python with ``-c`` after
+# _DIE_WITH_PARENT; argv: the shared file, after_ns, poll_s, then "tid:policy:priority" for each
+# thread. Its file holds four int64: [0] when the loop's current jitted step began
+# (CLOCK_MONOTONIC ns; 0: none), [1] rescues, [2] ns spent rescued, [3] 1 once it runs
+_RESCUE_PROGRAM = """
+import mmap, struct, sys, time
+path, after_ns, poll_s = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
+threads = [tuple(int(x) for x in a.split(":")) for a in sys.argv[4:]]
+Q = struct.Struct("<q")
+with open(path, "r+b") as f:
+    m = mmap.mmap(f.fileno(), 32)
+
+
+def put(idle):
+    for tid, policy, prio in threads:
+        try:
+            if idle:
+                os.sched_setscheduler(tid, os.SCHED_IDLE, os.sched_param(0))
+            else:
+                os.sched_setscheduler(tid, policy, os.sched_param(prio))
+        except ProcessLookupError:
+            pass
+
+
+held = since = n = total = 0
+Q.pack_into(m, 24, 1)
+while True:
+    time.sleep(poll_s)
+    began = Q.unpack_from(m, 0)[0]
+    now = time.monotonic_ns()
+    if began and now - began > after_ns:  # a step has waited too long: the pool its own again
+        if not held:
+            put(False)
+            held, since, n = 1, now, n + 1
+            Q.pack_into(m, 8, n)
+    elif held:  # no step waiting too long: the pool idle again
+        put(True)
+        held, total = 0, total + now - since
+        Q.pack_into(m, 16, total)
+"""
+
+
+class pool_rescue:
+    """Context manager: bounds :class:`realtime_priority`'s ``pool_idle`` hazard. A watchdog
+    process on ``cpus`` (not the loop's) watches the loop's jitted step; once one step has
+    waited longer than ``after_us``, it gives the threads under ``SCHED_IDLE`` their own
+    scheduling back until that step is done, then puts them under ``SCHED_IDLE`` again.
+
+    Why: under ``SCHED_IDLE`` XLA's pool runs only while nothing else wants the loop's CPU; a
+    step that waits for the pool while another process bursts there waits for the whole burst
+    (60 ms for a 60 ms burst; docs/realtime.md, "XLA's pool under SCHED_IDLE"). Rescued, the
+    pool is the burst's equal again, as it is without ``pool_idle``, so a stall lasts about
+    ``after_us`` + ``poll_us`` + the kernel's time to run it. Leaving ``SCHED_IDLE`` needs
+    what :func:`pool_idle_refused` checks.
+
+    The loop marks each step: ``marker[0] = time.monotonic_ns()`` before it, ``0`` after.
+
+    Args:
+        threads: the threads under ``SCHED_IDLE`` and their own (policy, priority)
+            (:attr:`realtime_priority.idle_threads`); empty, or ``after_us`` None: nothing runs
+            and ``marker`` is None.
+        after_us: [us] how long a step may wait before its pool is rescued.
+        poll_us: [us] the watchdog's sleep between looks.
+        cpus: the watchdog's CPUs (None: wherever the kernel puts it).
+        nice: the watchdog's nice value (-20..19).
+        ready_timeout_s: [s] to wait for the watchdog to start.
+
+    Raises:
+        RuntimeError: on entry, the watchdog did not start in time.
+    """
+
+    def __init__(
+        self,
+        threads: dict[int, tuple[int, int]],
+        after_us: float | None,
+        poll_us: float = 250.0,
+        cpus=None,
+        nice: int = 0,
+        ready_timeout_s: float = 10.0,
+    ):
+        if after_us is not None and not (math.isfinite(after_us) and after_us > 0):
+            raise ValueError(f"after_us must be None or > 0, got {after_us!r}")
+        if not (math.isfinite(poll_us) and poll_us > 0):
+            raise ValueError(f"poll_us must be > 0, got {poll_us!r}")
+        self.threads = dict(threads) if after_us is not None else {}
+        self.after_us, self.poll_us = after_us, float(poll_us)
+        self.cpus = set(cpus) if cpus else None
+        self.nice, self.ready_timeout_s = int(nice), float(ready_timeout_s)
+        self.marker: np.ndarray | None = None
+        self.summary: dict | None = None
+        self._proc = self._map = self._path = None
+
+    def __enter__(self):
+        if not self.threads:
+            return self
+        fd, self._path = tempfile.mkstemp(
+            prefix="hec_pool_rescue_", dir="/dev/shm" if os.path.isdir("/dev/shm") else None
+        )
+        try:
+            os.write(fd, bytes(32))
+            self._map = mmap.mmap(fd, 32)
+        finally:
+            os.close(fd)
+        self.marker = np.ndarray((4,), np.int64, buffer=self._map)
+        args = [self._path, str(int(self.after_us * 1e3)), repr(self.poll_us * 1e-6)]
+        args += [f"{tid}:{policy}:{prio}" for tid, (policy, prio) in self.threads.items()]
+        code = _DIE_WITH_PARENT.format(parent=os.getpid()) + _RESCUE_PROGRAM
+        try:
+            self._proc = subprocess.Popen([sys.executable, "-c", code, *args])
+            if self.cpus:
+                pin_process(self._proc.pid, self.cpus)
+            if self.nice:
+                os.setpriority(os.PRIO_PROCESS, self._proc.pid, self.nice)
+            end = time.monotonic() + self.ready_timeout_s
+            while self.marker[3] != 1:
+                if self._proc.poll() is not None or time.monotonic() > end:
+                    raise RuntimeError(
+                        "the pool's watchdog did not start"
+                        f" (exit status {self._proc.poll()}; see its stderr)"
+                    )
+                time.sleep(1e-3)
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def __exit__(self, *exc):
+        if self._proc is None and self._map is None:
+            return
+        alive = self._proc is not None and self._proc.poll() is None
+        status = None if self._proc is None else self._proc.poll()
+        if self._proc is not None:
+            self._proc.kill()
+            self._proc.wait()
+        if self.marker is not None:
+            self.summary = {
+                "after_us": self.after_us,
+                "poll_us": self.poll_us,
+                "rescues": int(self.marker[1]),
+                "rescued_ms": float(self.marker[2]) * 1e-6,
+                # the watchdog ran to the end (False: it died; its exit status)
+                "alive_to_the_end": alive,
+                "exit_status": status,
+            }
+        self.marker = None
+        if self._map is not None:
+            self._map.close()
+        with contextlib.suppress(OSError):
+            os.unlink(self._path)
+        self._proc = self._map = self._path = None
 
 
 # the kernel's real-time bandwidth (Linux): real-time threads of a CPU run at most

@@ -57,6 +57,16 @@ class RealtimeConfig:
     # docs/realtime.md, "XLA's pool under SCHED_IDLE". False: the pool at the loop's own
     # scheduling. Ignored with rt_priority > 0 (the pool then runs one priority below the loop)
     pool_idle: bool = False
+    # with pool_idle: [us] how long one jitted step may wait for the pool before a watchdog
+    # process (on the other CPUs) gives the pool its own scheduling back until that step is done
+    # (``clock.pool_rescue``): the hazard above then stalls the loop for about this + the
+    # watchdog's poll + the kernel's time to run the pool, not for the whole burst. 500: half the
+    # period, 3-7x the step's median (70-190 us on the machines measured), chosen before any run
+    # with it. None: no watchdog (pool_idle as in sessions 69-71). Measured in docs/realtime.md,
+    # "A watchdog for the idle pool"
+    pool_rescue_us: float | None = 500.0
+    # [us] the watchdog's sleep between looks at the step (its cost: one wake-up each)
+    pool_rescue_poll_us: float = 250.0
     # [us] the CPUs' wake-up latency asked of the kernel while the loop runs (Linux PM QoS,
     # /dev/cpu_dma_latency; root): 0 makes idle CPUs poll instead of halting, as cyclictest
     # does. On the 2-core KVM guest this took the missed deadlines from 0.35-1.0% to 0.01-0.05%
@@ -209,6 +219,18 @@ class RealtimeConfig:
             )
         if not isinstance(self.pool_idle, bool):
             raise ValueError(f"pool_idle must be a bool, got {self.pool_idle!r}")
+        if self.pool_rescue_us is not None and not (
+            isinstance(self.pool_rescue_us, (int, float))
+            and math.isfinite(self.pool_rescue_us)
+            and self.pool_rescue_us > 0
+        ):
+            raise ValueError(f"pool_rescue_us must be None or > 0, got {self.pool_rescue_us!r}")
+        if not (
+            isinstance(self.pool_rescue_poll_us, (int, float))
+            and math.isfinite(self.pool_rescue_poll_us)
+            and self.pool_rescue_poll_us > 0
+        ):
+            raise ValueError(f"pool_rescue_poll_us must be > 0, got {self.pool_rescue_poll_us!r}")
         if not (isinstance(self.child_nice, int) and -20 <= self.child_nice <= 19):
             raise ValueError(f"child_nice must be an integer in -20..19, got {self.child_nice}")
         if self.camera_msaa is not None and not (

@@ -771,6 +771,15 @@ def deadline_table(report: dict) -> list[str]:
                 " / ".join(f"{v:.0f}" for v in host["steal_ms_per_cpu"]),
             )
         )
+    rescue = (report.get("placement") or {}).get("pool_rescue")
+    if rescue:
+        rows.append(
+            (
+                f"pool under SCHED_IDLE, rescued after {rescue['after_us']:.0f} us: "
+                "rescues / ms rescued / watchdog alive to the end",
+                f"{rescue['rescues']} / {rescue['rescued_ms']:.1f} / {rescue['alive_to_the_end']}",
+            )
+        )
     return markdown_table(["quantity", "value"], rows)
 
 

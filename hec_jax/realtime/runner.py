@@ -34,6 +34,7 @@ time and the run is the simulated loop's step sequence in MuJoCo C (tests compar
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import gc
 import math
@@ -73,6 +74,7 @@ from hec_jax.realtime.clock import (
     pin_process,
     pinned,
     pool_idle_refused,
+    pool_rescue,
     realtime_priority,
     rt_budget_rest_s,
 )
@@ -412,6 +414,7 @@ def run_loop(
     progress: bool = False,
     acquire_timeout_s: float = 10.0,
     rt_budget_rest: bool = True,
+    step_marker: np.ndarray | None = None,
 ) -> LoopRun:
     """Episodes of the closed loop on ``plant`` at ``clock``'s ticks.
 
@@ -436,6 +439,9 @@ def run_loop(
         rt_budget_rest: at real-time priority, sleep :func:`~.clock.rt_budget_rest_s` before
             each episode's lead (the kernel's real-time throttling then cannot stop its first
             ticks); recorded in :attr:`LoopRun.rest_s`.
+        step_marker: each timed step's start (``time.monotonic_ns()``) is written to
+            ``step_marker[0]`` before the jitted call and 0 after it
+            (:class:`~hec_jax.realtime.clock.pool_rescue` watches it); None: nothing written.
 
     Raises:
         TimeoutError: the eye did not answer on a release frame in time.
@@ -550,9 +556,13 @@ def run_loop(
                 c2 = _thread_ns()
                 # after skipped steps the accelerations' differences span the gap
                 gap = one_step if j <= j_last + 1 else np.asarray(j - j_last, sw_np_dtype)
+                if step_marker is not None:
+                    step_marker[0] = time.monotonic_ns()
                 ps_vec, row = fns.step(ps_vec, sw_vec, obs_np.copy(), gap)
                 j_last = j
                 row = np.asarray(row)
+                if step_marker is not None:
+                    step_marker[0] = 0
                 t_step = clock.now()
                 c3 = _thread_ns()
                 t_write = plant.write(row[:n_tau])
@@ -938,7 +948,18 @@ def run_realtime(
             )
             others = set(os.sched_getaffinity(0)) - (control_cpus or set())
             filler = idle_filler(rt.idle_filler if control_cpus else None, others)
-            with filler, pinned(control_cpus), priority, latency:
+            rescue = None
+            with filler, pinned(control_cpus), priority, latency, contextlib.ExitStack() as stack:
+                if priority.pool_idle:  # its watchdog on the other CPUs, as nice as the children
+                    rescue = stack.enter_context(
+                        pool_rescue(
+                            priority.idle_threads,
+                            rt.pool_rescue_us,
+                            rt.pool_rescue_poll_us,
+                            others,
+                            nice,
+                        )
+                    )
                 run = run_loop(
                     loop,
                     plant,
@@ -954,6 +975,7 @@ def run_realtime(
                     progress=progress,
                     acquire_timeout_s=rt.acquire_timeout_s,
                     rt_budget_rest=rt.rt_budget_rest,
+                    step_marker=None if rescue is None else rescue.marker,
                 )
             load["end"] = os.getloadavg()
             steal_end = host_steal_ms()
@@ -976,6 +998,8 @@ def run_realtime(
         "rt_priority": rt.rt_priority if rt.timed else 0,
         # the other threads under SCHED_IDLE while the loop ran (with rt_priority 0)
         "pool_idle": priority.pool_idle,
+        # its watchdog (clock.pool_rescue): settings, rescues, time rescued (None: none ran)
+        "pool_rescue": None if rescue is None else rescue.summary,
         # the CPUs' wake-up latency asked of the kernel while the loop ran (None: nothing)
         "cpu_latency_us": rt.cpu_latency_us if rt.timed else None,
         # the other CPUs kept busy at SCHED_IDLE while the loop ran (None: not)
