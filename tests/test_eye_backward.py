@@ -261,3 +261,34 @@ def test_track_box_fills_visible_frames_the_forward_pass_missed(blacked_out):
     err = np.linalg.norm(on.position - seq.position, axis=-1)
     assert np.max(err[on.offline_valid]) < 0.005, err  # 5 mm at 1 m: the issue's 3 mm/m median
     assert on.timing_ms["backward_ms"] > 0.0
+
+
+def test_backward_ms_counts_the_snapshots_the_pass_restores(blacked_out, monkeypatch):
+    """The per-frame snapshots taken for the backward pass are its cost: in ``backward_ms`` and
+    ``smoothing_ms`` (a snapshot made 2 ms slower shows there), none taken without the pass."""
+    import time
+
+    seq, _ = blacked_out
+    real, taken = BoxTracker.snapshot, []
+
+    def slow(self):
+        time.sleep(0.002)
+        taken.append(1)
+        return real(self)
+
+    monkeypatch.setattr(BoxTracker, "snapshot", slow)
+    runs = {
+        eb: track_box(
+            seq.frames[:8],
+            seq.intrinsics,
+            0.1,
+            1 / DT,
+            TrackConfig(),
+            dataclasses.replace(NO_EXTRAPOLATION, extend_backward=eb),
+        )
+        for eb in (False, True)
+    }
+    assert len(taken) == 8  # only with the pass, one a frame
+    assert runs[False].timing_ms["backward_ms"] == 0.0
+    on = runs[True].timing_ms
+    assert on["backward_ms"] >= 2.0 and on["smoothing_ms"] >= on["backward_ms"]
