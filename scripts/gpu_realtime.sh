@@ -8,8 +8,9 @@
 #      local re-acquisition search (--eye-local-starts 0; 12 is the default).
 # Usage, from the repository root of an installed checkout:
 #   scripts/gpu_realtime.sh OUT_DIR [extra flags for every run, e.g. --rt-priority 50]
-# (where SCHED_FIFO is refused: e.g. --spin-us 1000 --cpu-latency-us 0, and --pool-idle if the
-# loop's CPU is its own; docs/realtime.md, session 69). The wheels and GL loaders this needs on
+# (where SCHED_FIFO is refused: e.g. --spin-us 1000 --cpu-latency-us 0 --pool-idle; the pool's
+# watchdog bounds the stall --pool-idle risks on a shared CPU: docs/realtime.md, sessions 69
+# and 72). The wheels and GL loaders this needs on
 # a machine without MuJoCo: scripts/offline_wheels.sh.
 # The runs use normal scheduling unless a flag says otherwise (SCHED_FIFO was refused on the
 # machines measured). Writes OUT_DIR/render.txt and one complete run folder per run.

@@ -4,11 +4,12 @@
 # made. Needs the folders scripts/offline_wheels.sh makes (wheels/, .gl/) in the copy of the
 # tree, and root there (the GL loaders are unpacked into /).
 # Usage, from the repository root on that machine:
-#   OUT=/some/dir scripts/gpu_realtime_offline.sh TAG [RUNS] [extra flags, e.g. --pool-idle]
+#   OUT=/some/dir scripts/gpu_realtime_offline.sh TAG [RUNS] [extra flags, e.g. --no-pool-idle]
 # Writes $OUT/TAG.log (the machine, the renderer, each run's console) and $OUT/TAG-k.tar.gz
 # (each run folder without its trajectories). Uses SCHED_FIFO where permitted, else spins
-# through the period (--spin-us 1000); asks idle CPUs to poll where /dev/cpu_dma_latency is
-# writable.
+# through the period (--spin-us 1000) with XLA's pool under SCHED_IDLE (--pool-idle; since
+# session 72, with its watchdog; before, sessions 69-71 gave it as an extra flag); asks idle
+# CPUs to poll where /dev/cpu_dma_latency is writable. Later flags win (--no-pool-idle).
 set -uo pipefail
 tag=${1:?usage: scripts/gpu_realtime_offline.sh TAG [RUNS] [flags]}
 n=${2:-1}
@@ -51,7 +52,9 @@ PY
 if chrt -f 50 true 2>/dev/null; then
   flags="--rt-priority 50 --camera-priority 40"
 else
-  flags="--spin-us 1000"
+  # XLA's pool under SCHED_IDLE, with its watchdog (RealtimeConfig.pool_rescue_us) bounding
+  # the stall another process's burst on the loop's CPU would otherwise cause (session 72)
+  flags="--spin-us 1000 --pool-idle"
 fi
 flags="$flags --child-nice -10"
 [ -w /dev/cpu_dma_latency ] && flags="$flags --cpu-latency-us 0"
