@@ -221,6 +221,10 @@ def test_the_loop_gives_the_policy_the_steps_a_stall_skipped():
 
 
 def test_realtime_run_with_an_idle_pool_runs_its_watchdog_and_restores_every_thread():
+    """A short timed run with pool_idle and a watchdog that rescues at once (1 us): it ran to the
+    end, rescued, and every thread of the process has its own scheduling back after."""
+    import contextlib
+
     from hec_jax.realtime import clock
 
     if len(os.sched_getaffinity(0)) < 2:
@@ -228,17 +232,26 @@ def test_realtime_run_with_an_idle_pool_runs_its_watchdog_and_restores_every_thr
     why = clock.pool_idle_refused(True)
     if why is not None:
         pytest.skip("leaving SCHED_IDLE is not permitted here: " + why)
-    before = {t: os.sched_getscheduler(t) for t in clock._threads()}
+
+    def policies():
+        out = {}
+        for t in clock._threads():
+            with contextlib.suppress(ProcessLookupError):
+                out[t] = os.sched_getscheduler(t)
+        return out
+
+    before = policies()
     exp = L.replace(L.catching(eye="truth"), swings=1, swing_s=0.5, settle_s=0.3)
-    result = RT.run_realtime(exp, RT.RealtimeConfig(twin="none", pool_idle=True), progress=False)
+    rt = RT.RealtimeConfig(twin="none", pool_idle=True, pool_rescue_us=1.0)
+    result = RT.run_realtime(exp, rt, progress=False)
     placement = result.report["placement"]
     assert placement["pool_idle"]
     rescue = placement["pool_rescue"]
-    assert rescue["after_us"] == 500.0 and rescue["alive_to_the_end"]
-    assert rescue["rescues"] >= 0 and rescue["rescued_ms"] >= 0
-    # the watchdog stopped before the threads got their own scheduling back
-    after = {t: os.sched_getscheduler(t) for t in clock._threads() if t in before}
-    assert after == before
+    assert rescue["after_us"] == 1.0 and rescue["alive_to_the_end"]
+    assert rescue["rescues"] > 0 and rescue["refused_changes"] == 0
+    after = policies()
+    both = set(before) & set(after)  # threads that lived through the run
+    assert both and {t: after[t] for t in both} == {t: before[t] for t in both}
     assert result.loop_run.counts[0].fresh > 0
 
 
@@ -815,8 +828,9 @@ def _step_through_idle_pool(rescue_after_us):
 
 def test_pool_rescue_bounds_a_step_that_waits_for_an_idle_pool_behind_another_process():
     """The hazard of pool_idle reproduced with a stand-in pool thread (1 ms of work) and a
-    process spinning 0.6 s on its CPU: without the watchdog the step waits for the burst, with
-    it (rescued after 1 ms) for a few ms; the thread goes back under SCHED_IDLE after."""
+    process spinning 0.6 s on its CPU: without the watchdog the step waits for much of the
+    burst, with it (rescued after 1 ms) for a few ms; the thread goes back under SCHED_IDLE
+    after."""
     import os
 
     from hec_jax.realtime import clock
@@ -824,8 +838,9 @@ def test_pool_rescue_bounds_a_step_that_waits_for_an_idle_pool_behind_another_pr
 
     with pytest.raises(ValueError, match="after_us"):
         clock.pool_rescue({1: (0, 0)}, 0.0)
-    with pytest.raises(ValueError, match="pool_rescue_us"):
-        RealtimeConfig(pool_rescue_us=-1.0)
+    for bad in (-1.0, True):
+        with pytest.raises(ValueError, match="pool_rescue_us"):
+            RealtimeConfig(pool_rescue_us=bad)
     with clock.pool_rescue({1: (0, 0)}, None) as off:  # None: no watchdog, no marker
         assert off.marker is None
     assert off.summary is None
@@ -834,13 +849,53 @@ def test_pool_rescue_bounds_a_step_that_waits_for_an_idle_pool_behind_another_pr
     why = clock.pool_idle_refused(True)
     if why is not None:
         pytest.skip("leaving SCHED_IDLE is not permitted here: " + why)
-    stalled, none = _step_through_idle_pool(None)
-    assert none is None
-    assert stalled > 0.15  # the hazard: the idle pool waited for much of the burst (0.34-0.37 s)
+    # with the watchdog the step never waits long, whatever else runs on the machine
     rescued, summary = _step_through_idle_pool(1000.0)
     assert rescued < 0.1, f"rescued step waited {rescued:.3f} s"
-    assert summary["rescues"] == 1 and summary["alive_to_the_end"]
-    assert 0 < summary["rescued_ms"] < 100
+    assert summary["rescues"] <= 1 and summary["alive_to_the_end"]
+    assert summary["refused_changes"] == 0
+    # the control: without it the same step waits for the burst (0.34-0.37 s on the quiet
+    # 2-core VM). Under other load the idle thread at times gets the CPU at once (seen with
+    # both CPUs busy), so the hazard is tried up to three times before the test gives up on it
+    stalls = []
+    for _ in range(3):
+        stalled, none = _step_through_idle_pool(None)
+        assert none is None
+        stalls.append(stalled)
+        if stalled > 0.15:
+            break
+    else:
+        pytest.skip(f"the hazard did not show under this load (waits {stalls} s)")
+    if summary["rescues"] == 0:  # the step was not held up that time: try the watchdog again
+        rescued, summary = _step_through_idle_pool(1000.0)
+        assert rescued < 0.1, f"rescued step waited {rescued:.3f} s"
+    assert summary["rescues"] in (0, 1) and 0 <= summary["rescued_ms"] < 100
+
+
+def test_pool_rescue_counts_and_warns_of_scheduling_changes_it_was_refused():
+    """A change the kernel refuses (here an invalid policy for the thread's own scheduling) is
+    counted, and the watchdog's exit warns: the pool was not rescued."""
+    import os
+    import time
+
+    from hec_jax.realtime import clock
+
+    other, go = _waiting_thread()
+    tid = other.native_id
+    own = os.sched_getscheduler(tid), os.sched_getparam(tid)
+    try:
+        with pytest.warns(RuntimeWarning, match="changes refused"):
+            with clock.pool_rescue({tid: (12345, 0)}, 1.0, 250.0) as rescue:
+                rescue.marker[0] = time.monotonic_ns() - 10**9  # a step waiting 1 s
+                end = time.monotonic() + 5.0
+                while rescue.marker[4] == 0 and time.monotonic() < end:
+                    time.sleep(1e-3)
+        assert rescue.summary["refused_changes"] >= 1 and rescue.summary["rescues"] == 1
+        assert rescue.summary["alive_to_the_end"] and rescue.summary["rescued_ms"] > 0
+    finally:
+        os.sched_setscheduler(tid, own[0], own[1])
+        go.set()
+        other.join()
 
 
 def test_pool_idle_that_cannot_be_undone_is_refused_before_a_run_and_raises_on_exit(
@@ -854,7 +909,10 @@ def test_pool_idle_that_cannot_be_undone_is_refused_before_a_run_and_raises_on_e
     real = os.sched_setscheduler
     # this process's threads can be put back for real afterwards (else only the refusal)
     privileged = clock.pool_idle_refused(True) is None
-    before = {t: (os.sched_getscheduler(t), os.sched_getparam(t)) for t in clock._threads()}
+    before = {}
+    for t in clock._threads():  # (a thread just joined can linger in the listing)
+        with contextlib.suppress(ProcessLookupError):
+            before[t] = os.sched_getscheduler(t), os.sched_getparam(t)
 
     def unprivileged(tid, policy, param):  # as Linux without CAP_SYS_NICE or a nice limit
         if policy != os.SCHED_IDLE and clock.os.sched_getscheduler(tid) == os.SCHED_IDLE:

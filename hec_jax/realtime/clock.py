@@ -21,6 +21,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from typing import Protocol
 
 import numpy as np
@@ -272,18 +273,23 @@ class realtime_priority:
 
 # the pool's watchdog (:class:`pool_rescue`), run by this Python with ``-c`` after
 # _DIE_WITH_PARENT; argv: the shared file, after_ns, poll_s, then "tid:policy:priority" for each
-# thread. Its file holds four int64: [0] when the loop's current jitted step began
-# (CLOCK_MONOTONIC ns; 0: none), [1] rescues, [2] ns spent rescued, [3] 1 once it runs
+# thread. Its file holds RESCUE_WORDS int64: [0] when the loop's current jitted step began
+# (CLOCK_MONOTONIC ns; 0: none), [1] rescues, [2] ns spent rescued (closed rescues), [3] 1 once
+# it runs, [4] scheduling changes refused (other than for a thread that has ended), [5] when the
+# rescue in progress began (0: none)
+RESCUE_WORDS = 6
 _RESCUE_PROGRAM = """
 import mmap, struct, sys, time
 path, after_ns, poll_s = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
 threads = [tuple(int(x) for x in a.split(":")) for a in sys.argv[4:]]
 Q = struct.Struct("<q")
 with open(path, "r+b") as f:
-    m = mmap.mmap(f.fileno(), 32)
+    m = mmap.mmap(f.fileno(), 48)
+errors = 0
 
 
 def put(idle):
+    global errors
     for tid, policy, prio in threads:
         try:
             if idle:
@@ -292,6 +298,9 @@ def put(idle):
                 os.sched_setscheduler(tid, policy, os.sched_param(prio))
         except ProcessLookupError:
             pass
+        except OSError:
+            errors += 1
+            Q.pack_into(m, 32, errors)
 
 
 held = since = n = total = 0
@@ -302,13 +311,15 @@ while True:
     now = time.monotonic_ns()
     if began and now - began > after_ns:  # a step has waited too long: the pool its own again
         if not held:
-            put(False)
             held, since, n = 1, now, n + 1
+            Q.pack_into(m, 40, since)
+            put(False)
             Q.pack_into(m, 8, n)
     elif held:  # no step waiting too long: the pool idle again
         put(True)
         held, total = 0, total + now - since
         Q.pack_into(m, 16, total)
+        Q.pack_into(m, 40, 0)
 """
 
 
@@ -369,11 +380,14 @@ class pool_rescue:
             prefix="hec_pool_rescue_", dir="/dev/shm" if os.path.isdir("/dev/shm") else None
         )
         try:
-            os.write(fd, bytes(32))
-            self._map = mmap.mmap(fd, 32)
+            os.write(fd, bytes(8 * RESCUE_WORDS))
+            self._map = mmap.mmap(fd, 8 * RESCUE_WORDS)
+        except BaseException:
+            os.unlink(self._path)
+            raise
         finally:
             os.close(fd)
-        self.marker = np.ndarray((4,), np.int64, buffer=self._map)
+        self.marker = np.ndarray((RESCUE_WORDS,), np.int64, buffer=self._map)
         args = [self._path, str(int(self.after_us * 1e3)), repr(self.poll_us * 1e-6)]
         args += [f"{tid}:{policy}:{prio}" for tid, (policy, prio) in self.threads.items()]
         code = _DIE_WITH_PARENT.format(parent=os.getpid()) + _RESCUE_PROGRAM
@@ -391,6 +405,9 @@ class pool_rescue:
                         f" (exit status {self._proc.poll()}; see its stderr)"
                     )
                 time.sleep(1e-3)
+            # both sides have it mapped: nothing is left behind if this process is killed
+            os.unlink(self._path)
+            self._path = None
         except BaseException:
             self.__exit__()
             raise
@@ -405,20 +422,33 @@ class pool_rescue:
             self._proc.kill()
             self._proc.wait()
         if self.marker is not None:
+            open_ns = time.monotonic_ns() - self.marker[5] if self.marker[5] else 0
             self.summary = {
                 "after_us": self.after_us,
                 "poll_us": self.poll_us,
                 "rescues": int(self.marker[1]),
-                "rescued_ms": float(self.marker[2]) * 1e-6,
+                # a rescue still in progress at the end included
+                "rescued_ms": float(self.marker[2] + open_ns) * 1e-6,
+                # scheduling changes the watchdog was refused (the pool then not rescued)
+                "refused_changes": int(self.marker[4]),
                 # the watchdog ran to the end (False: it died; its exit status)
                 "alive_to_the_end": alive,
                 "exit_status": status,
             }
+            if not alive or self.marker[4]:
+                warnings.warn(
+                    f"the pool's watchdog {'died' if not alive else 'ran'} (exit status "
+                    f"{status}; {int(self.marker[4])} scheduling changes refused): the idle "
+                    "pool was not always rescued",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
         self.marker = None
         if self._map is not None:
             self._map.close()
-        with contextlib.suppress(OSError):
-            os.unlink(self._path)
+        if self._path is not None:
+            with contextlib.suppress(OSError):
+                os.unlink(self._path)
         self._proc = self._map = self._path = None
 
 

@@ -221,12 +221,14 @@ class RealtimeConfig:
             raise ValueError(f"pool_idle must be a bool, got {self.pool_idle!r}")
         if self.pool_rescue_us is not None and not (
             isinstance(self.pool_rescue_us, (int, float))
+            and not isinstance(self.pool_rescue_us, bool)
             and math.isfinite(self.pool_rescue_us)
             and self.pool_rescue_us > 0
         ):
             raise ValueError(f"pool_rescue_us must be None or > 0, got {self.pool_rescue_us!r}")
         if not (
             isinstance(self.pool_rescue_poll_us, (int, float))
+            and not isinstance(self.pool_rescue_poll_us, bool)
             and math.isfinite(self.pool_rescue_poll_us)
             and self.pool_rescue_poll_us > 0
         ):
