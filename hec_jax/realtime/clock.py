@@ -284,7 +284,7 @@ path, after_ns, poll_s = sys.argv[1], int(sys.argv[2]), float(sys.argv[3])
 threads = [tuple(int(x) for x in a.split(":")) for a in sys.argv[4:]]
 Q = struct.Struct("<q")
 with open(path, "r+b") as f:
-    m = mmap.mmap(f.fileno(), 48)
+    m = mmap.mmap(f.fileno(), 0)  # the whole file: RESCUE_WORDS int64
 errors = 0
 
 
@@ -349,6 +349,7 @@ class pool_rescue:
         ready_timeout_s: [s] to wait for the watchdog to start.
 
     Raises:
+        ValueError: ``after_us`` or ``poll_us`` not a positive number.
         RuntimeError: on entry, the watchdog did not start in time.
     """
 

@@ -61,8 +61,8 @@ class RealtimeConfig:
     # process (on the other CPUs) gives the pool its own scheduling back until that step is done
     # (``clock.pool_rescue``): the hazard above then stalls the loop for about this + the
     # watchdog's poll + the kernel's time to run the pool, not for the whole burst. 500: half the
-    # period, 3-7x the step's median (70-190 us on the machines measured), chosen before any run
-    # with it. None: no watchdog (pool_idle as in sessions 69-71). Measured in docs/realtime.md,
+    # period, 2.6-7x the step's median (70-190 us on the machines measured), chosen before any
+    # run with it. None: no watchdog (pool_idle as in sessions 69-71). Measured in docs/realtime.md,
     # "A watchdog for the idle pool"
     pool_rescue_us: float | None = 500.0
     # [us] the watchdog's sleep between looks at the step (its cost: one wake-up each)
