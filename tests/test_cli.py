@@ -133,7 +133,10 @@ BAD = {
     "benchmarks/eye_randomized.py": [
         (["--sequences", "0"], "--sequences: must be an integer >= 1"),
         (["--fps", "0"], "--fps: must be finite and > 0"),
-        (["--split", "test"], "--split: 'test' is not one of dev, heldout, dev-low-views, fresh"),
+        (
+            ["--split", "test"],
+            "--split: 'test' is not one of dev, heldout, dev-low-views, dev-wood-low-views, fresh",
+        ),
         (["--split", "dev", "--first", "999999", "--sequences", "2"], "past the dev seeds"),
         (["--search-texture", "-1"], "--search-texture: must be finite and >= 0"),
         (["--lsd-contrast", "0"], "--lsd-contrast: must be finite and > 0"),
@@ -718,7 +721,8 @@ def test_the_eye_benchmark_compiles_nothing_while_its_timed_sequences_run(tmp_pa
 def test_the_eye_benchmark_s_splits_give_their_seeds():
     """``benchmarks/eye_randomized.py``'s seed ranges: dev and heldout by offset, dev-low-views
     the scenes from 5000 on that ``draw_scene`` draws as a low-contrast cube seen from under 12
-    deg (every seed skipped fails that), in order, ``--first`` counted within the split."""
+    deg (every seed skipped fails that), in order, ``--first`` counted within the split;
+    dev-wood-low-views the same for wood cubes from 6000 on."""
     from hec_jax.cli import parse
     from hec_jax.mjx_scene.randomized import draw_scene
 
@@ -732,6 +736,11 @@ def test_the_eye_benchmark_s_splits_give_their_seeds():
         scene = draw_scene(seed)
         assert (seed in low) == (scene.look == "low_contrast" and scene.elevation_deg < 12)
     assert seeds("--split", "dev-low-views", "--sequences", "2", "--first", "1") == low[1:]
+    wood = seeds("--split", "dev-wood-low-views", "--sequences", "3")
+    assert wood == [6024, 6026, 6048]  # session 73's WLV-40 begins so (docs/eye_randomized.md)
+    for seed in range(6000, 6049):
+        scene = draw_scene(seed)
+        assert (seed in wood) == (scene.look == "wood" and scene.elevation_deg < 12)
 
 
 def test_the_eye_benchmark_counts_backward_frames_but_not_as_an_acquisition():

@@ -836,10 +836,39 @@ def foreground_fraction(
     Confirms a model fit: a box fitted to the edges of a static object (clutter) lies on pixels
     that match the background. ``differences``: as :func:`foreground_mask`'s.
     """
-    pts = np.asarray(polygon_px, np.float64) - PIXEL_OFFSET
-    if not np.all(np.isfinite(pts)):
-        return 0.0
-    lo, hi = np.floor(pts.min(0)), np.ceil(pts.max(0)) + 1
+    fractions = foreground_fractions(
+        gray,
+        background,
+        np.asarray(polygon_px, np.float64)[None],
+        threshold,
+        faint_threshold,
+        shadows,
+        differences,
+    )
+    return float(fractions[0])
+
+
+def foreground_fractions(
+    gray: np.ndarray,
+    background: np.ndarray,
+    polygons_px: np.ndarray,
+    threshold: int = 12,
+    faint_threshold: float | None = None,
+    shadows: bool = True,
+    differences: FrameDifferences | None = None,
+) -> np.ndarray:
+    """(F,) :func:`foreground_fraction` of each polygon of ``polygons_px`` (F, N, 2) [px,
+    intrinsics convention], on one foreground mask over the window that holds them all (0
+    where that window is outside the image or under :func:`clip_roi`'s 8 px, or where a
+    polygon is not finite). A thin polygon (a box face seen nearly edge-on) is measured on the
+    mask of the window around all of them.
+    """
+    pts = np.asarray(polygons_px, np.float64) - PIXEL_OFFSET
+    out = np.zeros(len(pts))
+    finite = np.all(np.isfinite(pts), axis=(1, 2))
+    if not finite.any():
+        return out
+    lo, hi = np.floor(pts[finite].min((0, 1))), np.ceil(pts[finite].max((0, 1))) + 1
     roi = (lo[0], lo[1], hi[0], hi[1])
     got = foreground_mask(
         gray,
@@ -851,12 +880,14 @@ def foreground_fraction(
         differences=differences,
     )
     if got is None:
-        return 0.0
+        return out
     mask, (x0, y0, _, _) = got
-    hull, inside = _hull_mask(pts, (x0, y0), mask.shape)
-    # the part of the polygon outside the image counts as not confirmed
-    full = max(float(cv2.contourArea(hull.astype(np.float32))), 1.0)
-    return float(np.sum(mask & inside)) / max(float(inside.sum()), full)
+    for i in np.flatnonzero(finite):
+        hull, inside = _hull_mask(pts[i], (x0, y0), mask.shape)
+        # the part of the polygon outside the image counts as not confirmed
+        full = max(float(cv2.contourArea(hull.astype(np.float32))), 1.0)
+        out[i] = float(np.sum(mask & inside)) / max(float(inside.sum()), full)
+    return out
 
 
 def outside_foreground_fraction(

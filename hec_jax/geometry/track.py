@@ -337,6 +337,14 @@ class TrackConfig:
             an edge does, while a true fit with a shadow across a face keeps the steps at its
             inner edges (docs/eye_randomized.md, "A seam inside one face"). None: refused on
             the split alone (as before).
+        min_face_foreground, face_foreground_px: a fit counts only if each visible face at
+            least ``face_foreground_px`` thick in the image [px] differs from the background
+            over at least this fraction of its pixels (:func:`face_foreground`; the foreground
+            mask without its shadow test, with the faint mask where ``faint_masks``). It refuses
+            a fit whose face lies on the background beside the cube (a box too large or turned,
+            its outline on the cube's far edges); the silhouette checks count the whole box and
+            pass it. Needs a background. None: off (as before); docs/eye_randomized.md, "A face
+            on the background".
         keep_labelling: every accepted fit is relabelled to the one of the cube's 24 labellings
             of its axes nearest the last rotation (``snap_to_symmetry``): the same box, one
             naming of its axes over the track. Before 2026-11-27 only a re-acquisition was
@@ -454,6 +462,8 @@ class TrackConfig:
     max_face_split: float | None = None
     face_split_px: float = 12.0
     face_seam_step: float | None = None
+    min_face_foreground: float | None = None
+    face_foreground_px: float = 3.0
     threads: int = 1
     cpu_small_kernels: bool = False
 
@@ -1132,6 +1142,40 @@ def seam_step(image, rotation, translation, size, intrinsics, min_thickness_px: 
     return min(steps) if steps else float("nan")
 
 
+def face_foreground(
+    image,
+    background,
+    rotation,
+    translation,
+    size,
+    intrinsics,
+    min_thickness_px: float,
+    threshold: int,
+    faint_threshold: float | None = None,
+    differences: detect.FrameDifferences | None = None,
+) -> float:
+    """The least foreground fraction over a fitted box's faces: over the faces turned to the
+    camera and at least ``min_thickness_px`` thick in the image (as :func:`face_split`), the
+    fraction of each face's pixels that differ from the background
+    (:func:`detect.foreground_fractions` on the faces' quadrilaterals, one mask over the box's
+    window; without the shadow test: a dark face of the cube passes for a shadow). 1 where no
+    face is thick enough.
+
+    Every face of the true box lies on the object; a fit too large, shifted or turned beyond
+    the cube's outline has a face on the background beside it, which the whole silhouette's
+    fraction averages away. ``image`` and ``background`` as :func:`detect.foreground_fraction`.
+    """
+    quads, _ = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
+    if not len(quads):
+        return 1.0
+    k = np.asarray(intrinsics)
+    faces_px = quads[..., :2] / quads[..., 2:3] @ k[:2, :2].T + k[:2, 2]  # (F, 4, 2)
+    fractions = detect.foreground_fractions(
+        image, background, faces_px, threshold, faint_threshold, False, differences
+    )
+    return float(fractions.min())
+
+
 def _make_local_search(cfg: TrackConfig):
     """The local search's two stages (:meth:`BoxTracker._reacquire_locally`), jitted, each
     result fetched in one transfer (:class:`_OneTransfer`): ``(first, rest)``, ``first`` the
@@ -1624,6 +1668,19 @@ class BoxTracker:
         seam = config.face_seam_step
         if seam is not None and not (isinstance(seam, int | float) and seam >= 0):
             raise ValueError(f"TrackConfig.face_seam_step must be >= 0 or None, got {seam!r}")
+        share = config.min_face_foreground
+        if share is not None and not (
+            isinstance(share, int | float) and not isinstance(share, bool) and 0 <= share <= 1
+        ):
+            raise ValueError(
+                f"TrackConfig.min_face_foreground must be in [0, 1] or None, got {share!r}"
+            )
+        if not (
+            isinstance(config.face_foreground_px, int | float) and config.face_foreground_px >= 0
+        ):
+            raise ValueError(
+                f"TrackConfig.face_foreground_px must be >= 0, got {config.face_foreground_px!r}"
+            )
         scales = config.blob_scales
         if not (
             isinstance(scales, tuple)
@@ -2317,8 +2374,9 @@ class BoxTracker:
     ) -> bool:
         """Each visible face looks like one face (``max_face_split``; with ``face_seam_step``,
         a split face refuses the fit only where an inner edge has no step), the fit's projected
-        silhouette differs from the background (``min_foreground``), the ring outside it does
-        not (``max_outside_foreground``) and, for a box found from scratch (``acquire``), it
+        silhouette differs from the background (``min_foreground``), so does each of its faces
+        (``min_face_foreground``), the ring outside it does not (``max_outside_foreground``)
+        and, for a box found from scratch (``acquire``), it
         covers the moving blob (``min_iou_acquire``); the foreground with the faint one where
         ``faint_masks``, and with the shadow test's pixels in the silhouette checks where
         ``shadow_faces`` allows. True where a check is off or impossible (no background yet:
@@ -2334,10 +2392,11 @@ class BoxTracker:
                 return False
         iou = acquire and cfg.min_iou_acquire > 0
         ring = cfg.max_outside_foreground is not None
+        faces = cfg.min_face_foreground is not None
         least = cfg.min_foreground
         if tracked and cfg.min_foreground_tracked is not None:
             least = cfg.min_foreground_tracked
-        if (least <= 0 and not iou and not ring) or self.background is None:
+        if (least <= 0 and not iou and not ring and not faces) or self.background is None:
             return True
         corners = project_corners_np(np.asarray(rotation), translation, self.size, self.intrinsics)
         image, background = self._difference_pair(gray)
@@ -2345,6 +2404,12 @@ class BoxTracker:
         faint = self._faint_level(image, background, cfg.faint_min_threshold)
         lit = None  # the silhouette's fraction that differs with the shadow test
         kept = {"differences": self._frame_differences(image, background)}
+        if faces:
+            args = (rotation, translation, self.size, self.intrinsics, cfg.face_foreground_px)
+            if face_foreground(image, background, *args, thr, faint, **kept) < (
+                cfg.min_face_foreground
+            ):
+                return False
 
         def shadowed_faces() -> bool:  # the shadow test's pixels may count (shadow_faces)
             nonlocal lit

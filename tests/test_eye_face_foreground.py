@@ -1,0 +1,118 @@
+"""``face_foreground``: each face of a fitted box must lie on the object, not on the background
+beside it (``TrackConfig.min_face_foreground``).
+
+Independent truth: a cube drawn with OpenCV at a known pose, each visible face one flat colour
+far from the grey background, and the empty grey image as the background. Every face of the
+true pose lies on drawn pixels; a fit shifted sideways by half an edge has a face beside the
+drawn cube, on the background, while most of its whole silhouette still covers the
+cube (the whole silhouette's check, ``min_foreground`` at 0.5, passes it).
+"""
+
+import cv2
+import numpy as np
+import pytest
+
+from hec_jax.geometry import BoxTracker, TrackConfig, detect
+from hec_jax.geometry.box_model import FACES, face_visibility_np, project_corners_np
+from hec_jax.geometry.synthetic import rotation_from_axis_angle
+from hec_jax.geometry.track import face_foreground
+
+K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+SIZE = 0.08  # [m]
+GREY = 128
+FACE_GREYS = (40, 70, 200, 230, 20, 250)  # each far from the background's grey
+
+
+def _pose(yaw_deg, tilt_deg, t):
+    """The box turned ``yaw_deg`` about the camera's vertical and tilted ``tilt_deg`` toward
+    the camera: two side faces and the top in view."""
+    yaw = rotation_from_axis_angle(np.array([0.0, 1.0, 0.0]), np.deg2rad(yaw_deg))
+    tilt = rotation_from_axis_angle(np.array([1.0, 0.0, 0.0]), np.deg2rad(-tilt_deg))
+    return tilt @ yaw, np.asarray(t, float)
+
+
+def _draw(rotation, translation):
+    """(480, 640, 3) uint8 RGB: the visible faces filled with their greys on the background."""
+    image = np.full((480, 640, 3), GREY, np.uint8)
+    px = project_corners_np(rotation, translation, SIZE, K) - 0.5  # OpenCV pixel centres
+    for f in np.flatnonzero(face_visibility_np(rotation, translation, SIZE)):
+        pts = np.round(px[FACES[f]] * 256).astype(np.int32)
+        cv2.fillConvexPoly(image, pts, (FACE_GREYS[f],) * 3, cv2.LINE_8, 8)
+    return image
+
+
+BACKGROUND = np.full((480, 640, 3), GREY, np.uint8)
+
+
+def _least(image, rotation, translation, thickness_px=6.0):
+    return face_foreground(image, BACKGROUND, rotation, translation, SIZE, K, thickness_px, 12)
+
+
+def _silhouette_fraction(image, rotation, translation):
+    corners = project_corners_np(rotation, translation, SIZE, K)
+    return detect.foreground_fraction(image, BACKGROUND, corners, 12, shadows=False)
+
+
+POSES = [
+    (30.0, 25.0, (0.0, 0.0, 0.7)),
+    (-50.0, 15.0, (0.05, -0.03, 0.9)),
+    (10.0, 40.0, (-0.1, 0.05, 0.6)),
+]
+
+
+@pytest.mark.parametrize("yaw, tilt, t", POSES)
+def test_the_true_pose_s_faces_lie_on_the_cube_and_a_wrong_fit_has_one_beside_it(yaw, tilt, t):
+    rot, t = _pose(yaw, tilt, t)
+    image = _draw(rot, t)
+    assert _least(image, rot, t) > 0.95
+    # shifted sideways by half an edge: its face on that side lies on the background beside
+    # the cube, while over half of its whole silhouette still covers the cube
+    shifted = t + np.array([0.5 * SIZE, 0.0, 0.0])
+    assert _silhouette_fraction(image, rot, shifted) > 0.5  # the whole-box check passes it
+    assert _least(image, rot, shifted) < 0.3
+
+
+def test_a_face_thinner_than_the_floor_is_not_counted():
+    """A fit moved so that its thin face lies beside the cube: that face counts at a floor
+    below its thickness, not at one above it (only the thick face is left, mostly on the cube)."""
+    rot, t = _pose(0.0, 8.0, (0.0, 0.0, 0.7))  # the top face a few px thick
+    image = _draw(rot, t)
+    px = project_corners_np(rot, t, SIZE, K)
+    faces = np.flatnonzero(face_visibility_np(rot, t, SIZE))
+    quads = px[FACES[faces]]
+    sides = np.linalg.norm(np.roll(quads, -1, axis=1) - quads, axis=-1).max(1)
+    area = np.array([cv2.contourArea(q.astype(np.float32)) for q in quads])  # [px^2]
+    thickness = area / sides
+    thin = int(np.argmin(thickness))
+    assert 2.0 < thickness[thin] < 10.0 < np.max(thickness)
+    # moved a third of an edge toward the thin face's side: that face off the drawn cube
+    away = quads[thin].mean(0) - px.mean(0)
+    moved = t + np.append(away / np.linalg.norm(away), 0.0) * SIZE / 3
+    assert _least(image, rot, moved, thickness_px=0.5 * thickness[thin]) < 0.5
+    assert _least(image, rot, moved, thickness_px=2.0 * thickness[thin]) > 0.6
+
+
+def test_the_tracker_s_checks_refuse_a_face_off_the_cube_only_with_min_face_foreground():
+    rot, t = _pose(30.0, 25.0, (0.0, 0.0, 0.7))
+    image = _draw(rot, t)
+    gray = detect.to_gray(image)
+    shifted = t + np.array([0.5 * SIZE, 0.0, 0.0])
+    for share, shifted_passes in ((None, True), (0.3, False)):
+        cfg = TrackConfig(colour_background=True, min_face_foreground=share)
+        tracker = BoxTracker(K, SIZE, 30.0, cfg, BACKGROUND)
+        tracker._frame_rgb = image
+        assert tracker._confirmed(gray, rot, t)
+        assert tracker._confirmed(gray, rot, shifted) == shifted_passes
+
+
+@pytest.mark.parametrize(
+    "changes, message",
+    [
+        ({"min_face_foreground": 1.5}, "min_face_foreground must be in [0, 1] or None"),
+        ({"min_face_foreground": True}, "min_face_foreground must be in [0, 1] or None"),
+        ({"face_foreground_px": -1.0}, "face_foreground_px must be >= 0"),
+    ],
+)
+def test_bad_face_foreground_settings_are_refused(changes, message):
+    with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
+        BoxTracker(K, SIZE, 30.0, TrackConfig(**changes))
