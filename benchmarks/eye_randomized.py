@@ -185,7 +185,7 @@ class EyeRandomized:
         if self.face_seam_step is not None:
             require(self, "non_negative", "face_seam_step")
         if self.min_face_foreground is not None:
-            require(self, "non_negative", "min_face_foreground")
+            require(self, "fraction", "min_face_foreground")
         require(self, "non_negative", "min_inner_support", "max_speed_m_s")
         require(self, "positive", "hinge_max_cost")
         require(self, "count", "hinge_iters")

@@ -50,6 +50,10 @@ _RULES = {
         "finite and >= 0",
         lambda v: isinstance(v, (int, float)) and math.isfinite(v) and v >= 0,
     ),
+    "fraction": (
+        "in [0, 1]",
+        lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1,
+    ),
 }
 
 
@@ -59,8 +63,9 @@ def require(obj: Any, rule: str, *names: str) -> None:
     Args:
         obj: the config.
         rule: ``"given"`` (a tuple with at least one value), ``"count"`` (an integer >= 1),
-            ``"seed"`` (an integer >= 0), ``"positive"`` (finite and > 0) or ``"non_negative"``
-            (finite and >= 0); a tuple field must hold at least one value and each must pass.
+            ``"seed"`` (an integer >= 0), ``"positive"`` (finite and > 0), ``"non_negative"``
+            (finite and >= 0) or ``"fraction"`` (in [0, 1]); a tuple field must hold at least
+            one value and each must pass.
         *names: the fields.
 
     Raises:

@@ -8,6 +8,8 @@ drawn cube, on the background, while most of its whole silhouette still covers t
 cube (the whole silhouette's check, ``min_foreground`` at 0.5, passes it).
 """
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -15,7 +17,7 @@ import pytest
 from hec_jax.geometry import BoxTracker, TrackConfig, detect
 from hec_jax.geometry.box_model import FACES, face_visibility_np, project_corners_np
 from hec_jax.geometry.synthetic import rotation_from_axis_angle
-from hec_jax.geometry.track import face_foreground
+from hec_jax.geometry.track import RANDOMIZED_BENCHMARK, face_foreground
 
 K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 SIZE = 0.08  # [m]
@@ -92,17 +94,44 @@ def test_a_face_thinner_than_the_floor_is_not_counted():
     assert _least(image, rot, moved, thickness_px=2.0 * thickness[thin]) > 0.6
 
 
-def test_the_tracker_s_checks_refuse_a_face_off_the_cube_only_with_min_face_foreground():
-    rot, t = _pose(30.0, 25.0, (0.0, 0.0, 0.7))
+def test_a_thin_true_face_is_measured_on_the_box_s_window():
+    """The top face 3 px thick, its own window 5 px tall (under ``detect.clip_roi``'s 8 px,
+    where ``foreground_fraction`` of that face alone reads 0): measured on the mask over the
+    whole box's window, it lies on the cube."""
+    rot, t = _pose(0.0, 6.0, (0.0, 0.0, 0.7))
+    image = _draw(rot, t)
+    px = project_corners_np(rot, t, SIZE, K)
+    faces = np.flatnonzero(face_visibility_np(rot, t, SIZE))
+    heights = np.ptp(px[FACES[faces]][..., 1], axis=1)
+    top = px[FACES[faces[np.argmin(heights)]]]
+    assert np.max(np.ceil(top[:, 1] - 0.5)) + 1 - np.min(np.floor(top[:, 1] - 0.5)) < 8
+    assert detect.foreground_fraction(image, BACKGROUND, top) == 0.0  # its own window: 0
+    assert detect.foreground_fractions(image, BACKGROUND, top[None])[0] == 0.0
+    assert _least(image, rot, t, thickness_px=1.0) > 0.9
+
+
+def test_the_preset_passes_a_nearer_box_with_a_face_beside_the_cube_that_the_check_refuses():
+    """The randomized benchmark's preset checks (silhouette, ring, face split and seam) pass a
+    tracked fit 1.2x nearer, moved so that its outline meets the cube's on one side: the ring
+    outside it is background, most of its silhouette is the cube, its faces are flat. One of
+    its faces lies on the background beside the cube, which ``min_face_foreground`` refuses;
+    the true pose passes both, tracked and from scratch."""
+    yaw, tilt, t = POSES[2]
+    rot, t = _pose(yaw, tilt, t)
     image = _draw(rot, t)
     gray = detect.to_gray(image)
-    shifted = t + np.array([0.5 * SIZE, 0.0, 0.0])
-    for share, shifted_passes in ((None, True), (0.3, False)):
-        cfg = TrackConfig(colour_background=True, min_face_foreground=share)
+    near = t / 1.2
+    dx_px = project_corners_np(rot, t, SIZE, K)[:, 0].min()
+    dx_px -= project_corners_np(rot, near, SIZE, K)[:, 0].min()  # the left outlines meet
+    near = near + np.array([dx_px * near[2] / K[0, 0], 0.0, 0.0])
+    preset = dataclasses.replace(RANDOMIZED_BENCHMARK, threads=1)
+    for share, near_passes in ((None, True), (0.2, False)):
+        cfg = dataclasses.replace(preset, min_face_foreground=share)
         tracker = BoxTracker(K, SIZE, 30.0, cfg, BACKGROUND)
         tracker._frame_rgb = image
-        assert tracker._confirmed(gray, rot, t)
-        assert tracker._confirmed(gray, rot, shifted) == shifted_passes
+        assert tracker._confirmed(gray, rot, t, tracked=True)
+        assert tracker._confirmed(gray, rot, t, acquire=True)
+        assert tracker._confirmed(gray, rot, near, tracked=True) == near_passes
 
 
 @pytest.mark.parametrize(
@@ -110,7 +139,9 @@ def test_the_tracker_s_checks_refuse_a_face_off_the_cube_only_with_min_face_fore
     [
         ({"min_face_foreground": 1.5}, "min_face_foreground must be in [0, 1] or None"),
         ({"min_face_foreground": True}, "min_face_foreground must be in [0, 1] or None"),
-        ({"face_foreground_px": -1.0}, "face_foreground_px must be >= 0"),
+        ({"face_foreground_px": -1.0}, "face_foreground_px must be finite and >= 0"),
+        ({"face_foreground_px": float("inf")}, "face_foreground_px must be finite and >= 0"),
+        ({"face_foreground_px": True}, "face_foreground_px must be finite and >= 0"),
     ],
 )
 def test_bad_face_foreground_settings_are_refused(changes, message):

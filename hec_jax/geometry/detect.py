@@ -857,11 +857,14 @@ def foreground_fractions(
     shadows: bool = True,
     differences: FrameDifferences | None = None,
 ) -> np.ndarray:
-    """(F,) :func:`foreground_fraction` of each polygon of ``polygons_px`` (F, N, 2) [px,
-    intrinsics convention], on one foreground mask over the window that holds them all (0
-    where that window is outside the image or under :func:`clip_roi`'s 8 px, or where a
-    polygon is not finite). A thin polygon (a box face seen nearly edge-on) is measured on the
-    mask of the window around all of them.
+    """(F,) the fraction of each polygon of ``polygons_px`` (F, N, 2) [px, intrinsics
+    convention] whose pixels differ from the background, as :func:`foreground_fraction`
+    measures one, but on one foreground mask over the window that holds them all (0 where that
+    window is outside the image or under :func:`clip_roi`'s 8 px, or where a polygon is not
+    finite). So a thin polygon (a box face seen nearly edge-on), whose own window would be
+    under 8 px, is measured; and pixels near the border of a polygon's own window can read
+    differently than in that window alone (the 3x3 blur's border). With one polygon: exactly
+    :func:`foreground_fraction`.
     """
     pts = np.asarray(polygons_px, np.float64) - PIXEL_OFFSET
     out = np.zeros(len(pts))

@@ -343,8 +343,10 @@ class TrackConfig:
             mask without its shadow test, with the faint mask where ``faint_masks``). It refuses
             a fit whose face lies on the background beside the cube (a box too large or turned,
             its outline on the cube's far edges); the silhouette checks count the whole box and
-            pass it. Needs a background. None: off (as before); docs/eye_randomized.md, "A face
-            on the background".
+            pass it. A face's part outside the image counts as background (as in
+            ``min_foreground``), so a box at the image's border is refused once too little of one
+            face is in view. Needs a background. None: off (as before); docs/eye_randomized.md,
+            "A face on the background".
         keep_labelling: every accepted fit is relabelled to the one of the cube's 24 labellings
             of its axes nearest the last rotation (``snap_to_symmetry``): the same box, one
             naming of its axes over the track. Before 2026-11-27 only a re-acquisition was
@@ -1058,7 +1060,7 @@ def face_split(image, rotation, translation, size, intrinsics, min_thickness_px:
     fit's inner edges are seen. NumPy; ``image`` (H, W) or (H, W, C), pixel k covering
     [k, k + 1) (the intrinsics' convention).
     """
-    quads, _ = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
+    quads, _, _ = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
     if not len(quads):
         return 0.0
     q0 = quads[:, None, 0]
@@ -1076,9 +1078,10 @@ def face_split(image, rotation, translation, size, intrinsics, min_thickness_px:
 
 
 def _thick_faces(rotation, translation, size, intrinsics, min_thickness_px: float):
-    """((F, 4, 3) camera-frame corners [m], in turn around each face; (F,) their face ids) of
-    the faces turned to the camera, in front of it, and at least ``min_thickness_px`` thick in
-    the image (area over longest side).
+    """((F, 4, 3) camera-frame corners [m], in turn around each face; (F,) their face ids;
+    (F, 4, 2) the corners' pixels [px, intrinsics convention]) of the faces turned to the
+    camera, in front of it, and at least ``min_thickness_px`` thick in the image (area over
+    longest side).
     """
     r, t = np.asarray(rotation), np.asarray(translation)
     corners = (CUBE_CORNERS_UNIT * size) @ r.T + t  # camera frame [m]
@@ -1088,7 +1091,7 @@ def _thick_faces(rotation, translation, size, intrinsics, min_thickness_px: floa
     px = pixels[FACES[ids]]  # (F, 4, 2)
     side = np.max(np.linalg.norm(np.roll(px, -1, axis=1) - px, axis=-1), axis=1)
     ids = ids[image_face_area_np(pixels)[ids] >= min_thickness_px * side]
-    return corners[FACES[ids]], ids
+    return corners[FACES[ids]], ids, pixels[FACES[ids]]
 
 
 def _colours_at(image, points, intrinsics) -> np.ndarray:
@@ -1123,7 +1126,7 @@ def seam_step(image, rotation, translation, size, intrinsics, min_thickness_px: 
     With :func:`face_split` it tells that fit from a true one with a shadow across a face,
     whose inner edges keep their steps. NumPy; ``image`` as :func:`face_split`.
     """
-    quads, ids = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
+    quads, ids, _ = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
     corner_ids = FACES[ids]  # (F, 4) cube corner numbers, in turn around each face
     steps = []
     for i in range(len(ids)):
@@ -1165,11 +1168,9 @@ def face_foreground(
     the cube's outline has a face on the background beside it, which the whole silhouette's
     fraction averages away. ``image`` and ``background`` as :func:`detect.foreground_fraction`.
     """
-    quads, _ = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
-    if not len(quads):
+    _, _, faces_px = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
+    if not len(faces_px):
         return 1.0
-    k = np.asarray(intrinsics)
-    faces_px = quads[..., :2] / quads[..., 2:3] @ k[:2, :2].T + k[:2, 2]  # (F, 4, 2)
     fractions = detect.foreground_fractions(
         image, background, faces_px, threshold, faint_threshold, False, differences
     )
@@ -1675,11 +1676,15 @@ class BoxTracker:
             raise ValueError(
                 f"TrackConfig.min_face_foreground must be in [0, 1] or None, got {share!r}"
             )
+        floor = config.face_foreground_px
         if not (
-            isinstance(config.face_foreground_px, int | float) and config.face_foreground_px >= 0
+            isinstance(floor, int | float)
+            and not isinstance(floor, bool)
+            and np.isfinite(floor)
+            and floor >= 0
         ):
             raise ValueError(
-                f"TrackConfig.face_foreground_px must be >= 0, got {config.face_foreground_px!r}"
+                f"TrackConfig.face_foreground_px must be finite and >= 0, got {floor!r}"
             )
         scales = config.blob_scales
         if not (
