@@ -1160,9 +1160,9 @@ def face_foreground(
     """The least foreground fraction over a fitted box's faces: over the faces turned to the
     camera and at least ``min_thickness_px`` thick in the image (as :func:`face_split`), the
     fraction of each face's pixels that differ from the background
-    (:func:`detect.foreground_fractions` on the faces' quadrilaterals, one mask over the box's
-    window; without the shadow test: a dark face of the cube passes for a shadow). 1 where no
-    face is thick enough.
+    (:func:`detect.foreground_fractions` on the faces' quadrilaterals, one mask over the window
+    that holds them; without the shadow test: a dark face of the cube passes for a shadow). 1
+    where no face is thick enough.
 
     Every face of the true box lies on the object; a fit too large, shifted or turned beyond
     the cube's outline has a face on the background beside it, which the whole silhouette's

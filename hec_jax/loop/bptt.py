@@ -135,7 +135,7 @@ def train_bptt_params(
             loss=np.asarray(loss_b),
             peak=np.asarray(peak_b),
             min_margin=float(margin_b.min()),
-            grad_norm=float(optax.global_norm(grad)),
+            grad_norm=float(optax.tree.norm(grad)),
             finite=finite,
         )
         for k, v in row.items():
