@@ -18,7 +18,8 @@ Methods, on the same frames:
   ``low_contrast``, ``blob_core=0.4``, ``faint_candidates``, ``batched_search``,
   ``stretch_points``, ``max_outside_foreground=0.2``, ``faint_masks``, ``prior_segments``,
   ``min_foreground_tracked=0.25``, ``shadow_candidates``, ``faint_min_threshold=3`` (6 for the
-  segments' mask), ``shadow_faces=0.1``, ``faint_unshadowed`` and, once lost,
+  segments' mask), ``shadow_faces=0.1``, ``faint_unshadowed``, ``max_deep_shadow=0.5``
+  (since session 74) and, once lost,
   ``lost_search_every=2``, without
   ``depth_gate``, on two host threads (``--threads``; the baselines on one), its jitted fits and
   searches compiled with ``cpu_small_kernels`` (``--no-cpu-small-kernels``: XLA's defaults);
@@ -142,6 +143,10 @@ class EyeRandomized:
     # TrackConfig.min_face_foreground of the tracker (the preset's, None: off; session 73: a fit
     # with a face on the background is refused, docs/eye_randomized.md, "A face on the background")
     min_face_foreground: float | None = TRACK.min_face_foreground
+    # TrackConfig.max_deep_shadow of the tracker (the preset's, 0.5 since session 74: a fit to
+    # the cube's own dark shadow is refused; None: off, for the ablation; docs/eye_randomized.md,
+    # "A lock on the cube's shadow")
+    max_deep_shadow: float | None = TRACK.max_deep_shadow
     # TrackConfig.threads of the tracker (its host threads; the same outputs for any number; the
     # baselines run on one)
     threads: int = TRACK.threads
@@ -186,6 +191,8 @@ class EyeRandomized:
             require(self, "non_negative", "face_seam_step")
         if self.min_face_foreground is not None:
             require(self, "fraction", "min_face_foreground")
+        if self.max_deep_shadow is not None:
+            require(self, "fraction", "max_deep_shadow")
         require(self, "non_negative", "min_inner_support", "max_speed_m_s")
         require(self, "positive", "hinge_max_cost")
         require(self, "count", "hinge_iters")
@@ -210,6 +217,7 @@ def tracker_config(a: EyeRandomized):
         max_face_split=a.max_face_split,
         face_seam_step=a.face_seam_step,
         min_face_foreground=a.min_face_foreground,
+        max_deep_shadow=a.max_deep_shadow,
         threads=a.threads,
         cpu_small_kernels=a.cpu_small_kernels,
         min_inner_support=a.min_inner_support,

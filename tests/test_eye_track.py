@@ -199,6 +199,8 @@ OFF = {  # the issue-24 settings and their off values
     "faint_segment_min_threshold": None,
     "shadow_faces": None,
     "blob_scales": (),
+    "min_face_foreground": None,
+    "max_deep_shadow": None,
 }
 
 

@@ -893,6 +893,71 @@ def foreground_fractions(
     return out
 
 
+# deep_shadow_share's factor range: below the shadow test's, down to a twentieth
+DEEP_SHADOW_RATIO = (0.05, _SHADOW_RATIO[0])
+# deep_shadow_share reads 0 where this share of the differing pixels is lighter than the
+# background (a shadow has none but for noise)
+LIGHTER_SHARE = 0.05
+
+
+def deep_shadow_share(
+    image: np.ndarray,
+    background,
+    polygon_px: np.ndarray,
+    threshold: int = 12,
+    ratio=DEEP_SHADOW_RATIO,
+    rel_tol: float = 0.05,
+) -> float:
+    """Of the pixels in the convex hull of ``polygon_px`` (N, 2) [px, intrinsics convention]
+    where an RGB ``image`` differs from the background (an RGB array or a :class:`Background`)
+    by more than ``threshold`` grey levels in some channel, the share that is a deep shadow:
+    the background times one factor in ``ratio`` = [lo, hi) in every channel, the channels'
+    ratios within ``rel_tol`` of that factor relative to it (a shadow darkens every channel
+    alike), the background's channels all at least 24 grey levels (as :func:`difference`'s
+    test). 0 for a gray image, a hull that is not finite or whose window is under
+    :func:`clip_roi`'s 8 px, one with under 4 differing pixels, or one where at least
+    ``LIGHTER_SHARE`` of the differing pixels are lighter than the background (on the mean of
+    the channels): a shadow only darkens, so a lit face under the hull is not a shadow's.
+
+    A fit to the cube's own shadow covers little but the shadow; a fit to the cube covers its
+    faces, which differ from the background in hue, or are lit differently from one another.
+    :func:`difference`'s shadow test stops at a factor of 0.25 with an absolute tolerance
+    (0.08), which at lower factors would take many dark objects for shadows; the rendered
+    scenes cast shadows down to about 0.1 (docs/eye_randomized.md, session 74). A relative
+    tolerance still tells a shadow (the background's hue) from an object of another hue. A
+    box of the background's hue with no face lighter than the background (a grey box on a
+    lighter grey wall, lit from behind) reads as a shadow too: photometrically it is one.
+    """
+    image = np.asarray(image)
+    background = _background_image(background)
+    if image.ndim != 3:
+        return 0.0
+    pts = np.asarray(polygon_px, np.float64) - PIXEL_OFFSET
+    if not np.all(np.isfinite(pts)):
+        return 0.0
+    lo, hi = np.floor(pts.min(0)), np.ceil(pts.max(0)) + 1
+    box = clip_roi((lo[0], lo[1], hi[0], hi[1]), image.shape[1], image.shape[0])
+    if box is None:
+        return 0.0
+    x0, y0, x1, y1 = box
+    _, inside = _hull_mask(pts, (x0, y0), (y1 - y0, x1 - x0))
+    img = image[y0:y1, x0:x1][inside].astype(np.float32)  # (P, 3)
+    bg = np.asarray(background)[y0:y1, x0:x1][inside].astype(np.float32)
+    differs = np.abs(img - bg).max(-1) > threshold
+    if differs.sum() < 4:
+        return 0.0
+    # a shadow only darkens: lighter pixels under the hull (a lit face) are no shadow's
+    lighter = differs & ((img - bg).mean(-1) > 0)
+    if lighter.sum() >= LIGHTER_SHARE * differs.sum():
+        return 0.0
+    r = img / np.maximum(bg, np.float32(1.0))
+    mean = r.mean(-1)
+    dev = np.abs(r - mean[:, None]).max(-1)
+    deep = (mean >= ratio[0]) & (mean < ratio[1]) & (dev <= rel_tol * mean)
+    deep &= np.all(bg >= 24, axis=-1)
+    return float(np.sum(deep & differs)) / float(differs.sum())
+
+
 def outside_foreground_fraction(
     image: np.ndarray,
     background: np.ndarray,
