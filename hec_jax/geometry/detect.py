@@ -914,7 +914,8 @@ def deep_shadow_share(
     the background times one factor in ``ratio`` = [lo, hi) in every channel, the channels'
     ratios within ``rel_tol`` of that factor relative to it (a shadow darkens every channel
     alike), the background's channels all at least 24 grey levels (as :func:`difference`'s
-    test). 0 for a gray image, a hull that is not finite or whose window is under
+    test). The hull's part outside the image is left out. 0 for a gray image or background
+    (or one of another shape than the image's), a hull that is not finite or whose window is under
     :func:`clip_roi`'s 8 px, one with under 4 differing pixels, or one where at least
     ``LIGHTER_SHARE`` of the differing pixels are lighter than the background (on the mean of
     the channels): a shadow only darkens, so a lit face under the hull is not a shadow's.
@@ -926,11 +927,14 @@ def deep_shadow_share(
     scenes cast shadows down to about 0.1 (docs/eye_randomized.md, session 74). A relative
     tolerance still tells a shadow (the background's hue) from an object of another hue. A
     box of the background's hue with no face lighter than the background (a grey box on a
-    lighter grey wall, lit from behind) reads as a shadow too: photometrically it is one.
+    lighter grey wall, lit from behind) reads as a shadow too: photometrically it is one. The
+    tolerance is relative to the factor, so sensor noise counts for more the deeper the
+    shadow: at 2 grey levels or more most of a shadow's pixels fall outside it and the share
+    stays low (the check is for frames with little noise; docs/eye_randomized.md, session 74).
     """
     image = np.asarray(image)
-    background = _background_image(background)
-    if image.ndim != 3:
+    background = np.asarray(_background_image(background))
+    if image.ndim != 3 or background.shape != image.shape:
         return 0.0
     pts = np.asarray(polygon_px, np.float64) - PIXEL_OFFSET
     if not np.all(np.isfinite(pts)):
