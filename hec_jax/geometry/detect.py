@@ -898,6 +898,34 @@ DEEP_SHADOW_RATIO = (0.05, _SHADOW_RATIO[0])
 # deep_shadow_share reads 0 where this share of the differing pixels is lighter than the
 # background (a shadow has none but for noise)
 LIGHTER_SHARE = 0.05
+# deep_shadow_share's median filter [px] before the ratios (sensor noise; session 75)
+DEEP_SHADOW_MEDIAN_PX = 5
+
+
+def _median_filtered_pair(image, background, box, median_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.medianBlur`` by ``median_px`` (odd) of the RGB ``image`` and ``background`` (an
+    array or a :class:`Background`), cut to ``box`` = (x0, y0, x1, y1): the same values as the
+    whole frames filtered (each window padded by half the kernel; at the frame's own edges,
+    its border replicated as ``medianBlur`` does).
+    """
+    x0, y0, x1, y1 = box
+    height, width = image.shape[:2]
+    half = median_px // 2
+    px0, py0 = max(x0 - half, 0), max(y0 - half, 0)
+    px1, py1 = min(x1 + half, width), min(y1 + half, height)
+
+    def window(full):
+        padded = cv2.copyMakeBorder(
+            np.ascontiguousarray(full[py0:py1, px0:px1]),
+            half - (y0 - py0),
+            half - (py1 - y1),
+            half - (x0 - px0),
+            half - (px1 - x1),
+            cv2.BORDER_REPLICATE,
+        )
+        return cv2.medianBlur(padded, median_px)[half : half + y1 - y0, half : half + x1 - x0]
+
+    return window(image), window(np.asarray(_background_image(background)))
 
 
 def deep_shadow_share(
@@ -907,6 +935,7 @@ def deep_shadow_share(
     threshold: int = 12,
     ratio=DEEP_SHADOW_RATIO,
     rel_tol: float = 0.05,
+    median_px: int = DEEP_SHADOW_MEDIAN_PX,
 ) -> float:
     """Of the pixels in the convex hull of ``polygon_px`` (N, 2) [px, intrinsics convention]
     where an RGB ``image`` differs from the background (an RGB array or a :class:`Background`)
@@ -927,11 +956,19 @@ def deep_shadow_share(
     scenes cast shadows down to about 0.1 (docs/eye_randomized.md, session 74). A relative
     tolerance still tells a shadow (the background's hue) from an object of another hue. A
     box of the background's hue with no face lighter than the background (a grey box on a
-    lighter grey wall, lit from behind) reads as a shadow too: photometrically it is one. The
-    tolerance is relative to the factor, so sensor noise counts for more the deeper the
-    shadow: at 2 grey levels or more most of a shadow's pixels fall outside it and the share
-    stays low (the check is for frames with little noise; docs/eye_randomized.md, session 74).
+    lighter grey wall, lit from behind) reads as a shadow too: photometrically it is one.
+
+    The tolerance is relative to the factor, so sensor noise counts for more the deeper the
+    shadow: on the raw pixels a shadow at 0.23 mostly falls outside it from 2 grey levels of
+    noise on (session 74). So the ratios (not which pixels differ, nor the lighter ones) are
+    taken on both images median-filtered by ``median_px`` (odd; 1: unfiltered): the filter
+    removes most of the noise and, unlike a box filter, keeps a shadow's edges, so the hull's
+    pixels next to the lit background stay the shadow's (docs/eye_randomized.md, session 75).
     """
+    if isinstance(median_px, bool) or not isinstance(median_px, int | np.integer):
+        raise ValueError(f"median_px must be an odd int >= 1, got {median_px!r}")
+    if median_px < 1 or median_px % 2 == 0:
+        raise ValueError(f"median_px must be an odd int >= 1, got {median_px!r}")
     image = np.asarray(image)
     background = np.asarray(_background_image(background))
     if image.ndim != 3 or background.shape != image.shape:
@@ -946,7 +983,7 @@ def deep_shadow_share(
     x0, y0, x1, y1 = box
     _, inside = _hull_mask(pts, (x0, y0), (y1 - y0, x1 - x0))
     img = image[y0:y1, x0:x1][inside].astype(np.float32)  # (P, 3)
-    bg = np.asarray(background)[y0:y1, x0:x1][inside].astype(np.float32)
+    bg = background[y0:y1, x0:x1][inside].astype(np.float32)
     differs = np.abs(img - bg).max(-1) > threshold
     if differs.sum() < 4:
         return 0.0
@@ -954,6 +991,11 @@ def deep_shadow_share(
     lighter = differs & ((img - bg).mean(-1) > 0)
     if lighter.sum() >= LIGHTER_SHARE * differs.sum():
         return 0.0
+    if median_px > 1:
+        # the ratios on both images median-filtered: sensor noise is filtered out, a shadow's
+        # edges are kept
+        img, bg = _median_filtered_pair(image, background, box, median_px)
+        img, bg = img[inside].astype(np.float32), bg[inside].astype(np.float32)
     r = img / np.maximum(bg, np.float32(1.0))
     mean = r.mean(-1)
     dev = np.abs(r - mean[:, None]).max(-1)
