@@ -848,6 +848,26 @@ def foreground_fraction(
     return float(fractions[0])
 
 
+def _widened_roi(roi, width: int, height: int):
+    """(x0, y0, x1, y1) of ``roi`` clipped to the image (None if that is empty), each side
+    widened to at least :func:`clip_roi`'s 8 px around its centre and kept inside the image;
+    None too for an image under 8 x 8 px, as :func:`clip_roi` gives.
+    """
+    x0, y0 = max(int(np.floor(roi[0])), 0), max(int(np.floor(roi[1])), 0)
+    x1, y1 = min(int(np.ceil(roi[2])), width), min(int(np.ceil(roi[3])), height)
+    if x1 <= x0 or y1 <= y0 or width < 8 or height < 8:
+        return None
+
+    def widen(lo, hi, size):
+        if hi - lo >= 8:
+            return lo, hi
+        lo = min(max((lo + hi) // 2 - 4, 0), size - 8)
+        return lo, lo + 8
+
+    (x0, x1), (y0, y1) = widen(x0, x1, width), widen(y0, y1, height)
+    return x0, y0, x1, y1
+
+
 def foreground_fractions(
     gray: np.ndarray,
     background: np.ndarray,
@@ -860,11 +880,12 @@ def foreground_fractions(
     """(F,) the fraction of each polygon of ``polygons_px`` (F, N, 2) [px, intrinsics
     convention] whose pixels differ from the background, as :func:`foreground_fraction`
     measures one, but on one foreground mask over the window that holds them all (0 where that
-    window is outside the image or under :func:`clip_roi`'s 8 px, or where a polygon is not
-    finite). So a thin polygon (a box face seen nearly edge-on), whose own window would be
-    under 8 px, is measured; and pixels near the border of a polygon's own window can read
-    differently than in that window alone (the 3x3 blur's border). With one polygon: exactly
-    :func:`foreground_fraction`.
+    window is outside the image, or where a polygon is not finite). So a thin polygon (a box
+    face seen nearly edge-on), whose own window would be under 8 px, is measured; and pixels
+    near the border of a polygon's own window can read differently than in that window alone
+    (the 3x3 blur's border). A window under :func:`clip_roi`'s 8 px (a box a few px across)
+    is widened to 8 px inside the image (before session 75 it read 0). With one polygon:
+    exactly :func:`foreground_fraction`.
     """
     pts = np.asarray(polygons_px, np.float64) - PIXEL_OFFSET
     out = np.zeros(len(pts))
@@ -872,7 +893,9 @@ def foreground_fractions(
     if not finite.any():
         return out
     lo, hi = np.floor(pts[finite].min((0, 1))), np.ceil(pts[finite].max((0, 1))) + 1
-    roi = (lo[0], lo[1], hi[0], hi[1])
+    roi = _widened_roi((lo[0], lo[1], hi[0], hi[1]), gray.shape[1], gray.shape[0])
+    if roi is None:
+        return out
     got = foreground_mask(
         gray,
         background,
