@@ -988,9 +988,8 @@ def deep_shadow_share(
     removes most of the noise and, unlike a box filter, keeps a shadow's edges, so the hull's
     pixels next to the lit background stay the shadow's (docs/eye_randomized.md, session 75).
     """
-    if isinstance(median_px, bool) or not isinstance(median_px, int | np.integer):
-        raise ValueError(f"median_px must be an odd int >= 1, got {median_px!r}")
-    if median_px < 1 or median_px % 2 == 0:
+    integral = isinstance(median_px, int | np.integer) and not isinstance(median_px, bool)
+    if not integral or median_px < 1 or median_px % 2 == 0:
         raise ValueError(f"median_px must be an odd int >= 1, got {median_px!r}")
     image = np.asarray(image)
     background = np.asarray(_background_image(background))
