@@ -94,7 +94,7 @@ def test_a_shadow_below_the_shadow_test_s_range_is_foreground_and_reads_as_a_dee
 
 @pytest.mark.parametrize("factor", [0.1, 0.15, 0.233])
 def test_a_deep_shadow_reads_as_one_under_the_scenes_sensor_noise(factor):
-    """The relative tolerance is 5% of the factor, so without the box filter sensor noise
+    """The relative tolerance is 5% of the factor, so without the median filter sensor noise
     hides a deep shadow, the more the deeper it is: seed 115's factor (0.233) reads 0.97, 0.61
     and 0.33 at 1, 2 and 3 grey levels of noise (session 74's limit). The ratios taken on both
     images median-filtered by 5 px (the default) keep a shadow down to a factor of 0.15 over

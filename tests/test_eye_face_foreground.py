@@ -111,7 +111,7 @@ def test_a_thin_true_face_is_measured_on_the_box_s_window():
     assert _least(image, rot, t, thickness_px=1.0) > 0.9
 
 
-@pytest.mark.parametrize("t", [(0.0, 0.0, 14.0), (-9.3, -6.9, 18.0)])
+@pytest.mark.parametrize("t", [(0.0, 0.0, 14.0), (-9.5, -7.1, 18.0)])
 def test_a_box_a_few_pixels_across_is_measured(t):
     """A cube about 4 px across (before session 75 its window, under 8 px, read 0, and every
     silhouette check refused it): its window is widened to 8 px inside the image, also where
@@ -121,6 +121,9 @@ def test_a_box_a_few_pixels_across_is_measured(t):
     px = project_corners_np(rot, t, SIZE, K)
     assert np.all(np.ceil(px.max(0) - 0.5) + 1 - np.floor(px.min(0) - 0.5) < 8)  # its window
     assert np.all(px > 0.0) and np.all(px < (640.0, 480.0))
+    if t[0] < 0:  # against the image's corner: the widened window is clamped to the image
+        lo, hi = np.floor(px.min(0) - 0.5), np.ceil(px.max(0) - 0.5) + 1
+        assert detect._widened_roi((*lo, *hi), 640, 480) == (0, 0, 8, 8)
     assert _silhouette_fraction(image, rot, t) > 0.8
     assert _silhouette_fraction(image, rot, t + (0.3, 0.3, 0.0)) == 0.0
 

@@ -982,8 +982,8 @@ def deep_shadow_share(
     lighter grey wall, lit from behind) reads as a shadow too: photometrically it is one.
 
     The tolerance is relative to the factor, so sensor noise counts for more the deeper the
-    shadow: on the raw pixels a shadow at 0.23 mostly falls outside it from 2 grey levels of
-    noise on (session 74). So the ratios (not which pixels differ, nor the lighter ones) are
+    shadow: on the raw pixels a shadow at 0.23 reads 0.61 at 2 grey levels of noise and 0.33
+    at 3 (session 74). So the ratios (not which pixels differ, nor the lighter ones) are
     taken on both images median-filtered by ``median_px`` (odd; 1: unfiltered): the filter
     removes most of the noise and, unlike a box filter, keeps a shadow's edges, so the hull's
     pixels next to the lit background stay the shadow's (docs/eye_randomized.md, session 75).
