@@ -404,6 +404,17 @@ def script_arguments():
         _parsed.args, _parsed.depth = saved
 
 
+_RESERVED_KEYS = frozenset(
+    {"seed", "command", "argv", "parsed_args", "versions", "code", "device", "started_utc"}
+)
+
+
+def _check_settings(settings: dict[str, Any]) -> None:
+    reserved = _RESERVED_KEYS & set(settings)
+    if reserved:
+        raise ValueError(f"settings may not use the reserved keys {sorted(reserved)}")
+
+
 def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Path:
     """Create the run folder and write its ``config.json``; returns the folder.
 
@@ -415,19 +426,7 @@ def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Pa
     ``device`` and, at the top level beside them, the run's own ``settings`` (so e.g. ``m_e``
     is ``config["m_e"]``).
     """
-    reserved = {
-        "seed",
-        "command",
-        "argv",
-        "parsed_args",
-        "versions",
-        "code",
-        "device",
-        "started_utc",
-    }
-    reserved &= set(settings)
-    if reserved:
-        raise ValueError(f"settings may not use the reserved keys {sorted(reserved)}")
+    _check_settings(settings)
     folder = Path(out)
     folder.mkdir(parents=True, exist_ok=True)
     write_json(
@@ -448,7 +447,10 @@ def start_run(out: str | os.PathLike, seed: int, settings: dict[str, Any]) -> Pa
 
 
 def _set_status(folder: Path, status: str, error: str | None = None) -> None:
-    config = json.loads((folder / "config.json").read_text())
+    try:
+        config = json.loads((folder / "config.json").read_text())
+    except FileNotFoundError:  # failed before start_run had written it
+        config = {}
     config.update(status=status, finished_utc=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
     if error is not None:
         config["error"] = error
@@ -535,14 +537,25 @@ def run_folder(
     """
     out = Path(out)
     check_out(out, overwrite)
+    _check_settings(settings)
     out.parent.mkdir(parents=True, exist_ok=True)
-    # a new name for every run, even two in one process (a killed run's folder stays as it was)
-    partial = Path(tempfile.mkdtemp(prefix=f".{out.name}.partial-{os.getpid()}-", dir=out.parent))
-    os.chmod(partial, 0o777 & ~_umask())  # (mkdtemp makes it private) as a plain mkdir would
-    start_run(partial, seed, dict(settings, status="running"))
-    run = {"partial": partial, "out": out}
     with _LOCK:
+        # Open from the moment the folder exists: a signal while config.json is being written
+        # (versions, git, the JAX backend: seconds on a busy machine) waits for the lock, then
+        # fails the folder, rather than finding no open run and leaving it partial.
+        # A new name for every run, even two in one process (a killed run's folder stays).
+        partial = Path(
+            tempfile.mkdtemp(prefix=f".{out.name}.partial-{os.getpid()}-", dir=out.parent)
+        )
+        run = {"partial": partial, "out": out}
         _ACTIVE.append(run)
+        try:
+            os.chmod(partial, 0o777 & ~_umask())  # (mkdtemp makes it private) as mkdir would
+            start_run(partial, seed, dict(settings, status="running"))
+        except BaseException as e:
+            _ACTIVE.remove(run)
+            _fail(run, f"{type(e).__name__}: {e}")
+            raise
     try:
         yield partial
     except BaseException as e:

@@ -367,6 +367,75 @@ def test_fail_active_run_ends_the_open_run_folder(tmp_path):
     assert runs.fail_active_run("nothing open") is None
 
 
+def test_a_signal_while_the_run_folder_is_being_started_still_fails_it(tmp_path, monkeypatch):
+    """The folder exists before its ``config.json`` is written (package versions, git, the JAX
+    backend: seconds on a busy machine). A signal then must not find "no open run" and leave a
+    hidden partial folder (CI, session 76): ``fail_active_run`` from another thread waits for
+    the start to finish, then fails and renames the folder; no partial or ``out`` is left.
+    The start is held on events, so the order is fixed, not timed."""
+    import threading
+
+    starting, release, failed_it = threading.Event(), threading.Event(), threading.Event()
+    describe = runs.device_description
+
+    def slow_device_description():
+        starting.set()
+        assert release.wait(30)
+        return describe()
+
+    monkeypatch.setattr(runs, "device_description", slow_device_description)
+    out, got = tmp_path / "run", {}
+
+    def the_run():
+        try:
+            with runs.run_folder(out, 0, {}):
+                assert failed_it.wait(30)  # the signal's handler has run
+        except BaseException as e:  # noqa: BLE001 (recorded for the main thread)
+            got["error"] = e
+
+    def the_signal():
+        got["failed"] = runs.fail_active_run("interrupted (SIGINT)")
+        failed_it.set()
+
+    runner = threading.Thread(target=the_run)
+    runner.start()
+    assert starting.wait(30)  # the partial folder exists; config.json is not written yet
+    assert [p.name.startswith(".run.partial-") for p in tmp_path.iterdir()] == [True]
+    signaller = threading.Thread(target=the_signal)
+    signaller.start()
+    release.set()
+    signaller.join(30)
+    runner.join(30)
+    failed = got["failed"]
+    assert failed is not None and failed.name.startswith("run.failed-")
+    assert isinstance(got["error"], RuntimeError) and "ended as failed" in str(got["error"])
+    assert [p.name for p in tmp_path.iterdir()] == [failed.name] and not out.exists()
+    config = json.loads((failed / "config.json").read_text())
+    assert config["status"] == "failed" and config["error"] == "interrupted (SIGINT)"
+    assert config["seed"] == 0 and "device" in config  # the start was not cut short
+
+
+def test_a_run_folder_whose_start_fails_is_left_failed_not_partial(tmp_path, monkeypatch):
+    """An error while ``config.json`` is being written (here: the JAX backend) fails the folder
+    as any error in the block does; reserved settings are refused before a folder exists."""
+
+    def broken():
+        raise OSError("no backend")
+
+    monkeypatch.setattr(runs, "device_description", broken)
+    with pytest.raises(OSError, match="no backend"):
+        with runs.run_folder(tmp_path / "run", 0, {}):
+            pass
+    (failed,) = tmp_path.iterdir()
+    assert failed.name.startswith("run.failed-")
+    config = json.loads((failed / "config.json").read_text())
+    assert config["status"] == "failed" and config["error"] == "OSError: no backend"
+    with pytest.raises(ValueError, match="reserved keys"):
+        with runs.run_folder(tmp_path / "other", 0, {"seed": 1}):
+            pass
+    assert [p.name for p in tmp_path.iterdir()] == [failed.name]
+
+
 def _strict(text: str):
     def refuse(name):
         raise ValueError(f"not JSON: {name}")
