@@ -814,6 +814,9 @@ def test_the_eye_benchmark_s_splits_give_their_seeds():
         assert (seed in wood) == (scene.look == "wood" and scene.elevation_deg < 12)
 
 
+# slow (73 s on the CI's CPU, two whole benchmark sequences): the option is off by default, and
+# the library's backward pass has its default tests in tests/test_eye_backward.py
+@pytest.mark.slow
 def test_the_eye_benchmark_counts_backward_frames_but_not_as_an_acquisition():
     """``benchmarks/eye_randomized.py --extend-backward`` on development scene 5, where the
     forward tracker finds the cube 2 frames after it is fully visible (session 70's scratch run:

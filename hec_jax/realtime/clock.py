@@ -15,6 +15,7 @@ import contextlib
 import math
 import mmap
 import os
+import select
 import struct
 import subprocess
 import sys
@@ -691,13 +692,22 @@ _DIE_WITH_PARENT = (
     "if os.getppid() != {parent}:\n"
     "    os._exit(0)\n"
 )
+# then, for :class:`idle_filler`, one byte on its stdout, which it waits for before it lowers
+# the filler's priority (a filler starting up at SCHED_IDLE on a busy CPU got no time for
+# seconds, and was not yet bound to its parent)
+_SAY_READY = "os.write(1, b'.')\n"
 
 
-def filler_command(kind: str) -> list[str]:
+def filler_command(kind: str, say_ready: bool = False) -> list[str]:
     """The command of one ``IDLE_FILLERS[kind]`` process (this Python), which dies with the
-    calling thread (start it from a thread that lives as long as it should).
+    calling thread (start it from a thread that lives as long as it should); with ``say_ready``
+    it writes one byte (``.``) to its stdout once it is bound to that thread, before its work.
     """
-    return [sys.executable, "-c", _DIE_WITH_PARENT.format(parent=os.getpid()) + IDLE_FILLERS[kind]]
+    head = _DIE_WITH_PARENT.format(parent=os.getpid()) + (_SAY_READY if say_ready else "")
+    return [sys.executable, "-c", head + IDLE_FILLERS[kind]]
+
+
+FILLER_START_TIMEOUT_S = 60.0  # for a filler's interpreter to start (a busy CPU: seconds)
 
 
 class idle_filler:
@@ -714,6 +724,8 @@ class idle_filler:
 
     Raises:
         ValueError: an unknown ``kind``.
+        RuntimeError: a filler did not start (say it was bound to this thread) within
+            ``FILLER_START_TIMEOUT_S``.
     """
 
     def __init__(self, kind: str | None, cpus):
@@ -727,8 +739,17 @@ class idle_filler:
             return self
         try:
             for cpu in self.cpus:
-                p = subprocess.Popen(filler_command(self.kind))
+                p = subprocess.Popen(filler_command(self.kind, True), stdout=subprocess.PIPE)
                 self.procs.append(p)
+                # bound to this thread (its first lines, run at this process's priority)
+                ready, _, _ = select.select([p.stdout], [], [], FILLER_START_TIMEOUT_S)
+                started = os.read(p.stdout.fileno(), 1) if ready else b""
+                p.stdout.close()
+                if started != b".":
+                    raise RuntimeError(
+                        f"the idle filler did not start within {FILLER_START_TIMEOUT_S} s"
+                        f" (exit code {p.poll()})"
+                    )
                 os.sched_setscheduler(p.pid, os.SCHED_IDLE, os.sched_param(0))
                 pin_process(p.pid, {cpu})
         except BaseException:
