@@ -503,15 +503,38 @@ def _fail(run: dict[str, Path], error: str) -> Path:
     return _move_aside(partial, out, "failed")
 
 
-def fail_active_run(error: str) -> Path | None:
+# how long a signal's handler waits for a run folder's start (config.json: the JAX backend, git)
+# before it gives up on the folder, which then stays partial as a killed run's does
+FAIL_WAIT_S = 10.0
+
+
+def fail_active_run(error: str, wait_s: float = FAIL_WAIT_S) -> Path | None:
     """Ends the innermost open :func:`run_folder` as failed (``error`` recorded in its
     ``config.json``) and returns the failed folder; None when no run folder is open or its run
-    has just completed. For a handler that then ends the process (``os._exit``), e.g. on Ctrl-C.
+    has just completed, or when a run's start or last steps hold the folder longer than
+    ``wait_s`` (a stuck JAX backend must not keep Ctrl-C from ending the process). For a
+    handler that then ends the process (``os._exit``), e.g. on Ctrl-C.
     """
-    with _LOCK:
+    if not _LOCK.acquire(timeout=wait_s):
+        return None
+    try:
         if not _ACTIVE or not _ACTIVE[-1]["partial"].exists():
             return None
         return _fail(_ACTIVE.pop(), error)
+    finally:
+        _LOCK.release()
+
+
+def _fail_noting(run: dict[str, Path], e: BaseException) -> None:
+    """``_fail`` for a run that raised ``e``, said on stderr; if the folder cannot be marked
+    failed either (a full disk), that is noted on ``e``, which the caller re-raises.
+    """
+    try:
+        failed = _fail(run, f"{type(e).__name__}: {e}")
+    except Exception as err:  # noqa: BLE001 (noted on the error the caller raises)
+        e.add_note(f"its run folder {run['partial']} could not be marked failed: {err!r}")
+        return
+    print(f"run failed; what it wrote is in {failed}", file=sys.stderr)
 
 
 @contextlib.contextmanager
@@ -554,7 +577,7 @@ def run_folder(
             start_run(partial, seed, dict(settings, status="running"))
         except BaseException as e:
             _ACTIVE.remove(run)
-            _fail(run, f"{type(e).__name__}: {e}")
+            _fail_noting(run, e)
             raise
     try:
         yield partial
@@ -562,8 +585,7 @@ def run_folder(
         with _LOCK:
             if run in _ACTIVE:  # else a signal handler has failed it already
                 _ACTIVE.remove(run)
-                failed = _fail(run, f"{type(e).__name__}: {e}")
-                print(f"run failed; what it wrote is in {failed}", file=sys.stderr)
+                _fail_noting(run, e)
         raise
     with _LOCK:  # the last steps, not to be cut by fail_active_run from another thread
         if run not in _ACTIVE:

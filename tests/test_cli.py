@@ -403,6 +403,8 @@ def test_a_signal_while_the_run_folder_is_being_started_still_fails_it(tmp_path,
     assert [p.name.startswith(".run.partial-") for p in tmp_path.iterdir()] == [True]
     signaller = threading.Thread(target=the_signal)
     signaller.start()
+    signaller.join(0.2)
+    assert signaller.is_alive() and "failed" not in got  # waits for the start to finish
     release.set()
     signaller.join(30)
     runner.join(30)
@@ -413,6 +415,36 @@ def test_a_signal_while_the_run_folder_is_being_started_still_fails_it(tmp_path,
     config = json.loads((failed / "config.json").read_text())
     assert config["status"] == "failed" and config["error"] == "interrupted (SIGINT)"
     assert config["seed"] == 0 and "device" in config  # the start was not cut short
+
+
+def test_a_stuck_start_does_not_keep_a_signal_from_ending_the_process(tmp_path, monkeypatch):
+    """A start that does not finish (a JAX backend that hangs): the handler gives up after
+    ``wait_s`` and returns None (the process then ends, its folder partial as a killed run's);
+    the run, once its start finishes, is not failed by it and completes."""
+    import threading
+
+    starting, release = threading.Event(), threading.Event()
+    describe = runs.device_description
+
+    def stuck_device_description():
+        starting.set()
+        assert release.wait(30)
+        return describe()
+
+    monkeypatch.setattr(runs, "device_description", stuck_device_description)
+    out = tmp_path / "run"
+
+    def the_run():
+        with runs.run_folder(out, 0, {}):
+            pass
+
+    runner = threading.Thread(target=the_run)
+    runner.start()
+    assert starting.wait(30)
+    assert runs.fail_active_run("interrupted (SIGTERM)", wait_s=0.2) is None
+    release.set()
+    runner.join(30)
+    assert json.loads((out / "config.json").read_text())["status"] == "complete"
 
 
 def test_a_run_folder_whose_start_fails_is_left_failed_not_partial(tmp_path, monkeypatch):

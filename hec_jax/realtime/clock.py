@@ -742,13 +742,16 @@ class idle_filler:
                 p = subprocess.Popen(filler_command(self.kind, True), stdout=subprocess.PIPE)
                 self.procs.append(p)
                 # bound to this thread (its first lines, run at this process's priority)
-                ready, _, _ = select.select([p.stdout], [], [], FILLER_START_TIMEOUT_S)
-                started = os.read(p.stdout.fileno(), 1) if ready else b""
-                p.stdout.close()
+                try:
+                    ready, _, _ = select.select([p.stdout], [], [], FILLER_START_TIMEOUT_S)
+                    started = os.read(p.stdout.fileno(), 1) if ready else b""
+                finally:
+                    p.stdout.close()
                 if started != b".":
+                    why = "exited" if started == b"" and ready else "did not start"
                     raise RuntimeError(
-                        f"the idle filler did not start within {FILLER_START_TIMEOUT_S} s"
-                        f" (exit code {p.poll()})"
+                        f"the idle filler {why} before saying it was bound to this process"
+                        f" (within {FILLER_START_TIMEOUT_S} s)"
                     )
                 os.sched_setscheduler(p.pid, os.SCHED_IDLE, os.sched_param(0))
                 pin_process(p.pid, {cpu})
