@@ -11,6 +11,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -367,23 +368,30 @@ def test_fail_active_run_ends_the_open_run_folder(tmp_path):
     assert runs.fail_active_run("nothing open") is None
 
 
+def _hold_the_start(monkeypatch) -> tuple[threading.Event, threading.Event]:
+    """Holds every run folder's start inside ``device_description`` (its folder made, its
+    config.json not yet written): ``starting`` is set once it is held there, and it goes on
+    when ``release`` is set."""
+    starting, release = threading.Event(), threading.Event()
+    describe = runs.device_description
+
+    def held_device_description():
+        starting.set()
+        assert release.wait(30)
+        return describe()
+
+    monkeypatch.setattr(runs, "device_description", held_device_description)
+    return starting, release
+
+
 def test_a_signal_while_the_run_folder_is_being_started_still_fails_it(tmp_path, monkeypatch):
     """The folder exists before its ``config.json`` is written (package versions, git, the JAX
     backend: seconds on a busy machine). A signal then must not find "no open run" and leave a
     hidden partial folder (CI, session 76): ``fail_active_run`` from another thread waits for
     the start to finish, then fails and renames the folder; no partial or ``out`` is left.
     The start is held on events, so the order is fixed, not timed."""
-    import threading
-
-    starting, release, failed_it = threading.Event(), threading.Event(), threading.Event()
-    describe = runs.device_description
-
-    def slow_device_description():
-        starting.set()
-        assert release.wait(30)
-        return describe()
-
-    monkeypatch.setattr(runs, "device_description", slow_device_description)
+    starting, release = _hold_the_start(monkeypatch)
+    failed_it = threading.Event()
     out, got = tmp_path / "run", {}
 
     def the_run():
@@ -421,17 +429,7 @@ def test_a_stuck_start_does_not_keep_a_signal_from_ending_the_process(tmp_path, 
     """A start that does not finish (a JAX backend that hangs): the handler gives up after
     ``wait_s`` and returns None (the process then ends, its folder partial as a killed run's);
     the run, once its start finishes, is not failed by it and completes."""
-    import threading
-
-    starting, release = threading.Event(), threading.Event()
-    describe = runs.device_description
-
-    def stuck_device_description():
-        starting.set()
-        assert release.wait(30)
-        return describe()
-
-    monkeypatch.setattr(runs, "device_description", stuck_device_description)
+    starting, release = _hold_the_start(monkeypatch)
     out = tmp_path / "run"
 
     def the_run():
