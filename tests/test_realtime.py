@@ -220,6 +220,50 @@ def test_the_loop_gives_the_policy_the_steps_a_stall_skipped():
     )
 
 
+def test_the_step_is_compiled_before_the_loops_scheduling_is_set(monkeypatch):
+    """run_realtime compiles the jitted step before it sets the loop's scheduling (where, with
+    pool_idle, XLA's threads are under SCHED_IDLE and a compilation on a busy machine waited for
+    idle CPUs): JAX traces and compiles nothing inside that block, and the functions
+    ready_step_fns returns leave run_loop nothing to compile."""
+    from hec_jax.realtime import runner
+
+    inside = {"now": False, "events": []}
+
+    def listen(event, duration_s, **kwargs):
+        if inside["now"] and event.startswith("/jax/core/compile/"):
+            inside["events"].append(event)
+
+    class _Watched(runner.realtime_priority):
+        def __enter__(self):
+            inside["now"] = True
+            return super().__enter__()
+
+        def __exit__(self, *exc):
+            inside["now"] = False
+            return super().__exit__(*exc)
+
+    monkeypatch.setattr(runner, "realtime_priority", _Watched)
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        exp = L.replace(L.catching(eye="truth"), swings=1, settle_s=0.1, swing_s=0.2)
+        result = RT.run_realtime(exp, RT.RealtimeConfig(timed=False, twin="none"), False)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    assert result.loop_run.counts[0].fresh > 0  # the loop ran
+    assert inside["events"] == []
+    assert result.report["step_fns_ready_s"] > 0
+    # the same on run_loop alone: given ready functions, its calls hit their caches
+    loop = L.build_loop(exp.task)
+    key = jax.random.split(jax.random.PRNGKey(0), 1)[0]
+    fns = RT.ready_step_fns(loop, key, "learned", False)
+    compiled = (fns.init._cache_size(), fns.step._cache_size())
+    assert compiled == (1, 1)
+    plant = RT.MujocoPlant(exp.task, loop.q_home)
+    arm = RT.ArmModel(RT.plant_model(exp.task), loop.ids)
+    RT.run_loop(loop, plant, RT.FreeClock(), key, "learned", [30], arm, fns=fns)
+    assert (fns.init._cache_size(), fns.step._cache_size()) == compiled
+
+
 def test_realtime_run_with_an_idle_pool_runs_its_watchdog_and_restores_every_thread():
     """A short timed run with pool_idle and a watchdog that rescues at once (1 us): it ran to the
     end, rescued, and every thread of the process has its own scheduling back after."""

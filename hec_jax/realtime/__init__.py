@@ -31,7 +31,13 @@ from hec_jax.realtime.plant import (
     plant_model,
 )
 from hec_jax.realtime.report import deadline_report, print_report, write_report
-from hec_jax.realtime.runner import RealtimeResult, make_step_fns, run_loop, run_realtime
+from hec_jax.realtime.runner import (
+    RealtimeResult,
+    make_step_fns,
+    ready_step_fns,
+    run_loop,
+    run_realtime,
+)
 
 __all__ = [
     "ArmModel",
@@ -48,6 +54,7 @@ __all__ = [
     "make_step_fns",
     "plant_model",
     "print_report",
+    "ready_step_fns",
     "run_loop",
     "run_realtime",
     "write_report",

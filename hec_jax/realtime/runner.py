@@ -315,6 +315,43 @@ def make_step_fns(loop: Loop, learner_state, sw) -> StepFns:
 # The eye's estimates -> the policy's switches
 
 
+def loop_switches(condition: str, with_eye: bool):
+    """The policy's switches at the start of each of :func:`run_loop`'s episodes.
+
+    ``condition``'s (:func:`hec_jax.loop.policy.switches`), with an empty eye input where the eye
+    drives (``with_eye``; its estimates replace it as they arrive).
+    """
+    if with_eye:
+        return switches(condition, jax.tree_util.tree_map(jnp.asarray, eye_input(None, 0.0, 0.0)))
+    return switches(condition)
+
+
+def ready_step_fns(loop: Loop, key: jax.Array, condition: str, with_eye: bool) -> StepFns:
+    """:func:`make_step_fns` for :func:`run_loop`'s ``loop``, ``key`` and ``condition``, compiled.
+
+    ``with_eye``: for a run with the eye's ``estimates``. ``init`` and ``step`` are called with
+    the argument types :func:`run_loop` gives them, and the state's copy and unpacking run once,
+    so that :func:`run_loop` given these functions compiles nothing. :func:`run_realtime` calls
+    it before it sets the loop's scheduling: with ``pool_idle``, XLA's threads are under
+    ``SCHED_IDLE`` there, and a compilation on a busy machine waited for idle CPUs
+    (docs/realtime.md, session 78).
+    """
+    dtype = float_dtype()
+    ls = loop.learner_init(key, dtype)
+    sw = loop_switches(condition, with_eye)
+    fns = make_step_fns(loop, ls, sw)
+    obs = np.zeros(OBS_SIZE)  # a resting arm of unit mass matrix: only the types matter here
+    obs[_OBS_SLICES["M"]] = np.eye(3).ravel()
+    sw_np_dtype = np.dtype(fns.dtype)
+    ps = fns.init(jnp.asarray(obs), ls, sw)
+    ps_vec = jnp.asarray(fns.ps.pack_np(ps._replace(switches=None)), fns.dtype)
+    sw_vec = fns.sw.pack_np(sw, sw_np_dtype)
+    # run_loop's calls on the state around the step: its copies and the learner's unpacking
+    ps_vec, _ = fns.step(jnp.array(ps_vec), sw_vec, obs, np.asarray(1.0, sw_np_dtype))
+    jax.block_until_ready(fns.ps.unpack(ps_vec))
+    return fns
+
+
 def eye_timing(cam: CameraConfig, dt: float) -> tuple[float, float]:
     """(touch_guard, touch_memory) [s] of :class:`~hec_jax.loop.object_state.EyeInput`, as the
     simulated camera loop sets them.
@@ -432,7 +469,8 @@ def run_loop(
         cam: the camera's settings (with ``estimates``).
         lead_s: [s] from the start of each episode's clock to tick 0.
         gc_off: no garbage collection during an episode.
-        fns: the jitted functions (:func:`make_step_fns`), to share across calls.
+        fns: the jitted functions (:func:`make_step_fns`; compiled: :func:`ready_step_fns`), to
+            share across calls.
         progress: print one line per episode.
         acquire_timeout_s: [s] with the eye: before each release, how long to wait for its
             answer on the release frame (the cube held in view until the eye has it).
@@ -452,9 +490,7 @@ def run_loop(
     guard = memory = 0.0
     if estimates is not None:
         guard, memory = eye_timing(cam, dt)
-        sw = switches(condition, jax.tree_util.tree_map(jnp.asarray, eye_input(None, 0.0, 0.0)))
-    else:
-        sw = switches(condition)
+    sw = loop_switches(condition, estimates is not None)
     fns = make_step_fns(loop, ls, sw) if fns is None else fns
     sw_base = sw
     n_tau = 3
@@ -498,9 +534,10 @@ def run_loop(
         if gc_off:
             gc.collect()
             gc.disable()
-        # the set-up above (episode 0: the step's compilation, seconds at real-time priority) may
-        # have used the kernel's real-time budget of the current second; resting the rest of it
-        # here keeps the throttling's stop (up to 50 ms) off the lead and the first ticks
+        # the set-up above (at real-time priority: the eye's wait; in episode 0 without ready
+        # fns, the step's compilation, seconds) may have used the kernel's real-time budget of
+        # the current second; resting the rest of it here keeps the throttling's stop (up to
+        # 50 ms) off the lead and the first ticks
         rest = rt_budget_rest_s() if rt_budget_rest else 0.0
         if rest > 0:
             time.sleep(rest)
@@ -939,6 +976,12 @@ def run_realtime(
                 else None
             )
             clock = WallClock(rt.spin_us * 1e-6) if rt.timed else FreeClock()
+            # compiled here, at the process's own scheduling on every CPU: under the loop's
+            # (below) XLA's threads may be under SCHED_IDLE, and on a busy machine the
+            # compilation then waited for idle CPUs (docs/realtime.md, session 78)
+            t_ready = time.monotonic()
+            fns = ready_step_fns(loop, key, rt.condition, eye is not None)
+            ready_s = time.monotonic() - t_ready
             load["start"] = os.getloadavg()
             steal_start = host_steal_ms()
             latency = cpu_latency_request(rt.cpu_latency_us if rt.timed else None)
@@ -976,6 +1019,7 @@ def run_realtime(
                     acquire_timeout_s=rt.acquire_timeout_s,
                     rt_budget_rest=rt.rt_budget_rest,
                     step_marker=None if rescue is None else rescue.marker,
+                    fns=fns,
                 )
             load["end"] = os.getloadavg()
             steal_end = host_steal_ms()
@@ -991,6 +1035,8 @@ def run_realtime(
     fps = None if cam is None else 1.0 / (steps_per_frame(cam, plant.dt) * plant.dt)
     report = deadline_report(run, plant.dt, fps, camera_log, eye_log)
     report["timed"] = rt.timed
+    # [s] the jitted step's compilation and first calls, before the loop's scheduling was set
+    report["step_fns_ready_s"] = ready_s
     report["placement"] = {  # where the control process's threads ran
         "control_cpus": None if control_cpus is None else sorted(control_cpus),
         **children,
