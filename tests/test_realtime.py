@@ -642,6 +642,12 @@ def test_realtime_camera_run_reports_itself(monkeypatch):
     assert processed + dropped + after_last == eye["camera"]["frames_rendered"]
     assert eye["estimates_taken"] >= 1
     assert eye["latency_ms"]["n"] == 0 or eye["latency_ms"]["p50"] > 0
+    # the published state per frame, acceleration included: finite once the track has started
+    started = eye_log["initialised"].astype(bool)
+    for name in ("x_est", "xd_est", "xdd_est"):
+        assert eye_log[name].shape == (len(eye_log["index"]), 2)
+        assert np.all(np.isfinite(eye_log[name][started]))
+        assert np.all(np.isnan(eye_log[name][~started]))
     # the eye's stages (mask, the tracker's detection and estimation) lie within its frame time
     stages = eye_log["mask_ms"] + eye_log["detection_ms"] + eye_log["estimation_ms"]
     assert np.all(eye_log["mask_ms"] >= 0) and np.all(eye_log["estimation_ms"] > 0)

@@ -461,8 +461,11 @@ def eye_main(
                     fit_source=FIT_SOURCES.index(getattr(st, "fit_source", "")),
                     # failed while the filter ran, left to the prediction (defer_search)
                     search_deferred=bool(getattr(st, "search_deferred", False)),
+                    # [m, m/s, m/s^2] world (x, z), NaN before the track starts: what was
+                    # published (the acceleration too, so that a run's estimates can be replayed)
                     x_est=x,
                     xd_est=xd,
+                    xdd_est=xdd,
                 )
             )
             if keep and st.fit_source != "tracked":
