@@ -260,8 +260,17 @@ def test_the_step_is_compiled_before_the_loops_scheduling_is_set(monkeypatch):
     assert compiled == (1, 1)
     plant = RT.MujocoPlant(exp.task, loop.q_home)
     arm = RT.ArmModel(RT.plant_model(exp.task), loop.ids)
-    RT.run_loop(loop, plant, RT.FreeClock(), key, "learned", [30], arm, fns=fns)
+    # two episodes: the second starts from the learner state the first carried over
+    RT.run_loop(loop, plant, RT.FreeClock(), key, "learned", [30, 30], arm, fns=fns)
     assert (fns.init._cache_size(), fns.step._cache_size()) == compiled
+    # with the eye: run_loop starts each episode with the eye's input emptied (its arguments:
+    # Python floats and NumPy arrays); ready_step_fns compiled init for exactly those
+    fns = RT.ready_step_fns(loop, key, "learned", True)
+    sw = runner.episode_switches(runner.loop_switches("learned", True), True, 0.0667, 0.1433)
+    obs = np.zeros(runner.OBS_SIZE)
+    obs[runner._OBS_SLICES["M"]] = np.eye(3).ravel()
+    fns.init(jnp.asarray(obs), loop.learner_init(key, float_dtype()), sw)
+    assert (fns.init._cache_size(), fns.step._cache_size()) == (1, 1)
 
 
 def test_realtime_run_with_an_idle_pool_runs_its_watchdog_and_restores_every_thread():

@@ -326,6 +326,14 @@ def loop_switches(condition: str, with_eye: bool):
     return switches(condition)
 
 
+def episode_switches(sw_base, with_eye: bool, guard: float = 0.0, memory: float = 0.0):
+    """The switches each of :func:`run_loop`'s episodes starts with: ``sw_base``
+    (:func:`loop_switches`), with the eye's input emptied (no estimate yet; ``guard``,
+    ``memory`` [s] as :func:`eye_timing`) where the eye drives.
+    """
+    return sw_base._replace(eye=eye_input(None, guard, memory)) if with_eye else sw_base
+
+
 def ready_step_fns(loop: Loop, key: jax.Array, condition: str, with_eye: bool) -> StepFns:
     """:func:`make_step_fns` for :func:`run_loop`'s ``loop``, ``key`` and ``condition``, compiled.
 
@@ -343,6 +351,7 @@ def ready_step_fns(loop: Loop, key: jax.Array, condition: str, with_eye: bool) -
     obs = np.zeros(OBS_SIZE)  # a resting arm of unit mass matrix: only the types matter here
     obs[_OBS_SLICES["M"]] = np.eye(3).ravel()
     sw_np_dtype = np.dtype(fns.dtype)
+    sw = episode_switches(sw, with_eye)  # the argument types of run_loop's init calls
     ps = fns.init(jnp.asarray(obs), ls, sw)
     ps_vec = jnp.asarray(fns.ps.pack_np(ps._replace(switches=None)), fns.dtype)
     sw_vec = fns.sw.pack_np(sw, sw_np_dtype)
@@ -503,8 +512,7 @@ def run_loop(
         plant.start(clock)
         s0 = plant.read()
         fill_observation(obs_np, s0, arm.observe(s0.q, s0.qd))
-        if estimates is not None:
-            sw = sw_base._replace(eye=eye_input(None, guard, memory))
+        sw = episode_switches(sw_base, estimates is not None, guard, memory)
         # the switches stay a NumPy vector, made anew at each estimate's arrival: the jitted
         # step takes it as it takes the observation (no extra cost per call), and an arrival
         # costs no device array (measured: 40 us hot, 3x that cold, on every 33rd tick)

@@ -461,8 +461,9 @@ def eye_main(
                     fit_source=FIT_SOURCES.index(getattr(st, "fit_source", "")),
                     # failed while the filter ran, left to the prediction (defer_search)
                     search_deferred=bool(getattr(st, "search_deferred", False)),
-                    # [m, m/s, m/s^2] world (x, z), NaN before the track starts: what was
-                    # published (the acceleration too, so that a run's estimates can be replayed)
+                    # [m, m/s, m/s^2] world (x, z): the tracker's state (NaN before its track
+                    # starts), the acceleration too, so that a run's estimates can be replayed;
+                    # the board got zeros instead where the object counted as unseen
                     x_est=x,
                     xd_est=xd,
                     xdd_est=xdd,
