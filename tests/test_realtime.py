@@ -1659,73 +1659,121 @@ def test_the_eye_age_target_fails_when_the_eye_has_lost_the_cube():
     assert kept["targets"]["eye_age_within_two_frame_periods"] is True
 
 
-def test_a_stalled_camera_renders_the_newest_frame_time_not_an_old_one(monkeypatch):
-    """The camera (``workers.camera_main``, a stand-in renderer) renders frame 0 at step 0, then
-    is held off until step 118: frames 1-3 (due at steps 33, 66, 99) have all come. It renders
-    frame 3, 19 steps late, and counts frames 1 and 2 as skipped. It used to render frame 1
-    there, 85 steps late, which the eye would fit as the state of step 33."""
+class _StandInCamera:
+    """``SceneCamera`` for ``workers.camera_main`` without rendering: black 8 x 8 frames."""
+
+    def __init__(self, m, *args, **kwargs):
+        import mujoco
+
+        self.data = mujoco.MjData(m)
+
+    def render(self, q):
+        return np.zeros((8, 8, 3), np.uint8)
+
+    def close(self):
+        pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        pass
+
+
+def _camera_main_on_steps(monkeypatch, steps, exposure_back):
+    """``workers.camera_main`` (a stand-in renderer, frames every 33 steps, the void camera's
+    4 ms exposure) on a scripted plant board whose every read is the next of ``steps`` (it
+    stops the camera after the last): its log, and per frame put in the ring (number, the
+    board's step at the put, t_exposure)."""
     import queue
     import threading
-
-    import mujoco
 
     from hec_jax.mjx_scene import render as render_module
     from hec_jax.realtime import workers
     from hec_jax.realtime.shared import Images
 
-    class StandInCamera:
-        def __init__(self, m, *args, **kwargs):
-            self.data = mujoco.MjData(m)
-
-        def render(self, q):
-            return np.zeros((8, 8, 3), np.uint8)
-
-        def close(self):
-            pass
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            pass
-
-    monkeypatch.setattr(render_module, "SceneCamera", StandInCamera)
+    monkeypatch.setattr(render_module, "SceneCamera", _StandInCamera)
     cam = L.CameraConfig.void_perfect(width=8, height=8)
     exp = L.catching(eye="camera", camera=cam)
-    m = RT.plant_model(exp.task)
-    meta = ("episode", "number", "t_exposure", "t_wall_exposure", "t_wall_done")
-    frames = FrameRing(8, 8, {**{k: () for k in meta}, "q_arm": (3,)})
+    nq = RT.plant_model(exp.task).nq
     stop = threading.Event()
 
     class ScriptedBoard:
-        """The plant's board as the camera sees it: each new read one step of ``steps``."""
-
-        def __init__(self, steps):
-            self.steps, self.k = steps, 0
+        def __init__(self):
+            self.k, self.last = 0, None
 
         @property
         def seq(self):
-            if self.k >= len(self.steps):
+            if self.k >= len(steps):
                 stop.set()
             return 2 * (self.k + 1)
 
         def read(self):
-            step = self.steps[min(self.k, len(self.steps) - 1)]
+            step = steps[min(self.k, len(steps) - 1)]
             self.k += 1
+            self.last = step
             rec = {"t": step * 1e-3, "step": step, "episode": 0, "t_wall": 0.0}
-            return 2 * self.k, {**rec, "t_clock": np.nan, "qpos": np.zeros(m.nq)}
+            return 2 * self.k, {**rec, "t_clock": np.nan, "qpos": np.zeros(nq)}
 
-    # frame 0 at step 0 (then the read after its render), then the stall: step 118
-    board = ScriptedBoard([0, 1, 118, 119])
+    class Ring:
+        def __init__(self, board):
+            self.board, self.put_at = board, []
+
+        def put(self, index, image, **meta):
+            self.put_at.append((int(meta["number"]), self.board.last, meta["t_exposure"]))
+
+    board = ScriptedBoard()
+    ring = Ring(board)
     log_queue = queue.Queue()
     workers.camera_main(
-        exp.task, cam, 33, np.zeros(m.nq), board, frames, Images(2, 8, 8),
-        stop=stop, log_queue=log_queue, dt=1e-3,
+        exp.task, cam, 33, np.zeros(nq), board, ring, Images(2, 8, 8),
+        stop=stop, log_queue=log_queue, dt=1e-3, exposure_back=exposure_back,
     )  # fmt: skip
     log = log_queue.get(timeout=10)
     assert "error" not in log, log.get("error")
+    return log, ring.put_at
+
+
+def test_a_stalled_camera_renders_the_newest_frame_time_not_an_old_one(monkeypatch):
+    """The camera (``workers.camera_main``, a stand-in renderer), its frames showing the state at
+    the exposure's end, renders frame 0 at step 0, then is held off until step 118: frames 1-3
+    (due at steps 33, 66, 99) have all come. It renders frame 3, 19 steps late, and counts
+    frames 1 and 2 as skipped. It used to render frame 1 there, 85 steps late, which the eye
+    would fit as the state of step 33."""
+    # frame 0 at step 0 (then the read after its render), then the stall: step 118
+    log, _ = _camera_main_on_steps(monkeypatch, [0, 1, 118, 119], exposure_back=0)
     assert log["number"].tolist() == [0, 3] and log["step"].tolist() == [0, 118]
     assert log["skipped"] == 2
+
+
+def test_the_camera_shows_the_states_the_simulated_camera_loop_shows(monkeypatch):
+    """With a 4 ms exposure, the simulated camera loop's frame ``j`` shows the state at
+    mid-exposure, step ``max(33 j - 2, 0)``. The real-time camera (``workers.camera_main``, a
+    stand-in renderer, the plant's board stepping once per read) renders the same steps, stamps
+    their plant time and puts no frame in the ring before the board reaches its exposure's end
+    (``33 j``). It used to render steps ``33 j``: the two loops' frames fell 2 ms apart in every
+    swing, and the real-time runs learned 2-3 times their twins' vertical damping
+    (docs/realtime.md). After a stall to step 118 it renders frame 3 (step 97) and counts frames
+    1 and 2 skipped."""
+    from hec_jax.loop.camera_loop import exposure_offsets, frame_steps
+
+    cam = L.CameraConfig.void_perfect()
+    assert cam.exposure_s == pytest.approx(0.004)
+    back = int(exposure_offsets(cam, 1e-3)[-1])
+    assert back == 2
+    log, put_at = _camera_main_on_steps(monkeypatch, list(range(200)), back)
+    want = np.maximum(frame_steps(cam, 1e-3, 200) - back, 0)  # the simulated loop's s_img
+    assert want.tolist() == [0, 31, 64, 97, 130, 163, 196]
+    # the last frame's exposure ends at step 198 and the board stops at 199: all 7 are put
+    assert log["step"].tolist() == want.tolist() and log["step_due"].tolist() == want.tolist()
+    assert log["number"].tolist() == list(range(7)) and log["skipped"] == 0
+    for number, board_step, t_exposure in put_at:
+        assert board_step >= 33 * number  # read out once the exposure has ended
+        assert t_exposure == pytest.approx(want[number] * 1e-3)
+    assert [p[0] for p in put_at] == list(range(7))
+    log, _ = _camera_main_on_steps(monkeypatch, [0, 1, 118, 119], back)  # a stall
+    assert log["number"].tolist() == [0, 3] and log["step"].tolist() == [0, 118]
+    assert log["step_due"].tolist() == [0, 97] and log["skipped"] == 2
 
 
 @pytest.mark.slow  # a spawned eye process: about 15 s, most of it the child's imports

@@ -19,9 +19,9 @@ Euler; the force measurement is the previous step's contact force on the hand.
 
 With a camera, every physics step's state (time, qpos) goes to a shared board, and a separate
 process (:func:`hec_jax.realtime.workers.camera_main`) renders a frame whenever the plant time
-reaches the next frame time (every ``steps_per_frame`` steps, as the simulated camera loop),
-stamped with the plant time of the state it shows; frames that rendering could not start on time
-are counted. The process keeps the software renderer off the control loop's core and out of its
+reaches the next frame's mid-exposure (the simulated camera loop's frame times: every
+``steps_per_frame`` steps, half the exposure before each exposure's end), stamped with the plant
+time of the state it shows; frames that rendering could not start on time are counted. The process keeps the software renderer off the control loop's core and out of its
 GIL.
 """
 
@@ -33,7 +33,7 @@ from typing import NamedTuple, Protocol
 import mujoco
 import numpy as np
 
-from hec_jax.loop.camera_loop import steps_per_frame
+from hec_jax.loop.camera_loop import exposure_offsets, steps_per_frame
 from hec_jax.loop.config import CameraConfig, TaskConfig
 from hec_jax.mjx_scene import (
     TASK_AXES,
@@ -346,6 +346,8 @@ class MujocoPlant:
                     msaa=msaa,
                     shadows=shadows,
                     dt=self.dt,
+                    # the state at mid-exposure, as the simulated camera loop shows it
+                    exposure_back=int(exposure_offsets(cam, self.dt)[-1]),
                 ),
                 daemon=True,
                 name="hec-camera",

@@ -1,8 +1,9 @@
 """The camera's and the eye's processes of a real-time run (started by ``spawn``).
 
 * :func:`camera_main` renders the plant's state (read from its shared board) whenever the plant
-  time reaches the next frame time, every ``period`` control steps from each release, into the
-  shared frame ring, stamped with the plant time of the state shown. If a frame cannot start on
+  time reaches the next frame time (a frame's mid-exposure; the exposures end every ``period``
+  control steps from each release), into the shared frame ring, stamped with the plant time of
+  the state shown. If a frame cannot start on
   time (rendering slower than the frame rate) it is exposed late, and frame times that passed
   entirely are skipped; both are counted.
 * :func:`eye_main` is the eye: it takes the newest frame (frames that arrived while it was busy
@@ -60,6 +61,22 @@ def _steal_delta(before: list[float], after: list[float]) -> np.ndarray:
     return np.subtract(after, before)
 
 
+def frame_state_step(number: int, period: int, exposure_back: int) -> int:
+    """The plant step whose state frame ``number`` of an episode shows: its mid-exposure,
+    ``exposure_back`` steps before the exposure ends at step ``number * period`` (not before the
+    release). The simulated camera loop's ``max(s - e, 0)`` for its frame steps ``s``
+    (:func:`~hec_jax.loop.camera_loop.frame_steps`, :func:`~hec_jax.loop.camera_loop.exposure_offsets`).
+    """
+    return max(number * period - exposure_back, 0)
+
+
+def newest_frame(step: int, period: int, exposure_back: int) -> int:
+    """The newest frame of an episode whose state (:func:`frame_state_step`) the plant has
+    reached at ``step``.
+    """
+    return (step + exposure_back) // period
+
+
 def camera_sleep_s(rec: dict, step_due: int, dt: float, now: float) -> float:
     """[s] the camera sleeps before it looks at the plant's board again, a frame being due at
     ``step_due`` and the board showing ``rec`` (``STATE_FIELDS``) at monotonic time ``now``.
@@ -97,8 +114,15 @@ def camera_main(
     msaa=None,
     shadows=None,
     dt=1e-3,
+    exposure_back=0,
 ):
     """The camera process: calibration shots, then frames on the plant's clock until ``stop``.
+
+    Frame ``n`` of an episode shows the plant's state at step :func:`frame_state_step` (its
+    mid-exposure: ``exposure_back`` steps before the exposure ends at step ``n * period``, as the
+    simulated camera loop's :func:`~hec_jax.loop.camera_loop.exposure_offsets`), stamped with that
+    step's plant time, and is put in the ring no earlier than the plant reaches the exposure's
+    end (a camera reads a frame out once exposed).
 
     Args:
         task: the :class:`~hec_jax.loop.config.TaskConfig` (its world is rendered).
@@ -117,6 +141,8 @@ def camera_main(
         shadows: the lights cast shadows (None: the scene's, :func:`~.plant.camera_model`).
         dt: [s] the plant's time step (the camera sleeps until two steps before a frame is
             due, then polls every ``_POLL_S``).
+        exposure_back: steps from a frame's mid-exposure (the state it shows) to the end of its
+            exposure (0: the state at the exposure's end, ``n * period``).
     """
     rows: list[dict] = []
     try:
@@ -149,19 +175,30 @@ def camera_main(
             if int(rec["episode"]) != episode:
                 episode, number = int(rec["episode"]), 0
             step = int(rec["step"])
-            if step < number * period:
-                time.sleep(camera_sleep_s(rec, number * period, dt, monotonic_s()))
+            state_step = frame_state_step(number, period, exposure_back)
+            if step < state_step:
+                time.sleep(camera_sleep_s(rec, state_step, dt, monotonic_s()))
                 continue
             # held off for a whole period or more (a stall): the newest frame time that has
             # come, not an old one exposed late; the ones passed over are skipped
-            due = step // period
+            due = newest_frame(step, period, exposure_back)
             if due > number:
                 skipped += due - number
                 number = due
+                state_step = frame_state_step(number, period, exposure_back)
             t0, cpu0, steal0 = monotonic_s(), time.process_time(), host_steal_ms()
             image = camera.render(rec["qpos"])
             x_true = camera.data.site_xpos[ids.cube_site].copy()
             t1, cpu1, steal1 = monotonic_s(), time.process_time(), host_steal_ms()
+            # not read out before the exposure ends (rendering usually takes longer than half
+            # the exposure; this wait is for a fast renderer)
+            end_step, now = number * period, rec
+            while int(now["step"]) < end_step and not stop.is_set():
+                _, now = board.read()
+                if int(now["episode"]) != episode:
+                    break
+                if int(now["step"]) < end_step:
+                    time.sleep(_POLL_S)
             frames.put(
                 index,
                 image,
@@ -177,7 +214,7 @@ def camera_main(
                     index=index,
                     episode=episode,
                     number=number,
-                    step_due=number * period,
+                    step_due=state_step,
                     step=step,
                     t_exposure=float(rec["t"]),
                     t_wall_exposure=float(rec["t_wall"]),
@@ -193,7 +230,11 @@ def camera_main(
             index += 1
             # the next frame time; frame times that passed while rendering are skipped
             _, now = board.read()
-            behind = int(now["step"]) // period if int(now["episode"]) == episode else 0
+            behind = (
+                newest_frame(int(now["step"]), period, exposure_back)
+                if int(now["episode"]) == episode
+                else 0
+            )
             nxt = max(number + 1, behind)
             skipped += nxt - number - 1
             number = nxt
