@@ -580,6 +580,10 @@ def test_settings_differing_in_numbers_share_one_compilation_and_each_number_act
         )
 
 
+# slow: 40-60 s of compiles on the 2-core CI machine (five smoother programs at two frame
+# intervals no other test uses) for a contract on compile counts, not on numbers; the
+# smoother's warm-up serves benchmarks/eye_randomized.py's timing alone (session 79)
+@pytest.mark.slow
 def test_warm_up_compiles_every_fit_a_track_of_its_length_can_call():
     """After ``warm_up(t_n, dt, cfg)``, smoothing tracks of t_n frames with gaps anywhere (so
     segments of every length) compiles nothing; without it, the same tracks compile (the meter
