@@ -615,6 +615,7 @@ def test_realtime_run_reports_itself(tmp_path, capsys):
 def test_realtime_camera_run_reports_itself(monkeypatch):
     """The camera and the eye in their processes: frames and estimates add up; the camera
     twin is given the run's measured eye latency (the twins themselves are not run here)."""
+    from hec_jax.loop.camera_loop import mid_exposure_steps, steps_per_frame
     from hec_jax.realtime import runner
 
     given = []
@@ -638,6 +639,17 @@ def test_realtime_camera_run_reports_itself(monkeypatch):
     cam_log, eye_log = result.camera_log, result.eye_log
     assert eye["camera"]["frames_rendered"] == len(cam_log["index"]) > 0
     assert np.array_equal(cam_log["index"], np.arange(len(cam_log["index"])))
+    # each frame is due at the simulated loop's mid-exposure step, shown no earlier, and read
+    # out after its render (held where the render beat the exposure's end)
+    back = mid_exposure_steps(cam, result.dt)
+    period = steps_per_frame(cam, result.dt)
+    np.testing.assert_array_equal(
+        cam_log["step_due"], np.maximum(cam_log["number"] * period - back, 0)
+    )
+    assert np.all(cam_log["step"] >= cam_log["step_due"])
+    assert np.all(cam_log["t_wall_put"] >= cam_log["t_wall_done"])
+    assert eye["camera"]["readout_wait_ms"]["n"] == len(cam_log["index"])
+    assert eye["camera"]["frames_not_read_out"] == cam_log["not_read_out"] == 0
     # each rendered frame up to the eye's last was processed once, in order, or dropped
     processed, dropped = eye["eye"]["frames_processed"], eye["eye"]["frames_dropped"]
     seen_by_eye = eye_log["index"].astype(int)
@@ -1681,10 +1693,10 @@ class _StandInCamera:
 
 
 def _camera_main_on_steps(monkeypatch, steps, exposure_back):
-    """``workers.camera_main`` (a stand-in renderer, frames every 33 steps, the void camera's
-    4 ms exposure) on a scripted plant board whose every read is the next of ``steps`` (it
-    stops the camera after the last): its log, and per frame put in the ring (number, the
-    board's step at the put, t_exposure)."""
+    """``workers.camera_main`` (a stand-in renderer, frames every 33 steps) on a scripted plant
+    board whose every read is the next of ``steps`` (a step of episode 0, or (episode, step)),
+    stopping the camera once they are used up: its log, and per frame put in the ring (episode,
+    number, the board's step at the put, t_exposure)."""
     import queue
     import threading
 
@@ -1709,10 +1721,13 @@ def _camera_main_on_steps(monkeypatch, steps, exposure_back):
             return 2 * (self.k + 1)
 
         def read(self):
-            step = steps[min(self.k, len(steps) - 1)]
+            if self.k >= len(steps) - 1:
+                stop.set()  # also for a camera waiting on an exposure's end
+            at = steps[min(self.k, len(steps) - 1)]
+            episode, step = at if isinstance(at, tuple) else (0, at)
             self.k += 1
             self.last = step
-            rec = {"t": step * 1e-3, "step": step, "episode": 0, "t_wall": 0.0}
+            rec = {"t": step * 1e-3, "step": step, "episode": episode, "t_wall": 0.0}
             return 2 * self.k, {**rec, "t_clock": np.nan, "qpos": np.zeros(nq)}
 
     class Ring:
@@ -1720,7 +1735,9 @@ def _camera_main_on_steps(monkeypatch, steps, exposure_back):
             self.board, self.put_at = board, []
 
         def put(self, index, image, **meta):
-            self.put_at.append((int(meta["number"]), self.board.last, meta["t_exposure"]))
+            self.put_at.append(
+                (int(meta["episode"]), int(meta["number"]), self.board.last, meta["t_exposure"])
+            )
 
     board = ScriptedBoard()
     ring = Ring(board)
@@ -1753,8 +1770,10 @@ def test_the_camera_shows_the_states_the_simulated_camera_loop_shows(monkeypatch
     their plant time and puts no frame in the ring before the board reaches its exposure's end
     (``33 j``). It used to render steps ``33 j``: the two loops' frames fell 2 ms apart in every
     swing, and the real-time runs learned 2-3 times their twins' vertical damping
-    (docs/realtime.md). After a stall to step 118 it renders frame 3 (step 97) and counts frames
-    1 and 2 skipped."""
+    (docs/realtime.md). After a stall to step 118 it renders frame 3 (due at step 97) from the
+    state there is, step 118, and counts frames 1 and 2 skipped. A frame whose state comes
+    before its episode ends but whose exposure would end after it (episode 0 ends at step 97,
+    frame 3's exposure at 99) is not put, and counted."""
     from hec_jax.loop.camera_loop import exposure_offsets, frame_steps
 
     cam = L.CameraConfig.void_perfect()
@@ -1767,13 +1786,19 @@ def test_the_camera_shows_the_states_the_simulated_camera_loop_shows(monkeypatch
     # the last frame's exposure ends at step 198 and the board stops at 199: all 7 are put
     assert log["step"].tolist() == want.tolist() and log["step_due"].tolist() == want.tolist()
     assert log["number"].tolist() == list(range(7)) and log["skipped"] == 0
-    for number, board_step, t_exposure in put_at:
+    for _, number, board_step, t_exposure in put_at:
         assert board_step >= 33 * number  # read out once the exposure has ended
         assert t_exposure == pytest.approx(want[number] * 1e-3)
-    assert [p[0] for p in put_at] == list(range(7))
+    assert [p[1] for p in put_at] == list(range(7)) and log["not_read_out"] == 0
+    assert np.all(log["t_wall_put"] >= log["t_wall_done"])
     log, _ = _camera_main_on_steps(monkeypatch, [0, 1, 118, 119], back)  # a stall
     assert log["number"].tolist() == [0, 3] and log["step"].tolist() == [0, 118]
     assert log["step_due"].tolist() == [0, 97] and log["skipped"] == 2
+    # episode 0 ends at step 97: frame 3 (state 97, exposure's end 99) rendered, not put
+    steps = [(0, k) for k in range(98)] + [(1, k) for k in range(41)]
+    log, put_at = _camera_main_on_steps(monkeypatch, steps, back)
+    assert [p[:2] for p in put_at] == [(0, 0), (0, 1), (0, 2), (1, 0), (1, 1)]
+    assert log["step"].tolist() == [0, 31, 64, 0, 31] and log["not_read_out"] == 1
 
 
 @pytest.mark.slow  # a spawned eye process: about 15 s, most of it the child's imports

@@ -68,13 +68,22 @@ def frame_steps(cam: CameraConfig, dt: float, steps: int) -> np.ndarray:
     return np.arange(0, steps, steps_per_frame(cam, dt))
 
 
+def mid_exposure_steps(cam: CameraConfig, dt: float) -> int:
+    """Steps from a frame's mid-exposure (the state the frame shows: its time) to the end of its
+    exposure, ``round(exposure_s / (2 dt))``: the one offset the simulated loop, the real-time
+    camera (:func:`hec_jax.realtime.workers.frame_state_step`) and the twin's latency
+    (:func:`hec_jax.realtime.runner.twin_camera_latency_s`) share.
+    """
+    return int(round(0.5 * cam.exposure_s / dt))
+
+
 def exposure_offsets(cam: CameraConfig, dt: float) -> np.ndarray:
     """Steps before the end of a frame's exposure at which the frame is rendered, the one
     nearest mid-exposure (the frame's time) last: one, at mid-exposure, with
     ``defects.blur_renders`` = 1, else the midpoints of that many equal parts of the exposure on
     the control grid (motion blur).
     """
-    mid = int(round(0.5 * cam.exposure_s / dt))
+    mid = mid_exposure_steps(cam, dt)
     n = cam.applied_defects.blur_renders
     if n == 1:
         return np.array([mid])
@@ -436,7 +445,7 @@ def run_camera(
     dt = loop.ids.timestep
     period = steps_per_frame(cam, dt)
     fps = 1.0 / (period * dt)  # the camera's rate on the control grid [1/s]
-    e_off = int(round(0.5 * cam.exposure_s / dt))
+    e_off = mid_exposure_steps(cam, dt)
     backs = exposure_offsets(cam, dt)  # the renders of one frame, mid-exposure (e_off) last
     guard = cam.touch_guard_frames * period * dt  # [s]
     memory = guard + cam.latency_s + cam.max_coast_frames * period * dt  # [s]

@@ -33,7 +33,7 @@ from typing import NamedTuple, Protocol
 import mujoco
 import numpy as np
 
-from hec_jax.loop.camera_loop import exposure_offsets, steps_per_frame
+from hec_jax.loop.camera_loop import mid_exposure_steps, steps_per_frame
 from hec_jax.loop.config import CameraConfig, TaskConfig
 from hec_jax.mjx_scene import (
     TASK_AXES,
@@ -347,7 +347,7 @@ class MujocoPlant:
                     shadows=shadows,
                     dt=self.dt,
                     # the state at mid-exposure, as the simulated camera loop shows it
-                    exposure_back=int(exposure_offsets(cam, self.dt)[-1]),
+                    exposure_back=mid_exposure_steps(cam, self.dt),
                 ),
                 daemon=True,
                 name="hec-camera",

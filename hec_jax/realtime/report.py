@@ -391,6 +391,13 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
             "frame_times_skipped": int(camera_log["skipped"]),
             "render_ms": percentiles(camera_log["render_ms"]),
         }
+        if "t_wall_put" in camera_log:  # logs since session 79
+            # held after rendering until the exposure's end (a renderer faster than half the
+            # exposure), and rendered frames whose exposure would have ended after their episode
+            out["camera"]["readout_wait_ms"] = percentiles(
+                camera_log["t_wall_put"] - camera_log["t_wall_done"], 1e3
+            )
+            out["camera"]["frames_not_read_out"] = int(camera_log["not_read_out"])
         if "render_cpu_ms" in camera_log:  # logs since session 26
             out["camera"]["render_cpu_ms"] = percentiles(camera_log["render_cpu_ms"])
             out["camera"]["render_steal_ms_per_cpu"] = _steal_total(camera_log["render_steal_ms"])
@@ -696,6 +703,13 @@ def deadline_table(report: dict) -> list[str]:
                 ),
                 ("render p50 / p99 / max [ms]", ms(cam["render_ms"])),
             ]
+            if "readout_wait_ms" in cam:
+                rows.append(
+                    (
+                        "held for the exposure's end p50 / p99 / max [ms]; not read out",
+                        f"{ms(cam['readout_wait_ms'])}; {cam['frames_not_read_out']}",
+                    )
+                )
             if "render_cpu_ms" in cam:
                 rows.append(("render process CPU p50 / p99 / max [ms]", ms(cam["render_cpu_ms"])))
             if "render_cpu_ms_per_second" in cam:  # the camera CPU's speed over the run

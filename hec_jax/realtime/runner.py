@@ -50,7 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from hec_jax.control import TaskObs
-from hec_jax.loop.camera_loop import run_camera, steps_per_frame
+from hec_jax.loop.camera_loop import mid_exposure_steps, run_camera, steps_per_frame
 from hec_jax.loop.config import (
     PRESETS,
     REALTIME_DEFECTS,
@@ -875,7 +875,7 @@ def twin_camera_latency_s(latency_p50_s: float, cam: CameraConfig, dt: float) ->
     """
     if not (math.isfinite(latency_p50_s) and latency_p50_s >= 0):
         raise ValueError(f"latency_p50_s must be finite and >= 0, got {latency_p50_s}")
-    half_exposure = int(round(0.5 * cam.exposure_s / dt))
+    half_exposure = mid_exposure_steps(cam, dt)
     steps = int(math.floor(latency_p50_s / dt + 0.5)) - half_exposure
     return max(steps - 0.5, 0.0) * dt
 

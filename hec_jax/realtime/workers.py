@@ -142,7 +142,8 @@ def camera_main(
         dt: [s] the plant's time step (the camera sleeps until two steps before a frame is
             due, then polls every ``_POLL_S``).
         exposure_back: steps from a frame's mid-exposure (the state it shows) to the end of its
-            exposure (0: the state at the exposure's end, ``n * period``).
+            exposure (0: the state at the exposure's end, ``n * period``;
+            :func:`~hec_jax.loop.camera_loop.mid_exposure_steps`).
     """
     rows: list[dict] = []
     try:
@@ -165,13 +166,17 @@ def camera_main(
         if priority:
             set_scheduling(os.SCHED_FIFO, priority)
         # last_seq 0: the board before the plant first wrote it (zeros) is no state to show
-        episode, number, index, last_seq, skipped = -1, 0, 0, 0, 0
+        episode, number, index, last_seq, skipped, not_read_out = -1, 0, 0, 0, 0, 0
+        pending = None  # a state read while waiting for an exposure's end, not yet looked at
         while not stop.is_set():
-            seq = board.seq
-            if seq == last_seq:
-                time.sleep(_POLL_S)
-                continue
-            last_seq, rec = board.read()
+            if pending is None:
+                seq = board.seq
+                if seq == last_seq:
+                    time.sleep(_POLL_S)
+                    continue
+                last_seq, rec = board.read()
+            else:
+                rec, pending = pending, None
             if int(rec["episode"]) != episode:
                 episode, number = int(rec["episode"]), 0
             step = int(rec["step"])
@@ -190,15 +195,21 @@ def camera_main(
             image = camera.render(rec["qpos"])
             x_true = camera.data.site_xpos[ids.cube_site].copy()
             t1, cpu1, steal1 = monotonic_s(), time.process_time(), host_steal_ms()
-            # not read out before the exposure ends (rendering usually takes longer than half
-            # the exposure; this wait is for a fast renderer)
+            # not read out before the exposure ends: a renderer faster than half the exposure
+            # (the GPU's, 1.5 ms against 2) waits here; a frame whose exposure would end after
+            # its episode (or the run) is not put, and counted
             end_step, now = number * period, rec
-            while int(now["step"]) < end_step and not stop.is_set():
-                _, now = board.read()
-                if int(now["episode"]) != episode:
+            while int(now["step"]) < end_step and int(now["episode"]) == episode:
+                if stop.is_set():
                     break
-                if int(now["step"]) < end_step:
-                    time.sleep(_POLL_S)
+                time.sleep(max(_POLL_S, (end_step - int(now["step"]) - 1) * dt))
+                last_seq, now = board.read()
+            if int(now["step"]) < end_step or int(now["episode"]) != episode:
+                not_read_out += 1
+                number += 1
+                pending = now  # the next episode's state (or the run's last)
+                continue
+            t_put = monotonic_s()
             frames.put(
                 index,
                 image,
@@ -220,6 +231,7 @@ def camera_main(
                     t_wall_exposure=float(rec["t_wall"]),
                     t_wall_start=t0,
                     t_wall_done=t1,
+                    t_wall_put=t_put,
                     render_ms=1e3 * (t1 - t0),
                     # the process's CPU time (all threads) and the host's steal per CPU meanwhile
                     render_cpu_ms=1e3 * (cpu1 - cpu0),
@@ -241,6 +253,7 @@ def camera_main(
         camera.close()
         out = _stack(rows)
         out["skipped"] = skipped
+        out["not_read_out"] = not_read_out
         log_queue.put(out)
     except Exception:  # noqa: BLE001 - reported to the parent, which raises
         log_queue.put({"error": traceback.format_exc()})
