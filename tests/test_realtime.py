@@ -1696,7 +1696,8 @@ def _camera_main_on_steps(monkeypatch, steps, exposure_back):
     """``workers.camera_main`` (a stand-in renderer, frames every 33 steps) on a scripted plant
     board whose every read is the next of ``steps`` (a step of episode 0, or (episode, step)),
     stopping the camera once they are used up: its log, and per frame put in the ring (episode,
-    number, the board's step at the put, t_exposure)."""
+    number, the board's step at the put, t_exposure), and the events in order: ("read", step),
+    ("sleep", s) and ("put", number)."""
     import queue
     import threading
 
@@ -1709,6 +1710,9 @@ def _camera_main_on_steps(monkeypatch, steps, exposure_back):
     exp = L.catching(eye="camera", camera=cam)
     nq = RT.plant_model(exp.task).nq
     stop = threading.Event()
+    events = []
+    sleep = time.sleep
+    monkeypatch.setattr(workers.time, "sleep", lambda s: events.append(("sleep", s)) or sleep(s))
 
     class ScriptedBoard:
         def __init__(self):
@@ -1727,6 +1731,7 @@ def _camera_main_on_steps(monkeypatch, steps, exposure_back):
             episode, step = at if isinstance(at, tuple) else (0, at)
             self.k += 1
             self.last = step
+            events.append(("read", step))
             rec = {"t": step * 1e-3, "step": step, "episode": episode, "t_wall": 0.0}
             return 2 * self.k, {**rec, "t_clock": np.nan, "qpos": np.zeros(nq)}
 
@@ -1735,6 +1740,7 @@ def _camera_main_on_steps(monkeypatch, steps, exposure_back):
             self.board, self.put_at = board, []
 
         def put(self, index, image, **meta):
+            events.append(("put", int(meta["number"])))
             self.put_at.append(
                 (int(meta["episode"]), int(meta["number"]), self.board.last, meta["t_exposure"])
             )
@@ -1748,7 +1754,8 @@ def _camera_main_on_steps(monkeypatch, steps, exposure_back):
     )  # fmt: skip
     log = log_queue.get(timeout=10)
     assert "error" not in log, log.get("error")
-    return log, ring.put_at
+    monkeypatch.setattr(workers.time, "sleep", sleep)
+    return log, ring.put_at, events
 
 
 def test_a_stalled_camera_renders_the_newest_frame_time_not_an_old_one(monkeypatch):
@@ -1758,7 +1765,7 @@ def test_a_stalled_camera_renders_the_newest_frame_time_not_an_old_one(monkeypat
     frames 1 and 2 as skipped. It used to render frame 1 there, 85 steps late, which the eye
     would fit as the state of step 33."""
     # frame 0 at step 0 (then the read after its render), then the stall: step 118
-    log, _ = _camera_main_on_steps(monkeypatch, [0, 1, 118, 119], exposure_back=0)
+    log, *_ = _camera_main_on_steps(monkeypatch, [0, 1, 118, 119], exposure_back=0)
     assert log["number"].tolist() == [0, 3] and log["step"].tolist() == [0, 118]
     assert log["skipped"] == 2
 
@@ -1780,7 +1787,7 @@ def test_the_camera_shows_the_states_the_simulated_camera_loop_shows(monkeypatch
     assert cam.exposure_s == pytest.approx(0.004)
     back = int(exposure_offsets(cam, 1e-3)[-1])
     assert back == 2
-    log, put_at = _camera_main_on_steps(monkeypatch, list(range(200)), back)
+    log, put_at, _ = _camera_main_on_steps(monkeypatch, list(range(200)), back)
     want = np.maximum(frame_steps(cam, 1e-3, 200) - back, 0)  # the simulated loop's s_img
     assert want.tolist() == [0, 31, 64, 97, 130, 163, 196]
     # the last frame's exposure ends at step 198 and the board stops at 199: all 7 are put
@@ -1791,14 +1798,20 @@ def test_the_camera_shows_the_states_the_simulated_camera_loop_shows(monkeypatch
         assert t_exposure == pytest.approx(want[number] * 1e-3)
     assert [p[1] for p in put_at] == list(range(7)) and log["not_read_out"] == 0
     assert np.all(log["t_wall_put"] >= log["t_wall_done"])
-    log, _ = _camera_main_on_steps(monkeypatch, [0, 1, 118, 119], back)  # a stall
+    log, *_ = _camera_main_on_steps(monkeypatch, [0, 1, 118, 119], back)  # a stall
     assert log["number"].tolist() == [0, 3] and log["step"].tolist() == [0, 118]
     assert log["step_due"].tolist() == [0, 97] and log["skipped"] == 2
     # episode 0 ends at step 97: frame 3 (state 97, exposure's end 99) rendered, not put
     steps = [(0, k) for k in range(98)] + [(1, k) for k in range(41)]
-    log, put_at = _camera_main_on_steps(monkeypatch, steps, back)
+    log, put_at, _ = _camera_main_on_steps(monkeypatch, steps, back)
     assert [p[:2] for p in put_at] == [(0, 0), (0, 1), (0, 2), (1, 0), (1, 1)]
     assert log["step"].tolist() == [0, 31, 64, 0, 31] and log["not_read_out"] == 1
+    # the plant past the exposure's end by the time the frame has rendered (step 40 read after
+    # frame 1's render at 31): put at once, no sleep on the state read before the render
+    log, _, events = _camera_main_on_steps(monkeypatch, [0, 1, 31, 40, 41], back)
+    at = events.index(("read", 31))
+    assert events[at + 1 : at + 3] == [("read", 40), ("put", 1)]
+    assert log["step"].tolist() == [0, 31]
 
 
 @pytest.mark.slow  # a spawned eye process: about 15 s, most of it the child's imports

@@ -199,6 +199,8 @@ def camera_main(
             # (the GPU's, 1.5 ms against 2) waits here; a frame whose exposure would end after
             # its episode (or the run) is not put, and counted
             end_step, now = number * period, rec
+            if int(now["step"]) < end_step:  # the plant has moved on while this rendered
+                last_seq, now = board.read()
             while int(now["step"]) < end_step and int(now["episode"]) == episode:
                 if stop.is_set():
                     break
