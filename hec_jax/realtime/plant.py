@@ -21,8 +21,8 @@ With a camera, every physics step's state (time, qpos) goes to a shared board, a
 process (:func:`hec_jax.realtime.workers.camera_main`) renders a frame whenever the plant time
 reaches the next frame's mid-exposure (the simulated camera loop's frame times: every
 ``steps_per_frame`` steps, half the exposure before each exposure's end), stamped with the plant
-time of the state it shows; frames that rendering could not start on time are counted. The process keeps the software renderer off the control loop's core and out of its
-GIL.
+time of the state it shows; frames that rendering could not start on time are counted. The
+process keeps the software renderer off the control loop's core and out of its GIL.
 """
 
 from __future__ import annotations

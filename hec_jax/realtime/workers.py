@@ -3,7 +3,7 @@
 * :func:`camera_main` renders the plant's state (read from its shared board) whenever the plant
   time reaches the next frame time (a frame's mid-exposure; the exposures end every ``period``
   control steps from each release), into the shared frame ring, stamped with the plant time of
-  the state shown. If a frame cannot start on
+  the state shown, once the plant has reached the exposure's end. If a frame cannot start on
   time (rendering slower than the frame rate) it is exposed late, and frame times that passed
   entirely are skipped; both are counted.
 * :func:`eye_main` is the eye: it takes the newest frame (frames that arrived while it was busy
@@ -64,8 +64,9 @@ def _steal_delta(before: list[float], after: list[float]) -> np.ndarray:
 def frame_state_step(number: int, period: int, exposure_back: int) -> int:
     """The plant step whose state frame ``number`` of an episode shows: its mid-exposure,
     ``exposure_back`` steps before the exposure ends at step ``number * period`` (not before the
-    release). The simulated camera loop's ``max(s - e, 0)`` for its frame steps ``s``
-    (:func:`~hec_jax.loop.camera_loop.frame_steps`, :func:`~hec_jax.loop.camera_loop.exposure_offsets`).
+    release): the simulated camera loop's ``max(s - e, 0)`` for its frame steps ``s``
+    (:func:`~hec_jax.loop.camera_loop.frame_steps`) and ``e``
+    (:func:`~hec_jax.loop.camera_loop.mid_exposure_steps`).
     """
     return max(number * period - exposure_back, 0)
 
@@ -119,10 +120,10 @@ def camera_main(
     """The camera process: calibration shots, then frames on the plant's clock until ``stop``.
 
     Frame ``n`` of an episode shows the plant's state at step :func:`frame_state_step` (its
-    mid-exposure: ``exposure_back`` steps before the exposure ends at step ``n * period``, as the
-    simulated camera loop's :func:`~hec_jax.loop.camera_loop.exposure_offsets`), stamped with that
-    step's plant time, and is put in the ring no earlier than the plant reaches the exposure's
-    end (a camera reads a frame out once exposed).
+    mid-exposure: ``exposure_back`` steps before the exposure ends at step ``n * period``, as in
+    the simulated camera loop), stamped with that step's plant time, and is put in the ring no
+    earlier than the plant reaches the exposure's end (a camera reads a frame out once exposed);
+    one whose exposure would end after its episode is not put, and counted (``not_read_out``).
 
     Args:
         task: the :class:`~hec_jax.loop.config.TaskConfig` (its world is rendered).
