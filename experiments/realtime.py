@@ -24,9 +24,7 @@ from typing import Literal
 from hec_jax.cli import command, parse
 from hec_jax.loop.config import (
     PRESETS,
-    REALTIME_DEFECTS,
     CameraConfig,
-    CameraDefects,
     ExperimentConfig,
 )
 from hec_jax.realtime.clock import cpu_latency_refused, pool_idle_refused, realtime_refused
@@ -45,8 +43,9 @@ class RealtimeRun:
     float32: bool = False  # float32 (default float64, as the simulated runs)
 
     def __post_init__(self):
-        if self.experiment.camera.applied_defects != CameraDefects():
-            raise ValueError(REALTIME_DEFECTS)
+        refused = self.experiment.camera.realtime_refused()
+        if refused:
+            raise ValueError(refused)
         rt = self.realtime
         refused = realtime_refused(max(rt.rt_priority, rt.camera_priority, rt.eye_priority))
         if refused:

@@ -60,6 +60,9 @@ BAD = {
         (["--noise-grey", "-1"], "--noise-grey: must be finite and >= 0, got -1.0"),
         (["--jitter-s", "0.02"], "--jitter-s: must be below half the frame period"),
         (["--exposure-s", "0.05"], "--exposure-s: an exposure cannot outlast the frame period"),
+        (["--frame-offset-s", "0.04"], "--frame-offset-s: the first frame's offset must be below"),
+        (["--frame-offset-s", "-0.01"], "CameraConfig.frame_offset_s must be finite and >= 0"),
+        (["--realtime", "--frame-offset-s", "0.01"], "--frame-offset-s is simulated-time only"),
         (["--plane-grid-m", "-0.1"], "--plane-grid-m: must be None or a number > 0 [m]"),
         (["--realtime", "--focal-error", "0.01"], "camera defects (--noise-grey, --blur-ren"),
         (["--realtime", "--camera-model", "industrial"], "camera defects (--noise-grey, --blur"),
@@ -74,6 +77,7 @@ BAD = {
         (["--eye-save-failed", "-1"], "eye_save_failed must be an integer in 0..1000"),
         (["--camera-plane-grid-m", "0"], "camera_plane_grid_m must be None or a number > 0"),
         (["--camera-model", "industrial"], "camera defects (--noise-grey, --blur-ren"),
+        (["--frame-offset-s", "0.01"], "--frame-offset-s is simulated-time only"),
     ],
     "experiments/hitting.py": [
         (["--seeds", "0"], "seeds must be an integer >= 1"),

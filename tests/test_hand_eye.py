@@ -272,6 +272,45 @@ def test_frames_fall_on_the_control_grid():
     np.testing.assert_array_equal(he.frame_steps(cam, 1e-3, 100), [0, 33, 66, 99])
     with pytest.raises(ValueError, match="latency"):
         tl.CameraConfig(latency_s=-1.0)
+    # a trigger phase: the first frame 5 steps after the release, then every 33
+    shifted = tl.CameraConfig(fps=30.0, frame_offset_s=0.005)
+    assert he.frame_offset_steps(shifted, 1e-3) == 5
+    np.testing.assert_array_equal(he.frame_steps(shifted, 1e-3, 100), [5, 38, 71])
+    with pytest.raises(ValueError, match="below the frame period"):
+        tl.CameraConfig(fps=30.0, frame_offset_s=1.0 / 30.0)
+    with pytest.raises(ValueError, match="frame_offset_s must be finite and >= 0"):
+        tl.CameraConfig(frame_offset_s=-0.001)
+    # below 1/fps, but a whole period on the control grid
+    with pytest.raises(ValueError, match="rounds to 33 control steps"):
+        he.frame_steps(tl.CameraConfig(fps=30.0, frame_offset_s=0.0332), 1e-3, 100)
+    refused = tl.CameraConfig.void_perfect(frame_offset_s=0.005).realtime_refused()
+    assert refused == tl.config.REALTIME_FRAME_OFFSET
+    assert tl.CameraConfig.void_perfect().realtime_refused() is None
+
+
+def test_a_trigger_phase_moves_every_frame_and_the_first_estimate():
+    """``frame_offset_s``: the loop runs the steps before the first frame with nothing seen,
+    renders frame j at mid-exposure of step offset + 33 j (the logged state there), and uses the
+    first estimate from the next frame's step on (as at offset 0: an estimate arriving inside a
+    segment with nothing seen before counts from the next segment)."""
+    # one short swing; SEEDS seeds, so the compiled segment is the module's camera run's
+    loop = tl.build_loop(dataclasses.replace(CONFIG, swings=1, swing_s=0.4, settle_s=0.2))
+    keys = jax.random.split(jax.random.PRNGKey(0), SEEDS)
+    offset, back = 5, 2  # [steps]; the 4 ms exposure's half
+    cam = tl.CameraConfig.void_perfect(frame_offset_s=offset * 1e-3, latency_s=0.0105)
+    assert he.mid_exposure_steps(cam, 1e-3) == back
+    logs, eye, _ = he.run_camera(loop, PENDULUM, keys, "learned", cam, progress=False)
+    steps = loop.swing_steps
+    assert logs["x_e"].shape[2] == steps  # the leading steps are in the log
+    mid = offset + 33 * np.arange(eye["valid"].shape[-1]) - back
+    np.testing.assert_array_equal(mid, np.arange(offset, steps, 33) - back)
+    np.testing.assert_allclose(eye["t_stamp"][0, 0], mid * 1e-3, rtol=0, atol=1e-12)
+    logged = logs["x_o_true"][0, 0]
+    np.testing.assert_allclose(eye["x_true"][0, 0], logged[mid], rtol=0, atol=1e-12)
+    assert np.abs(eye["x_true"][0, 0] - logged[mid - 1]).max() > 1e-5  # a step off is seen
+    assert eye["valid"][0, 0, 0]
+    seen = logs["object_seen"][0, 0]
+    assert not seen[: offset + 33].any() and seen[offset + 33]
 
 
 @pytest.mark.slow  # its own MJX compile; the camera loop below fails if the cube is rendered elsewhere

@@ -63,9 +63,27 @@ def steps_per_frame(cam: CameraConfig, dt: float) -> int:
     return max(int(round(1.0 / (cam.fps * dt))), 1)
 
 
+def frame_offset_steps(cam: CameraConfig, dt: float) -> int:
+    """Control steps from each release to the first frame's exposure end (the camera's trigger
+    phase, ``CameraConfig.frame_offset_s``, rounded).
+
+    Raises:
+        ValueError: the offset rounds to a whole frame period or more.
+    """
+    offset = int(round(cam.frame_offset_s / dt))
+    if offset >= steps_per_frame(cam, dt):
+        raise ValueError(
+            f"frame_offset_s {cam.frame_offset_s!r} rounds to {offset} control steps, not below "
+            f"the frame period's {steps_per_frame(cam, dt)}"
+        )
+    return offset
+
+
 def frame_steps(cam: CameraConfig, dt: float, steps: int) -> np.ndarray:
-    """Simulation steps at which the frames' exposures end (state at the start of that step)."""
-    return np.arange(0, steps, steps_per_frame(cam, dt))
+    """Simulation steps at which the frames' exposures end (state at the start of that step):
+    from :func:`frame_offset_steps` on, :func:`steps_per_frame` apart.
+    """
+    return np.arange(frame_offset_steps(cam, dt), steps, steps_per_frame(cam, dt))
 
 
 def mid_exposure_steps(cam: CameraConfig, dt: float) -> int:
@@ -488,6 +506,8 @@ def run_camera(
         """One release: ``steps`` control steps, the tracker reset at the release."""
         t_ep = time.perf_counter()
         fs = frame_steps(cam, dt, steps)
+        if not len(fs):
+            raise ValueError(f"an episode of {steps} steps ends before its first frame")
         bounds = np.append(fs, steps)
         n_f = len(fs)
         rec = {
@@ -522,6 +542,24 @@ def run_camera(
         d_qpos = np.asarray(d.qpos)
         swing = "final run" if index == "final" else f"swing {index + 1}/{config.swings}"
         bar.update(description=f"{condition} {swing}")
+        lead_ms = 0.0  # [ms] the steps before the first frame, counted in its sim_ms
+        if fs[0] > 0:  # the steps before the first frame (a trigger phase): nothing seen yet
+            t0 = time.perf_counter()
+            sw = Switches(
+                sw0.use_virtual,
+                sw0.learn,
+                _stack_eye([_eye_input([], 0.0, 0.0, guard, memory)] * n_seeds),
+            )
+            n = int(fs[0])
+            d, cs, ls, touch, rows = segment(
+                d, cs, ls, touch, f_prev, sw, np.arange(period) < n, conditions
+            )
+            rows = jax.tree_util.tree_map(lambda x, n=n: x[:, :n], jax.device_get(rows))
+            f_prev = rows["f_contact"][:, -1]
+            qpos_hist[:, :n] = rows["qpos"]
+            d_qpos = np.asarray(d.qpos)
+            rows_all.append(rows)
+            lead_ms = 1e3 * (time.perf_counter() - t0)
         for j, s in enumerate(fs):
             s_img = max(s - e_off, 0)  # mid-exposure
             for i in range(n_seeds):
@@ -604,7 +642,7 @@ def run_camera(
                 d, cs, ls, touch, f_prev, sw, np.arange(period) < n, conditions
             )
             rows = jax.tree_util.tree_map(lambda x, n=n: x[:, :n], jax.device_get(rows))
-            rec["sim_ms"][j] = 1e3 * (time.perf_counter() - t0)
+            rec["sim_ms"][j] = 1e3 * (time.perf_counter() - t0) + (lead_ms if j == 0 else 0.0)
             if j == 0 and index == 0 and compiled is None:  # compiled by this first call
                 bar.log(_first_segment_line(rec["sim_ms"][0]))
             f_prev = rows["f_contact"][:, -1]

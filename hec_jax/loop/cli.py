@@ -11,9 +11,7 @@ from hec_jax.cli import command, parse
 from hec_jax.loop.config import (
     DEFECT_FIELDS,
     PRESETS,
-    REALTIME_DEFECTS,
     CameraConfig,
-    CameraDefects,
     ExperimentConfig,
 )
 from hec_jax.loop.sweep import SweepConfig
@@ -37,8 +35,9 @@ class TaskRun:
             raise ValueError(
                 "--realtime runs --eye truth or camera (the paper's eye: simulated time)"
             )
-        if self.realtime and self.experiment.camera.applied_defects != CameraDefects():
-            raise ValueError(REALTIME_DEFECTS)
+        refused = self.experiment.camera.realtime_refused() if self.realtime else None
+        if refused:
+            raise ValueError(refused)
 
 
 def task_default(preset: str, argv=None) -> TaskRun:

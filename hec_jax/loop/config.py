@@ -139,6 +139,10 @@ class TaskConfig:
 REALTIME_DEFECTS = (
     "camera defects (--noise-grey, --blur-renders, ...) are simulated-time only, not --realtime"
 )
+# so is a trigger phase: the real-time camera's frames start at each release
+REALTIME_FRAME_OFFSET = (
+    "--frame-offset-s is simulated-time only: the real-time camera's frames start at each release"
+)
 
 
 @dataclass(frozen=True)
@@ -260,6 +264,12 @@ class CameraConfig:
     latency_s: float = 1.0 / 30.0  # end of exposure -> estimate at the controller [s]
     # the frame shows the state at mid-exposure [s] (motion blur: ``defects.blur_renders``)
     exposure_s: float = 0.004
+    # [s] the camera's trigger phase against each release: the first frame's exposure ends this
+    # long after it, the others 1/fps apart (rounded to whole control steps; 0 <= offset <
+    # 1/fps). A free-running camera meets each release at its own phase, and the learned
+    # vertical damping depends strongly on it (docs/realtime.md, session 80). Simulated time
+    # only: the real-time camera's frames start at each release (0)
+    frame_offset_s: float = 0.0
     width: int = 640  # [px]
     height: int = 480  # [px]
     # no shadows/reflections (3x faster software rendering); the lab scene keeps its shadows
@@ -344,6 +354,16 @@ class CameraConfig:
             return _industrial_over(self.defects, self.defects_given)
         return self.defects
 
+    def realtime_refused(self) -> str | None:
+        """Why the real-time loop cannot run this camera (its defects or its trigger phase are
+        simulated-time only), or None.
+        """
+        if self.applied_defects != CameraDefects():
+            return REALTIME_DEFECTS
+        if self.frame_offset_s != 0:
+            return REALTIME_FRAME_OFFSET
+        return None
+
     def resolved(self) -> CameraConfig:
         """This camera with ``track`` and ``defects`` filled in (:attr:`tracker`,
         :attr:`applied_defects`): what a run folder records; runs the same.
@@ -358,7 +378,14 @@ class CameraConfig:
                 f"--camera-model: must be 'perfect' or 'industrial', got {self.camera_model!r}"
             )
         _positive(self, "fps", "width", "height")
-        _positive(self, "latency_s", "exposure_s", "touch_guard_frames", allow_zero=True)
+        _positive(
+            self, "latency_s", "exposure_s", "touch_guard_frames", "frame_offset_s", allow_zero=True
+        )
+        if not self.frame_offset_s < 1.0 / self.fps:
+            raise ValueError(
+                f"--frame-offset-s: the first frame's offset must be below the frame period "
+                f"({1.0 / self.fps:.4g} s), got {self.frame_offset_s!r}"
+            )
         if not (isinstance(self.max_coast_frames, int) and self.max_coast_frames >= 0):
             raise ValueError(
                 f"max_coast_frames must be an integer >= 0, got {self.max_coast_frames}"

@@ -53,9 +53,7 @@ from hec_jax.control import TaskObs
 from hec_jax.loop.camera_loop import mid_exposure_steps, run_camera, steps_per_frame
 from hec_jax.loop.config import (
     PRESETS,
-    REALTIME_DEFECTS,
     CameraConfig,
-    CameraDefects,
     ExperimentConfig,
 )
 from hec_jax.loop.episodes import make_episodes
@@ -935,9 +933,10 @@ def run_realtime(
         raise ValueError("the real-time eye is the box tracker: eye='truth' or 'camera'")
     if exp.eye == "camera" and not rt.timed:
         raise ValueError("un-timed mode runs with eye='truth' (simulated camera: loop.run_camera)")
-    # the camera (unused with the truth eye) has no defects in real time
-    if exp.eye == "camera" and exp.camera.applied_defects != CameraDefects():
-        raise ValueError(REALTIME_DEFECTS)
+    # the camera (unused with the truth eye) has no defects and no trigger phase in real time
+    refused = exp.camera.realtime_refused() if exp.eye == "camera" else None
+    if refused:
+        raise ValueError(refused)
     refused = pool_idle_refused(rt.pool_idle_applies)
     if refused:
         raise ValueError(refused)
