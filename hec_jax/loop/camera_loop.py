@@ -6,7 +6,8 @@ method :class:`~hec_jax.geometry.PaperEye`, ``eye="paper"``) and the hand with i
 (:mod:`hec_jax.loop.policy`) together at the NumPy boundary:
 
 * The camera takes a frame every 1/fps [s] (30 fps default), rounded to a whole number of 1 ms
-  control steps (33 ms, i.e. 30.3 fps, for 30 fps; the eye is told the rounded rate). A frame
+  control steps (33 ms, i.e. 30.3 fps, for 30 fps; the eye is told the rounded rate), the first
+  ``frame_offset_s`` after each release (the trigger phase; 0 by default: at the release). A frame
   shows the state at the middle of its exposure (``exposure_s``). The camera is perfect unless
   ``cam.applied_defects`` (:class:`~hec_jax.loop.config.CameraDefects`) says otherwise: motion blur
   (renders averaged over the exposure), defocus, sensor noise (:func:`camera_frame`), intrinsics
@@ -698,6 +699,7 @@ def run_conditions_camera(
     progress: bool = True,
     eye_source: str = "camera",
     camera_conditions: tuple[str, ...] = ("frozen", "learned"),
+    compiled: tuple | None = None,
 ):
     """The three conditions with the camera in the loop, and with ground truth for comparison.
 
@@ -710,6 +712,7 @@ def run_conditions_camera(
     runs' compile and run times on their own line. ``eye_source``: as :func:`run_camera`.
     ``camera_conditions``: which of ``frozen`` and ``learned`` run with the camera (the others
     have ground-truth logs only; ``camera_logs`` and ``eye_by_condition`` leave them out).
+    ``compiled``: as :func:`run_camera` (one compile shared with other calls).
 
     Raises:
         ValueError: ``camera_conditions`` empty or naming another condition, or
@@ -736,7 +739,8 @@ def run_conditions_camera(
         keys = jax.random.split(jax.random.PRNGKey(seed), n_seeds)
         camera_logs, eyes, video = {"plain": truth["plain"]}, {}, []
         shown = "final" if loop.final_steps else loop.config.swings - 1
-        compiled = (make_start(loop), make_segment(loop))
+        if compiled is None:
+            compiled = (make_start(loop), make_segment(loop))
         for condition in ("frozen", "learned"):
             if condition not in camera_conditions:
                 continue

@@ -924,7 +924,8 @@ def run_realtime(
     Raises:
         ValueError: un-timed mode with the camera (the camera loop in simulated time is
             :func:`hec_jax.loop.run_camera`); ``eye="paper"``; with ``eye="camera"``, camera
-            defects (simulated time only); ``rt.pool_idle`` where it could not be undone
+            defects or a trigger phase (simulated time only: ``CameraConfig.realtime_refused``);
+            ``rt.pool_idle`` where it could not be undone
             (:func:`~hec_jax.realtime.clock.pool_idle_refused`).
     """
     rt = RealtimeConfig() if rt is None else rt

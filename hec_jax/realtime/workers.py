@@ -66,7 +66,8 @@ def frame_state_step(number: int, period: int, exposure_back: int) -> int:
     ``exposure_back`` steps before the exposure ends at step ``number * period`` (not before the
     release): the simulated camera loop's ``max(s - e, 0)`` for its frame steps ``s``
     (:func:`~hec_jax.loop.camera_loop.frame_steps`) and ``e``
-    (:func:`~hec_jax.loop.camera_loop.mid_exposure_steps`).
+    (:func:`~hec_jax.loop.camera_loop.mid_exposure_steps`), whose frames start at the release
+    (``CameraConfig.frame_offset_s`` 0: a trigger phase is refused in real time).
     """
     return max(number * period - exposure_back, 0)
 
