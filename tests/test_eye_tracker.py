@@ -641,6 +641,7 @@ def test_snapshot_and_restore_replay_the_track_frame_for_frame(seq):
         replay.restore({"_state": snap["_state"]})
 
 
+@pytest.mark.slow  # a diagnostic off by default (eye_save_failed = 0); the default suite's time
 def test_a_failed_frame_saved_by_the_real_time_eye_replays_to_the_same_fit(seq):
     # the real-time eye's diagnostic (``RealtimeConfig.eye_save_failed``): a frame whose
     # tracked fit failed (forced: the prediction 6 cm off) is saved with the tracker's snapshot
@@ -970,6 +971,7 @@ def test_configs_differing_only_on_the_host_share_their_compiled_functions():
     assert track._compiled(jerk, FPS)[3] != track._compiled(base, FPS)[3]
 
 
+@pytest.mark.slow  # an ablation's compiler options (off by default); the default suite's time
 def test_cpu_small_kernels_reach_the_compiler_and_change_only_round_off(seq):
     """``cpu_small_kernels`` compiles the fit without YNNPACK fusions (XLA's default fit has
     them) and changes only round-off: from a prior 3 mm and 2 deg off the true pose of a rendered

@@ -332,6 +332,39 @@ def test_a_trigger_phase_moves_every_frame_and_the_first_estimate():
     assert not seen[:, :, : offset + 33].any() and seen[:, :, offset + 33].all()
 
 
+def test_a_free_running_camera_draws_each_swing_s_phase():
+    """``frame_offset_random``: each swing's frames from its own drawn phase (seeded: the same
+    draws again), the same count in every swing (a swing whose phase fits one more goes without
+    it, its last steps run in segments of at most a period), every frame showing the logged
+    state at its mid-exposure. The module's loop and compiled segment."""
+    cam = tl.CameraConfig.void_perfect(frame_offset_random=True, latency_s=0.0105)
+    dt, steps = 1e-3, LOOP.swing_steps
+    fs = [he.swing_frame_steps(cam, dt, steps, swing) for swing in range(CONFIG.swings)]
+    np.testing.assert_array_equal(fs[0], he.swing_frame_steps(cam, dt, steps, 0))  # seeded
+    offsets = [int(f[0]) for f in fs]
+    assert len(set(offsets)) == CONFIG.swings and all(0 <= o < 33 for o in offsets)
+    # these draws: one swing's phase fits a 31st frame (dropped), the other's does not
+    assert {len(np.arange(o, steps, 33)) for o in offsets} == {30, 31}
+    assert all(len(f) == 30 and np.all(np.diff(f) == 33) for f in fs)
+    other = dataclasses.replace(cam, defects=tl.CameraDefects(defect_seed=1))
+    assert [int(he.swing_frame_steps(other, dt, steps, w)[0]) for w in range(2)] != offsets
+    keys = jax.random.split(jax.random.PRNGKey(0), SEEDS)
+    logs, eye, _ = he.run_camera(
+        LOOP, PENDULUM, keys, "learned", cam, progress=False, compiled=COMPILED
+    )
+    assert logs["x_e"].shape[2] == steps and eye["valid"].shape[2] == 30
+    for swing in range(CONFIG.swings):
+        mid = fs[swing] - 2  # the 4 ms exposure's half
+        np.testing.assert_allclose(eye["t_stamp"][:, swing], np.tile(mid * dt, (SEEDS, 1)))
+        for seed in range(SEEDS):
+            logged = logs["x_o_true"][seed, swing]
+            np.testing.assert_allclose(eye["x_true"][seed, swing], logged[mid], rtol=0, atol=1e-12)
+    # the swing goes on through its frameless tail (a state lost between its segments would
+    # jump the cube by centimetres): under 5 mm a step, 5 m/s
+    moved = np.linalg.norm(np.diff(logs["x_o_true"][:, :, -80:], axis=2), axis=-1)
+    assert moved.max() < 5e-3
+
+
 @pytest.mark.slow  # its own MJX compile; the camera loop below fails if the cube is rendered elsewhere
 def test_render_model_follows_the_mjx_geometry():
     """The C model used for rendering puts the cube where MJX does (moved hinge, longer rod)."""

@@ -7,7 +7,8 @@ method :class:`~hec_jax.geometry.PaperEye`, ``eye="paper"``) and the hand with i
 
 * The camera takes a frame every 1/fps [s] (30 fps default), rounded to a whole number of 1 ms
   control steps (33 ms, i.e. 30.3 fps, for 30 fps; the eye is told the rounded rate), the first
-  ``frame_offset_s`` after each release (the trigger phase; 0 by default: at the release). A frame
+  ``frame_offset_s`` after each release (the trigger phase; 0 by default: at the release), or
+  at a phase drawn for each release (``frame_offset_random``: a free-running camera). A frame
   shows the state at the middle of its exposure (``exposure_s``). The camera is perfect unless
   ``cam.applied_defects`` (:class:`~hec_jax.loop.config.CameraDefects`) says otherwise: motion blur
   (renders averaged over the exposure), defocus, sensor noise (:func:`camera_frame`), intrinsics
@@ -87,6 +88,21 @@ def frame_steps(cam: CameraConfig, dt: float, steps: int) -> np.ndarray:
     return np.arange(frame_offset_steps(cam, dt), steps, steps_per_frame(cam, dt))
 
 
+def swing_frame_steps(cam: CameraConfig, dt: float, steps: int, swing: int | str) -> np.ndarray:
+    """The frame steps of one episode of ``steps`` control steps (``swing``: its index, or
+    ``"final"``): :func:`frame_steps`, or with ``cam.frame_offset_random`` from a phase drawn
+    uniformly from the frame period's steps (:func:`defects_rng`'s ``"phase"`` stream, the same
+    for every seed of a batch), keeping the frame count of the latest phase (every episode of a
+    length has the same count).
+    """
+    if not cam.frame_offset_random:
+        return frame_steps(cam, dt, steps)
+    period = steps_per_frame(cam, dt)
+    offset = int(defects_rng(cam.applied_defects, 0, swing, "phase").integers(period))
+    count = len(np.arange(period - 1, steps, period))
+    return np.arange(offset, steps, period)[:count]
+
+
 def mid_exposure_steps(cam: CameraConfig, dt: float) -> int:
     """Steps from a frame's mid-exposure (the state the frame shows: its time) to the end of its
     exposure, ``round(exposure_s / (2 dt))``: the one offset the simulated loop, the real-time
@@ -138,7 +154,7 @@ def eye_intrinsics(k: np.ndarray, defects: CameraDefects) -> np.ndarray:
     return out
 
 
-DEFECT_STREAMS = ("noise", "jitter")
+DEFECT_STREAMS = ("noise", "jitter", "phase")
 
 
 def defects_rng(
@@ -147,7 +163,8 @@ def defects_rng(
     """The generator of one seed's frames in one swing (``"final"``: the continuous run;
     ``"background"``: the calibration shot of the empty scene): seeded by
     ``defects.defect_seed``, the seed's index in the batch and the swing. ``stream``: the sensor
-    noise's (``"noise"``) or the time stamps' (``"jitter"``) own generator, so that turning
+    noise's (``"noise"``), the time stamps' (``"jitter"``) or the free-running camera's phase
+    (``"phase"``, :func:`swing_frame_steps`) own generator, so that turning
     one defect on or off leaves the other's draws as they were (since session 67: before, one
     generator served both, and a jitter ablation also changed the noise). The noise stream's
     seed is the one the single generator had, so runs without jitter give the same frames.
@@ -159,7 +176,7 @@ def defects_rng(
         raise ValueError(f"stream must be one of {DEFECT_STREAMS}, got {stream!r}")
     swing_id = {"final": 1_000_000, "background": 1_000_001}.get(swing, swing)
     key = [defects.defect_seed, seed_index, swing_id]
-    return np.random.default_rng(key if stream == "noise" else key + [1])
+    return np.random.default_rng(key if stream == "noise" else key + [DEFECT_STREAMS.index(stream)])
 
 
 def stamp_jitter(defects: CameraDefects, rng: np.random.Generator) -> float:
@@ -173,8 +190,9 @@ def frames_per_condition(loop: Loop, cam: CameraConfig | None = None) -> int:
     """Frames of one seed under one condition: every swing's, and the continuous run's."""
     cam = CameraConfig() if cam is None else cam
     dt = loop.ids.timestep
-    n = loop.config.swings * len(frame_steps(cam, dt, loop.swing_steps))
-    return n + (len(frame_steps(cam, dt, loop.final_steps)) if loop.final_steps else 0)
+    n = loop.config.swings * len(swing_frame_steps(cam, dt, loop.swing_steps, 0))
+    final = swing_frame_steps(cam, dt, loop.final_steps, "final") if loop.final_steps else ()
+    return n + len(final)
 
 
 class _Estimate:
@@ -506,7 +524,7 @@ def run_camera(
     def episode(ls, steps: int, index, keep_video: bool):
         """One release: ``steps`` control steps, the tracker reset at the release."""
         t_ep = time.perf_counter()
-        fs = frame_steps(cam, dt, steps)
+        fs = swing_frame_steps(cam, dt, steps, index)
         if not len(fs):
             raise ValueError(f"an episode of {steps} steps ends before its first frame")
         bounds = np.append(fs, steps)
@@ -543,24 +561,40 @@ def run_camera(
         d_qpos = np.asarray(d.qpos)
         swing = "final run" if index == "final" else f"swing {index + 1}/{config.swings}"
         bar.update(description=f"{condition} {swing}")
-        lead_ms = 0.0  # [ms] the steps before the first frame, counted in its sim_ms
-        if fs[0] > 0:  # the steps before the first frame (a trigger phase): nothing seen yet
+
+        def advance(start: int, end: int) -> float:
+            """The closed loop from step ``start`` to ``end``, in segments of at most a frame
+            period, each with the estimates in force during it; its wall time [ms].
+            """
+            nonlocal d, cs, ls, touch, f_prev, d_qpos
             t0 = time.perf_counter()
-            sw = Switches(
-                sw0.use_virtual,
-                sw0.learn,
-                _stack_eye([_eye_input([], 0.0, 0.0, guard, memory)] * n_seeds),
-            )
-            n = int(fs[0])
-            d, cs, ls, touch, rows = segment(
-                d, cs, ls, touch, f_prev, sw, np.arange(period) < n, conditions
-            )
-            rows = jax.tree_util.tree_map(lambda x, n=n: x[:, :n], jax.device_get(rows))
-            f_prev = rows["f_contact"][:, -1]
-            qpos_hist[:, :n] = rows["qpos"]
-            d_qpos = np.asarray(d.qpos)
-            rows_all.append(rows)
-            lead_ms = 1e3 * (time.perf_counter() - t0)
+            while start < end:
+                stop = min(start + period, end)
+                eyes = _stack_eye(
+                    [_eye_input(q, start * dt, stop * dt, guard, memory) for q in queues]
+                )
+                n = stop - start
+                d, cs, ls, touch, rows = segment(
+                    d,
+                    cs,
+                    ls,
+                    touch,
+                    f_prev,
+                    Switches(sw0.use_virtual, sw0.learn, eyes),
+                    np.arange(period) < n,
+                    conditions,
+                )
+                rows = jax.tree_util.tree_map(lambda x, n=n: x[:, :n], jax.device_get(rows))
+                f_prev = rows["f_contact"][:, -1]
+                qpos_hist[:, start:stop] = rows["qpos"]
+                d_qpos = np.asarray(d.qpos)
+                rows_all.append(rows)
+                start = stop
+            return 1e3 * (time.perf_counter() - t0)
+
+        # the steps before the first frame (a trigger phase): nothing seen yet; counted in the
+        # first frame's sim_ms
+        lead_ms = advance(0, int(fs[0]))
         for j, s in enumerate(fs):
             s_img = max(s - e_off, 0)  # mid-exposure
             for i in range(n_seeds):
@@ -633,23 +667,9 @@ def run_camera(
                     )
                 if i == 0 and keep_video:
                     frames_out.append(_draw_overlay(shown, st, k_eye, r_wc.T, t_wc, x_true))
-            eyes = _stack_eye(
-                [_eye_input(q, s * dt, bounds[j + 1] * dt, guard, memory) for q in queues]
-            )
-            sw = Switches(sw0.use_virtual, sw0.learn, eyes)
-            n = int(bounds[j + 1] - s)
-            t0 = time.perf_counter()
-            d, cs, ls, touch, rows = segment(
-                d, cs, ls, touch, f_prev, sw, np.arange(period) < n, conditions
-            )
-            rows = jax.tree_util.tree_map(lambda x, n=n: x[:, :n], jax.device_get(rows))
-            rec["sim_ms"][j] = 1e3 * (time.perf_counter() - t0) + (lead_ms if j == 0 else 0.0)
+            rec["sim_ms"][j] = advance(int(s), int(bounds[j + 1])) + (lead_ms if j == 0 else 0.0)
             if j == 0 and index == 0 and compiled is None:  # compiled by this first call
                 bar.log(_first_segment_line(rec["sim_ms"][0]))
-            f_prev = rows["f_contact"][:, -1]
-            qpos_hist[:, s : bounds[j + 1]] = rows["qpos"]
-            d_qpos = np.asarray(d.qpos)
-            rows_all.append(rows)
             bar.update(n_seeds)
         ls = ls._replace(was_inside=jnp.zeros_like(ls.was_inside))
         logs = {k: np.concatenate([r[k] for r in rows_all], axis=1) for k in rows_all[0]}

@@ -141,7 +141,8 @@ REALTIME_DEFECTS = (
 )
 # so is a trigger phase: the real-time camera's frames start at each release
 REALTIME_FRAME_OFFSET = (
-    "--frame-offset-s is simulated-time only: the real-time camera's frames start at each release"
+    "--frame-offset-s and --frame-offset-random are simulated-time only: the real-time camera's "
+    "frames start at each release"
 )
 
 
@@ -270,6 +271,12 @@ class CameraConfig:
     # vertical damping depends strongly on it (docs/realtime.md, session 80). Simulated time
     # only: the real-time camera's frames start at each release (0)
     frame_offset_s: float = 0.0
+    # a free-running camera: each release meets it at a phase drawn uniformly from the frame
+    # period's control steps (the generator: ``defects.defect_seed`` and the swing), in place of
+    # ``frame_offset_s``. Every swing keeps the frame count of the latest phase, so a swing whose
+    # phase fits one more frame before its end goes without it
+    # (``camera_loop.swing_frame_steps``). Simulated time only
+    frame_offset_random: bool = False
     width: int = 640  # [px]
     height: int = 480  # [px]
     # no shadows/reflections (3x faster software rendering); the lab scene keeps its shadows
@@ -360,7 +367,7 @@ class CameraConfig:
         """
         if self.applied_defects != CameraDefects():
             return REALTIME_DEFECTS
-        if self.frame_offset_s != 0:
+        if self.frame_offset_s != 0 or self.frame_offset_random:
             return REALTIME_FRAME_OFFSET
         return None
 
@@ -381,6 +388,14 @@ class CameraConfig:
         _positive(
             self, "latency_s", "exposure_s", "touch_guard_frames", "frame_offset_s", allow_zero=True
         )
+        if not isinstance(self.frame_offset_random, bool):
+            raise ValueError(
+                f"frame_offset_random must be a bool, got {self.frame_offset_random!r}"
+            )
+        if self.frame_offset_random and self.frame_offset_s != 0:
+            raise ValueError(
+                "--frame-offset-random draws each swing's phase: leave --frame-offset-s at 0"
+            )
         if not self.frame_offset_s < 1.0 / self.fps:
             raise ValueError(
                 f"--frame-offset-s: the first frame's offset must be below the frame period "
