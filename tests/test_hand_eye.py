@@ -298,6 +298,9 @@ def test_frames_fall_on_the_control_grid():
     assert tl.CameraConfig.void_perfect().realtime_refused() is None
 
 
+# slow: an opt-in setting (frame_offset_s, default 0); the default suite's time (its compile
+# of the module's segment is otherwise the camera run's)
+@pytest.mark.slow
 def test_a_trigger_phase_moves_every_frame_and_the_first_estimate():
     """``frame_offset_s``: the loop runs the steps before the first frame with nothing seen,
     renders frame j at mid-exposure of step offset + 33 j (the logged state there), and uses the
@@ -332,6 +335,7 @@ def test_a_trigger_phase_moves_every_frame_and_the_first_estimate():
     assert not seen[:, :, : offset + 33].any() and seen[:, :, offset + 33].all()
 
 
+@pytest.mark.slow  # an opt-in setting (frame_offset_random); the default suite's time
 def test_a_free_running_camera_draws_each_swing_s_phase():
     """``frame_offset_random``: each swing's frames from its own drawn phase (seeded: the same
     draws again), the same count in every swing (a swing whose phase fits one more goes without
