@@ -343,15 +343,17 @@ def test_a_free_running_camera_draws_each_swing_s_phase():
     state at its mid-exposure. The module's loop and compiled segment."""
     cam = tl.CameraConfig.void_perfect(frame_offset_random=True, latency_s=0.0105)
     dt, steps = 1e-3, LOOP.swing_steps
-    fs = [he.swing_frame_steps(cam, dt, steps, swing) for swing in range(CONFIG.swings)]
-    np.testing.assert_array_equal(fs[0], he.swing_frame_steps(cam, dt, steps, 0))  # seeded
+    fs = [he.frame_steps(cam, dt, steps, swing) for swing in range(CONFIG.swings)]
+    np.testing.assert_array_equal(fs[0], he.frame_steps(cam, dt, steps, 0))  # seeded
+    with pytest.raises(ValueError, match="pass its swing"):
+        he.frame_steps(cam, dt, steps)
     offsets = [int(f[0]) for f in fs]
     assert len(set(offsets)) == CONFIG.swings and all(0 <= o < 33 for o in offsets)
     # these draws: one swing's phase fits a 31st frame (dropped), the other's does not
     assert {len(np.arange(o, steps, 33)) for o in offsets} == {30, 31}
     assert all(len(f) == 30 and np.all(np.diff(f) == 33) for f in fs)
     other = dataclasses.replace(cam, defects=tl.CameraDefects(defect_seed=1))
-    assert [int(he.swing_frame_steps(other, dt, steps, w)[0]) for w in range(2)] != offsets
+    assert [int(he.frame_steps(other, dt, steps, w)[0]) for w in range(2)] != offsets
     keys = jax.random.split(jax.random.PRNGKey(0), SEEDS)
     logs, eye, _ = he.run_camera(
         LOOP, PENDULUM, keys, "learned", cam, progress=False, compiled=COMPILED

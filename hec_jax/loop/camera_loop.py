@@ -81,23 +81,24 @@ def frame_offset_steps(cam: CameraConfig, dt: float) -> int:
     return offset
 
 
-def frame_steps(cam: CameraConfig, dt: float, steps: int) -> np.ndarray:
-    """Simulation steps at which the frames' exposures end (state at the start of that step):
-    from :func:`frame_offset_steps` on, :func:`steps_per_frame` apart.
-    """
-    return np.arange(frame_offset_steps(cam, dt), steps, steps_per_frame(cam, dt))
+def frame_steps(
+    cam: CameraConfig, dt: float, steps: int, swing: int | str | None = None
+) -> np.ndarray:
+    """Simulation steps at which the frames' exposures end (state at the start of that step) in
+    an episode of ``steps`` control steps, :func:`steps_per_frame` apart: from
+    :func:`frame_offset_steps` on, or with ``cam.frame_offset_random`` from a phase drawn
+    uniformly from the frame period's steps for episode ``swing`` (its index, or ``"final"``;
+    :func:`defects_rng`'s ``"phase"`` stream, the same for every seed of a batch), keeping the
+    frame count of the latest phase (every episode of a length has the same count).
 
-
-def swing_frame_steps(cam: CameraConfig, dt: float, steps: int, swing: int | str) -> np.ndarray:
-    """The frame steps of one episode of ``steps`` control steps (``swing``: its index, or
-    ``"final"``): :func:`frame_steps`, or with ``cam.frame_offset_random`` from a phase drawn
-    uniformly from the frame period's steps (:func:`defects_rng`'s ``"phase"`` stream, the same
-    for every seed of a batch), keeping the frame count of the latest phase (every episode of a
-    length has the same count).
+    Raises:
+        ValueError: ``cam.frame_offset_random`` without ``swing``; see :func:`frame_offset_steps`.
     """
-    if not cam.frame_offset_random:
-        return frame_steps(cam, dt, steps)
     period = steps_per_frame(cam, dt)
+    if not cam.frame_offset_random:
+        return np.arange(frame_offset_steps(cam, dt), steps, period)
+    if swing is None:
+        raise ValueError("frame_offset_random draws each episode's phase: pass its swing")
     offset = int(defects_rng(cam.applied_defects, 0, swing, "phase").integers(period))
     count = len(np.arange(period - 1, steps, period))
     return np.arange(offset, steps, period)[:count]
@@ -164,7 +165,7 @@ def defects_rng(
     ``"background"``: the calibration shot of the empty scene): seeded by
     ``defects.defect_seed``, the seed's index in the batch and the swing. ``stream``: the sensor
     noise's (``"noise"``), the time stamps' (``"jitter"``) or the free-running camera's phase
-    (``"phase"``, :func:`swing_frame_steps`) own generator, so that turning
+    (``"phase"``, :func:`frame_steps`) own generator, so that turning
     one defect on or off leaves the other's draws as they were (since session 67: before, one
     generator served both, and a jitter ablation also changed the noise). The noise stream's
     seed is the one the single generator had, so runs without jitter give the same frames.
@@ -190,8 +191,8 @@ def frames_per_condition(loop: Loop, cam: CameraConfig | None = None) -> int:
     """Frames of one seed under one condition: every swing's, and the continuous run's."""
     cam = CameraConfig() if cam is None else cam
     dt = loop.ids.timestep
-    n = loop.config.swings * len(swing_frame_steps(cam, dt, loop.swing_steps, 0))
-    final = swing_frame_steps(cam, dt, loop.final_steps, "final") if loop.final_steps else ()
+    n = loop.config.swings * len(frame_steps(cam, dt, loop.swing_steps, 0))
+    final = frame_steps(cam, dt, loop.final_steps, "final") if loop.final_steps else ()
     return n + len(final)
 
 
@@ -524,7 +525,7 @@ def run_camera(
     def episode(ls, steps: int, index, keep_video: bool):
         """One release: ``steps`` control steps, the tracker reset at the release."""
         t_ep = time.perf_counter()
-        fs = swing_frame_steps(cam, dt, steps, index)
+        fs = frame_steps(cam, dt, steps, index)
         if not len(fs):
             raise ValueError(f"an episode of {steps} steps ends before its first frame")
         bounds = np.append(fs, steps)

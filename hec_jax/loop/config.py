@@ -275,7 +275,7 @@ class CameraConfig:
     # period's control steps (the generator: ``defects.defect_seed`` and the swing), in place of
     # ``frame_offset_s``. Every swing keeps the frame count of the latest phase, so a swing whose
     # phase fits one more frame before its end goes without it
-    # (``camera_loop.swing_frame_steps``). Simulated time only
+    # (``camera_loop.frame_steps``). Simulated time only
     frame_offset_random: bool = False
     width: int = 640  # [px]
     height: int = 480  # [px]
