@@ -143,6 +143,10 @@ class EyeRandomized:
     # TrackConfig.min_face_foreground of the tracker (the preset's, None: off; session 73: a fit
     # with a face on the background is refused, docs/eye_randomized.md, "A face on the background")
     min_face_foreground: float | None = TRACK.min_face_foreground
+    # TrackConfig.min_face_foreground_tracked (the preset's, None): the face check's bar while
+    # the filter runs, a search from scratch untouched (docs/eye_randomized.md, "The face check
+    # while tracking")
+    min_face_foreground_tracked: float | None = TRACK.min_face_foreground_tracked
     # TrackConfig.max_deep_shadow of the tracker (the preset's, 0.5 since session 74: a fit to
     # the cube's own dark shadow is refused; None: off, for the ablation; docs/eye_randomized.md,
     # "A lock on the cube's shadow")
@@ -191,6 +195,8 @@ class EyeRandomized:
             require(self, "non_negative", "face_seam_step")
         if self.min_face_foreground is not None:
             require(self, "fraction", "min_face_foreground")
+        if self.min_face_foreground_tracked is not None:
+            require(self, "fraction", "min_face_foreground_tracked")
         if self.max_deep_shadow is not None:
             require(self, "fraction", "max_deep_shadow")
         require(self, "non_negative", "min_inner_support", "max_speed_m_s")
@@ -217,6 +223,7 @@ def tracker_config(a: EyeRandomized):
         max_face_split=a.max_face_split,
         face_seam_step=a.face_seam_step,
         min_face_foreground=a.min_face_foreground,
+        min_face_foreground_tracked=a.min_face_foreground_tracked,
         max_deep_shadow=a.max_deep_shadow,
         threads=a.threads,
         cpu_small_kernels=a.cpu_small_kernels,

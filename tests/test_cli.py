@@ -149,6 +149,10 @@ BAD = {
         (["--lsd-contrast", "0"], "--lsd-contrast: must be finite and > 0"),
         (["--max-face-split", "-1"], "--max-face-split: must be finite and >= 0"),
         (["--min-face-foreground", "1.5"], "--min-face-foreground: must be in [0, 1]"),
+        (
+            ["--min-face-foreground-tracked", "-0.5"],
+            "--min-face-foreground-tracked: must be in [0, 1]",
+        ),
         (["--max-deep-shadow", "-0.1"], "--max-deep-shadow: must be in [0, 1]"),
         (["--face-seam-step", "-1"], "--face-seam-step: must be finite and >= 0"),
         (["--min-inner-support", "-1"], "--min-inner-support: must be finite and >= 0"),

@@ -150,6 +150,22 @@ def test_the_preset_passes_a_nearer_box_with_a_face_beside_the_cube_that_the_che
         assert tracker._confirmed(gray, rot, t, tracked=True)
         assert tracker._confirmed(gray, rot, t, acquire=True)
         assert tracker._confirmed(gray, rot, near, tracked=True) == near_passes
+    # min_face_foreground_tracked alone: the same box refused while the filter runs, passed to a
+    # search from scratch (the filter not running); the true pose passes both
+    cfg = dataclasses.replace(preset, min_face_foreground=None, min_face_foreground_tracked=0.2)
+    tracker = BoxTracker(K, SIZE, 30.0, cfg, BACKGROUND)
+    tracker._frame_rgb = image
+    assert not tracker._confirmed(gray, rot, near, tracked=True)
+    assert tracker._confirmed(gray, rot, near, acquire=True)
+    assert tracker._confirmed(gray, rot, near)
+    assert tracker._confirmed(gray, rot, t, tracked=True)
+    assert tracker._confirmed(gray, rot, t, acquire=True)
+    # and with both set, the tracked bar replaces the other while the filter runs
+    cfg = dataclasses.replace(preset, min_face_foreground=0.2, min_face_foreground_tracked=0.0)
+    tracker = BoxTracker(K, SIZE, 30.0, cfg, BACKGROUND)
+    tracker._frame_rgb = image
+    assert tracker._confirmed(gray, rot, near, tracked=True)
+    assert not tracker._confirmed(gray, rot, near, acquire=True)
 
 
 @pytest.mark.parametrize(
@@ -157,6 +173,10 @@ def test_the_preset_passes_a_nearer_box_with_a_face_beside_the_cube_that_the_che
     [
         ({"min_face_foreground": 1.5}, "min_face_foreground must be in [0, 1] or None"),
         ({"min_face_foreground": True}, "min_face_foreground must be in [0, 1] or None"),
+        (
+            {"min_face_foreground_tracked": -0.1},
+            "min_face_foreground_tracked must be in [0, 1] or None",
+        ),
         ({"face_foreground_px": -1.0}, "face_foreground_px must be finite and >= 0"),
         ({"face_foreground_px": float("inf")}, "face_foreground_px must be finite and >= 0"),
         ({"face_foreground_px": True}, "face_foreground_px must be finite and >= 0"),

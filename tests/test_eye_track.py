@@ -200,6 +200,7 @@ OFF = {  # the issue-24 settings and their off values
     "shadow_faces": None,
     "blob_scales": (),
     "min_face_foreground": None,
+    "min_face_foreground_tracked": None,
     "max_deep_shadow": None,
 }
 
