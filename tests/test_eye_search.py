@@ -90,6 +90,10 @@ def test_two_stage_search_keeping_every_start_is_the_one_stage_search(seq):
     np.testing.assert_allclose(two.pose_rotation, one.pose_rotation, atol=1e-9)
 
 
+# slow (28 s of the CI's time, most of it compiling): the unbatched two-stage search, which no
+# preset runs (the benchmark's is batched: tests/test_eye_randomized.py's threads test searches
+# with it in the default suite)
+@pytest.mark.slow
 def test_two_stage_search_of_eight_starts_acquires(seq):
     tracker = BoxTracker(seq.intrinsics, EDGE, FPS, TrackConfig(search_keep=8))
     st = tracker.update(seq.frames[0])  # the first frame: a search from scratch
