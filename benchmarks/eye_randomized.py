@@ -19,7 +19,7 @@ Methods, on the same frames:
   ``stretch_points``, ``max_outside_foreground=0.2``, ``faint_masks``, ``prior_segments``,
   ``min_foreground_tracked=0.25``, ``shadow_candidates``, ``faint_min_threshold=3`` (6 for the
   segments' mask), ``shadow_faces=0.1``, ``faint_unshadowed``, ``max_deep_shadow=0.5``
-  (since session 74) and, once lost,
+  (since session 74), ``min_face_foreground_tracked=0.5`` (since session 81) and, once lost,
   ``lost_search_every=2``, without
   ``depth_gate``, on two host threads (``--threads``; the baselines on one), its jitted fits and
   searches compiled with ``cpu_small_kernels`` (``--no-cpu-small-kernels``: XLA's defaults);
@@ -143,9 +143,9 @@ class EyeRandomized:
     # TrackConfig.min_face_foreground of the tracker (the preset's, None: off; session 73: a fit
     # with a face on the background is refused, docs/eye_randomized.md, "A face on the background")
     min_face_foreground: float | None = TRACK.min_face_foreground
-    # TrackConfig.min_face_foreground_tracked (the preset's, None): the face check's bar while
-    # the filter runs, a search from scratch untouched (docs/eye_randomized.md, "The face check
-    # while tracking")
+    # TrackConfig.min_face_foreground_tracked (the preset's, 0.5 since session 81; None: off, for
+    # the ablation): the face check's bar while the filter runs, a search from scratch untouched
+    # (docs/eye_randomized.md, "The face check while tracking")
     min_face_foreground_tracked: float | None = TRACK.min_face_foreground_tracked
     # TrackConfig.max_deep_shadow of the tracker (the preset's, 0.5 since session 74: a fit to
     # the cube's own dark shadow is refused; None: off, for the ablation; docs/eye_randomized.md,

@@ -142,7 +142,8 @@ def test_the_preset_passes_a_nearer_box_with_a_face_beside_the_cube_that_the_che
     dx_px = project_corners_np(rot, t, SIZE, K)[:, 0].min()
     dx_px -= project_corners_np(rot, near, SIZE, K)[:, 0].min()  # the left outlines meet
     near = near + np.array([dx_px * near[2] / K[0, 0], 0.0, 0.0])
-    preset = dataclasses.replace(RANDOMIZED_BENCHMARK, threads=1)
+    # the face check on every fit (min_face_foreground), without the preset's tracked-only one
+    preset = dataclasses.replace(RANDOMIZED_BENCHMARK, threads=1, min_face_foreground_tracked=None)
     for share, near_passes in ((None, True), (0.2, False)):
         cfg = dataclasses.replace(preset, min_face_foreground=share)
         tracker = BoxTracker(K, SIZE, 30.0, cfg, BACKGROUND)
@@ -160,6 +161,14 @@ def test_the_preset_passes_a_nearer_box_with_a_face_beside_the_cube_that_the_che
     assert tracker._confirmed(gray, rot, near)
     assert tracker._confirmed(gray, rot, t, tracked=True)
     assert tracker._confirmed(gray, rot, t, acquire=True)
+    # the benchmark's preset as it is (the tracked-only check at 0.5): the same
+    assert RANDOMIZED_BENCHMARK.min_face_foreground is None
+    cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, threads=1)
+    tracker = BoxTracker(K, SIZE, 30.0, cfg, BACKGROUND)
+    tracker._frame_rgb = image
+    assert not tracker._confirmed(gray, rot, near, tracked=True)
+    assert tracker._confirmed(gray, rot, near, acquire=True)
+    assert tracker._confirmed(gray, rot, t, tracked=True)
     # and with both set, the tracked bar replaces the other while the filter runs
     cfg = dataclasses.replace(preset, min_face_foreground=0.2, min_face_foreground_tracked=0.0)
     tracker = BoxTracker(K, SIZE, 30.0, cfg, BACKGROUND)
