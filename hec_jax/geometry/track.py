@@ -45,6 +45,7 @@ from hec_jax.geometry.box_model import (
     EDGE_FACES,
     EDGE_FAMILY,
     EDGES,
+    FACE_NORMALS,
     FACES,
     Pose,
     edge_visibility,
@@ -1071,6 +1072,8 @@ def _inner_support(rotation, translation, size, edges_px, usable, ids, cfg: Trac
 _FACE_GRID = np.linspace(0.15, 0.85, 12)
 _FACE_U, _FACE_V = (g.ravel() for g in np.meshgrid(_FACE_GRID, _FACE_GRID, indexing="ij"))
 _FACE_HALVES = ((_FACE_U < 0.45, _FACE_U > 0.55), (_FACE_V < 0.45, _FACE_V > 0.55))
+# (4, 60) the samples of the halves, in the order (u low, u high, v low, v high)
+_FACE_HALF_SAMPLES = np.stack([np.flatnonzero(h) for pair in _FACE_HALVES for h in pair])
 
 
 def face_split(image, rotation, translation, size, intrinsics, min_thickness_px: float) -> float:
@@ -1092,7 +1095,13 @@ def face_split(image, rotation, translation, size, intrinsics, min_thickness_px:
     fit's inner edges are seen. NumPy; ``image`` (H, W) or (H, W, C), pixel k covering
     [k, k + 1) (the intrinsics' convention).
     """
-    quads, _, _ = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
+    faces = _pose_faces(rotation, translation, size, intrinsics)
+    return _face_split(image, faces, intrinsics, min_thickness_px)
+
+
+def _face_split(image, faces: _PoseFaces, intrinsics, min_thickness_px: float) -> float:
+    """:func:`face_split` of a pose's :class:`_PoseFaces`."""
+    quads, _, _ = _thick_faces(faces, min_thickness_px)
     if not len(quads):
         return 0.0
     q0 = quads[:, None, 0]
@@ -1102,28 +1111,57 @@ def face_split(image, rotation, translation, size, intrinsics, min_thickness_px:
         + _FACE_V[:, None] * (quads[:, None, 3] - q0)
     )
     colour = _colours_at(image, pts, intrinsics)  # (F, 144, C)
-    worst = 0.0
-    for lo, hi in _FACE_HALVES:
-        gap = np.median(colour[:, lo], axis=1) - np.median(colour[:, hi], axis=1)  # (F, C)
-        worst = max(worst, float(np.max(np.linalg.norm(gap, axis=-1))))
-    return worst
+    # the four halves' medians at once (np.median's numbers: the mean of the two middle
+    # values of each half's 60 samples)
+    halves = colour[:, _FACE_HALF_SAMPLES]  # (F, 4, 60, C)
+    middle = _FACE_HALF_SAMPLES.shape[1] // 2
+    part = np.partition(halves, (middle - 1, middle), axis=2)
+    median = np.mean(part[:, :, middle - 1 : middle + 1], axis=2)  # (F, 4, C)
+    gap = median[:, 0::2] - median[:, 1::2]  # (F, 2 directions, C)
+    return float(np.max(np.linalg.norm(gap, axis=-1)))
 
 
-def _thick_faces(rotation, translation, size, intrinsics, min_thickness_px: float):
-    """((F, 4, 3) camera-frame corners [m], in turn around each face; (F,) their face ids;
-    (F, 4, 2) the corners' pixels [px, intrinsics convention]) of the faces turned to the
-    camera, in front of it, and at least ``min_thickness_px`` thick in the image (area over
-    longest side).
+class _PoseFaces(NamedTuple):
+    """A box pose's faces turned to the camera and in front of it, as :func:`_thick_faces`
+    filters them: ``corners`` (8, 3) camera frame [m]; ``ids`` (F,) the faces' ids;
+    ``areas`` (F,) their image areas [px^2] and ``sides`` (F,) their longest image sides [px];
+    ``pixels`` (8, 2) the corners' pixels [px, intrinsics convention].
+    """
+
+    corners: np.ndarray
+    ids: np.ndarray
+    areas: np.ndarray
+    sides: np.ndarray
+    pixels: np.ndarray
+
+
+def _pose_faces(rotation, translation, size, intrinsics) -> _PoseFaces:
+    """The :class:`_PoseFaces` of a box pose (R_cam_box, t [m]), each number as
+    :func:`project_corners_np`, :func:`face_visibility_np` and :func:`image_face_area_np`
+    compute it (computed once for the checks of one fit).
     """
     r, t = np.asarray(rotation), np.asarray(translation)
     corners = (CUBE_CORNERS_UNIT * size) @ r.T + t  # camera frame [m]
-    pixels = project_corners_np(r, t, size, intrinsics)  # (8, 2)
-    ids = np.flatnonzero(face_visibility_np(r, t, size))
-    ids = ids[np.all(corners[FACES[ids], 2] > 0, axis=1)]
+    k = np.asarray(intrinsics)
+    pixels = (corners[:, :2] / corners[:, 2:3]) @ k[:2, :2].T + k[:2, 2]  # (8, 2)
+    facing = np.sum((FACE_NORMALS @ r.T) * corners[FACES].mean(1), -1) < 0
+    ids = np.flatnonzero(facing & np.all(corners[FACES, 2] > 0, axis=1))
     px = pixels[FACES[ids]]  # (F, 4, 2)
-    side = np.max(np.linalg.norm(np.roll(px, -1, axis=1) - px, axis=-1), axis=1)
-    ids = ids[image_face_area_np(pixels)[ids] >= min_thickness_px * side]
-    return corners[FACES[ids]], ids, pixels[FACES[ids]]
+    sides = np.max(np.linalg.norm(px[:, _NEXT_CORNER] - px, axis=-1), axis=1)
+    return _PoseFaces(corners, ids, image_face_area_np(pixels)[ids], sides, pixels)
+
+
+_NEXT_CORNER = np.array([1, 2, 3, 0])  # np.roll(., -1) along a face's 4 corners
+
+
+def _thick_faces(faces: _PoseFaces, min_thickness_px: float):
+    """((F, 4, 3) camera-frame corners [m], in turn around each face; (F,) their face ids;
+    (F, 4, 2) the corners' pixels [px, intrinsics convention]) of a pose's faces (turned to the
+    camera, in front of it: :class:`_PoseFaces`) at least ``min_thickness_px`` thick in the
+    image (area over longest side).
+    """
+    ids = faces.ids[faces.areas >= min_thickness_px * faces.sides]
+    return faces.corners[FACES[ids]], ids, faces.pixels[FACES[ids]]
 
 
 def _colours_at(image, points, intrinsics) -> np.ndarray:
@@ -1158,7 +1196,13 @@ def seam_step(image, rotation, translation, size, intrinsics, min_thickness_px: 
     With :func:`face_split` it tells that fit from a true one with a shadow across a face,
     whose inner edges keep their steps. NumPy; ``image`` as :func:`face_split`.
     """
-    quads, ids, _ = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
+    faces = _pose_faces(rotation, translation, size, intrinsics)
+    return _seam_step(image, faces, intrinsics, min_thickness_px)
+
+
+def _seam_step(image, faces: _PoseFaces, intrinsics, min_thickness_px: float) -> float:
+    """:func:`seam_step` of a pose's :class:`_PoseFaces`."""
+    quads, ids, _ = _thick_faces(faces, min_thickness_px)
     corner_ids = FACES[ids]  # (F, 4) cube corner numbers, in turn around each face
     steps = []
     for i in range(len(ids)):
@@ -1200,7 +1244,17 @@ def face_foreground(
     the cube's outline has a face on the background beside it, which the whole silhouette's
     fraction averages away. ``image`` and ``background`` as :func:`detect.foreground_fraction`.
     """
-    _, _, faces_px = _thick_faces(rotation, translation, size, intrinsics, min_thickness_px)
+    faces = _pose_faces(rotation, translation, size, intrinsics)
+    return _face_foreground(
+        image, background, faces, min_thickness_px, threshold, faint_threshold, differences
+    )
+
+
+def _face_foreground(
+    image, background, faces: _PoseFaces, min_thickness_px, threshold, faint_threshold, differences
+) -> float:
+    """:func:`face_foreground` of a pose's :class:`_PoseFaces`."""
+    _, _, faces_px = _thick_faces(faces, min_thickness_px)
     if not len(faces_px):
         return 1.0
     fractions = detect.foreground_fractions(
@@ -2425,18 +2479,17 @@ class BoxTracker:
         the silhouette checks).
         """
         cfg = self.config
+        seen = _pose_faces(rotation, translation, self.size, self.intrinsics)
+        corners = seen.pixels  # the fit's projected corners [px]
         if cfg.max_face_split is not None:
             colour = gray if self._frame_rgb is None else self._frame_rgb
-            args = (colour, rotation, translation, self.size, self.intrinsics, cfg.face_split_px)
-            if face_split(*args) > cfg.max_face_split and (
-                cfg.face_seam_step is None or seam_step(*args) <= cfg.face_seam_step
+            args = (colour, seen, self.intrinsics, cfg.face_split_px)
+            if _face_split(*args) > cfg.max_face_split and (
+                cfg.face_seam_step is None or _seam_step(*args) <= cfg.face_seam_step
             ):
                 return False
         if cfg.max_deep_shadow is not None and self._background_terms is not None:
             # the colour frame and background whether or not the differences use them
-            corners = project_corners_np(
-                np.asarray(rotation), translation, self.size, self.intrinsics
-            )
             share = detect.deep_shadow_share(
                 self._frame_rgb, self._background_terms, corners, cfg.foreground_threshold
             )
@@ -2453,15 +2506,14 @@ class BoxTracker:
             least = cfg.min_foreground_tracked
         if (least <= 0 and not iou and not ring and not faces) or self.background is None:
             return True
-        corners = project_corners_np(np.asarray(rotation), translation, self.size, self.intrinsics)
         image, background = self._difference_pair(gray)
         thr = cfg.foreground_threshold
         faint = self._faint_level(image, background, cfg.faint_min_threshold)
         lit = None  # the silhouette's fraction that differs with the shadow test
         kept = {"differences": self._frame_differences(image, background)}
         if faces:
-            args = (rotation, translation, self.size, self.intrinsics, cfg.face_foreground_px)
-            if face_foreground(image, background, *args, thr, faint, **kept) < least_face:
+            args = (seen, cfg.face_foreground_px, thr, faint)
+            if _face_foreground(image, background, *args, kept["differences"]) < least_face:
                 return False
 
         def shadowed_faces() -> bool:  # the shadow test's pixels may count (shadow_faces)
