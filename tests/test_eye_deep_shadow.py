@@ -132,6 +132,71 @@ def test_the_filtered_windows_are_the_whole_frames_filtered():
         assert np.array_equal(kept, bg)
 
 
+def test_the_uint8_counts_equal_the_general_path():
+    """On uint8 images the two early zeros (under 4 differing pixels; lighter pixels) are
+    counted on the window with OpenCV; other images (here the same values as float32) take the
+    general path, which gathers the hull's pixels as floats. Both give the same share, zero or
+    not: the shadow, the cube (lit faces of another hue), a lighter shadow, a hull with 0-3
+    differing pixels, and random frames under random quadrilaterals."""
+    frame, background = _scene()
+    lighter_frame, _ = _scene(shadow_factor=0.5)
+    shadow = project_corners_np(ROT, SHADOW_T, SIZE, K)
+    cube = project_corners_np(ROT, CUBE_T, SIZE, K)
+    few = background.copy()
+    rng = np.random.default_rng(0)
+    cases = [(frame, background, shadow), (frame, background, cube)]
+    cases.append((lighter_frame, background, shadow))
+    centre = np.round(shadow.mean(0) - 0.5).astype(int)
+    for n in range(4):  # n pixels of the hull darkened: a share only from 4 on
+        few[centre[1], centre[0] + np.arange(n)] //= 5
+        cases.append((few.copy(), background, shadow))
+    for _ in range(40):
+        h, w = rng.integers(20, 90, 2)
+        bg = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        img = bg.copy()
+        x0, y0 = rng.integers(0, w // 2), rng.integers(0, h // 2)
+        img[y0:, x0:] = (bg[y0:, x0:] * rng.uniform(0.05, 1.2)).clip(0, 255).astype(np.uint8)
+        quad = rng.uniform(0, 1, (4, 2)) * [w, h] * 1.2 - 5
+        cases.append((img, bg, quad))
+    shares = []
+    for image, bg, polygon in cases:
+        share = detect.deep_shadow_share(image, bg, polygon)
+        general = detect.deep_shadow_share(image.astype(np.float32), bg.astype(np.float32), polygon)
+        assert share == general
+        shares.append(share)
+    assert shares[0] > 0.8 and shares[1] == 0.0 and shares[2] == 0.0
+    assert shares[3:7] == [0.0, 0.0, 0.0, 0.0]
+    assert 0.0 < max(shares[7:]) and min(shares[7:]) == 0.0  # both outcomes among the random
+
+
+def test_the_early_zeros_count_at_their_boundaries():
+    """The counts behind the early zeros, at their edges (unfiltered ratios, ``median_px`` 1,
+    so single pixels count): 4 darkened pixels give a share and 3 do not; a pixel whose
+    channels differ by (+20, -10, -10) differs but is not lighter (its mean difference is 0);
+    one that is 12 grey levels lighter in one channel does not differ (the threshold is
+    exceeded, not met). Both paths (uint8 and float32) agree on each."""
+    background = np.broadcast_to(FLOOR_RGB, (30, 30, 3)).astype(np.uint8)
+    square = np.array([[2.0, 2.0], [28.0, 2.0], [28.0, 28.0], [2.0, 28.0]])
+
+    def share(frame):
+        got = detect.deep_shadow_share(frame, background, square, median_px=1)
+        general = detect.deep_shadow_share(
+            frame.astype(np.float32), background.astype(np.float32), square, median_px=1
+        )
+        assert got == general
+        return got
+
+    for n, want in ((3, 0.0), (4, 1.0)):
+        frame = background.copy()
+        frame[10, 10 : 10 + n] //= 5  # a deep shadow's factor, 0.2
+        assert share(frame) == want
+    frame = background.copy()
+    frame[10:14, 10:15] //= 5  # 20 deep-shadow pixels
+    frame[20, 10:12] = background[20, 10:12] + np.array([20, -10, -10], np.int16)
+    frame[22, 10:12] = background[22, 10:12] + np.array([12, 0, 0], np.uint8)
+    assert share(frame) == 20 / 22
+
+
 def test_a_lighter_shadow_is_the_shadow_test_s_and_not_deep():
     frame, background = _scene(shadow_factor=0.5)
     shadow = project_corners_np(ROT, SHADOW_T, SIZE, K)
