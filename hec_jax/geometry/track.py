@@ -2479,8 +2479,21 @@ class BoxTracker:
         the silhouette checks).
         """
         cfg = self.config
-        seen = _pose_faces(rotation, translation, self.size, self.intrinsics)
-        corners = seen.pixels  # the fit's projected corners [px]
+        least_face = cfg.min_face_foreground
+        if tracked and cfg.min_face_foreground_tracked is not None:
+            least_face = cfg.min_face_foreground_tracked
+        faces = least_face is not None
+        # the fit's face geometry, once for the face checks (only where one is on: the loop's
+        # trackers run none)
+        seen = None
+        if cfg.max_face_split is not None or faces:
+            seen = _pose_faces(rotation, translation, self.size, self.intrinsics)
+
+        def projected():  # the fit's projected corners [px]
+            if seen is not None:
+                return seen.pixels
+            return project_corners_np(np.asarray(rotation), translation, self.size, self.intrinsics)
+
         if cfg.max_face_split is not None:
             colour = gray if self._frame_rgb is None else self._frame_rgb
             args = (colour, seen, self.intrinsics, cfg.face_split_px)
@@ -2491,21 +2504,18 @@ class BoxTracker:
         if cfg.max_deep_shadow is not None and self._background_terms is not None:
             # the colour frame and background whether or not the differences use them
             share = detect.deep_shadow_share(
-                self._frame_rgb, self._background_terms, corners, cfg.foreground_threshold
+                self._frame_rgb, self._background_terms, projected(), cfg.foreground_threshold
             )
             if share > cfg.max_deep_shadow:
                 return False
         iou = acquire and cfg.min_iou_acquire > 0
         ring = cfg.max_outside_foreground is not None
-        least_face = cfg.min_face_foreground
-        if tracked and cfg.min_face_foreground_tracked is not None:
-            least_face = cfg.min_face_foreground_tracked
-        faces = least_face is not None
         least = cfg.min_foreground
         if tracked and cfg.min_foreground_tracked is not None:
             least = cfg.min_foreground_tracked
         if (least <= 0 and not iou and not ring and not faces) or self.background is None:
             return True
+        corners = projected()
         image, background = self._difference_pair(gray)
         thr = cfg.foreground_threshold
         faint = self._faint_level(image, background, cfg.faint_min_threshold)
