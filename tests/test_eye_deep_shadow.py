@@ -195,6 +195,17 @@ def test_the_early_zeros_count_at_their_boundaries():
     frame[20, 10:12] = background[20, 10:12] + np.array([20, -10, -10], np.int16)
     frame[22, 10:12] = background[22, 10:12] + np.array([12, 0, 0], np.uint8)
     assert share(frame) == 20 / 22
+    # a float threshold is compared as float32 on both paths: 13 - 1e-7 is 13.0 there, so a
+    # lighter pixel 13 grey levels off does not differ and the shadow's share stands
+    frame = background.copy()
+    frame[10:14, 10:15] //= 5
+    frame[20, 10:12] = background[20, 10:12] + np.array([13, 0, 0], np.uint8)
+    for threshold in (13 - 1e-7, 13):
+        got = detect.deep_shadow_share(frame, background, square, threshold, median_px=1)
+        general = detect.deep_shadow_share(
+            frame.astype(np.float32), background.astype(np.float32), square, threshold, median_px=1
+        )
+        assert got == general == 1.0
 
 
 def test_a_lighter_shadow_is_the_shadow_test_s_and_not_deep():

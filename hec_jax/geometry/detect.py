@@ -645,14 +645,16 @@ def edge_points(
     offs = np.arange(-search, search + 1e-9, step)
     h, w = gray.shape[:2]
     pad = search + 2.0  # [px] points farther outside the image sample only its replicated border
-    starts = edges_px[:, 0]
-    deltas = edges_px[:, 1] - starts
-    with np.errstate(invalid="ignore", over="ignore"):  # NaN or far edges: dropped below
-        lengths = np.hypot(deltas[:, 0], deltas[:, 1])
+    use = np.flatnonzero(usable)
+    if not len(use):
+        return np.zeros((0, 2)), np.zeros(0, int)
+    starts = edges_px[use, 0]  # the usable edges' only (as the loop read them)
+    deltas = edges_px[use, 1] - starts
+    lengths = np.hypot(deltas[:, 0], deltas[:, 1])
     pts, kept, counts, units = [], [], [], []
-    for e in np.flatnonzero(usable):
-        a, d = starts[e], deltas[e]
-        length = float(lengths[e])
+    for j, e in enumerate(use):
+        a, d = starts[j], deltas[j]
+        length = float(lengths[j])
         if not length >= 2 * end_margin + spacing:  # also NaN
             continue
         u = d / length
@@ -726,8 +728,8 @@ def sample_window(map_x, map_y, width: int, height: int, blur: float) -> tuple[i
 
     def span(coords, size: int) -> tuple[int, int]:  # the pixels read, within the image
         # (float32 coordinates: exact as Python floats, as is the clip's size - 1 < 2^24)
-        lo = math.floor(min(max(float(coords.min()), 0.0), size - 1.0))
-        hi = math.floor(min(max(float(coords.max()), 0.0), size - 1.0))
+        lo = math.floor(min(max(float(np.min(coords)), 0.0), size - 1.0))
+        hi = math.floor(min(max(float(np.max(coords)), 0.0), size - 1.0))
         return max(lo - grow, 0), min(hi + grow + 1, size)
 
     (x0, x1), (y0, y1) = span(map_x, width), span(map_y, height)
@@ -1022,7 +1024,9 @@ def deep_shadow_share(
         # without gathering the hull's pixels as floats
         window_img, window_bg = image[y0:y1, x0:x1], background[y0:y1, x0:x1]
         channels = cv2.split(cv2.absdiff(window_img, window_bg))
-        differs = (cv2.max(cv2.max(channels[0], channels[1]), channels[2]) > threshold) & inside
+        # compared as float32, as below (a float threshold is rounded to float32 there)
+        largest = cv2.max(cv2.max(channels[0], channels[1]), channels[2]).astype(np.float32)
+        differs = (largest > threshold) & inside
         n_differs = np.count_nonzero(differs)
         if n_differs < 4:
             return 0.0

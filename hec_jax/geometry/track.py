@@ -1114,11 +1114,16 @@ def _face_split(image, faces: _PoseFaces, intrinsics, min_thickness_px: float) -
     # the four halves' medians at once (np.median's numbers: the mean of the two middle
     # values of each half's 60 samples)
     halves = colour[:, _FACE_HALF_SAMPLES]  # (F, 4, 60, C)
-    middle = _FACE_HALF_SAMPLES.shape[1] // 2
-    part = np.partition(halves, (middle - 1, middle), axis=2)
+    n = _FACE_HALF_SAMPLES.shape[1]
+    middle = n // 2
+    part = np.partition(halves, (middle - 1, middle, n - 1), axis=2)  # a NaN sorts last
     median = np.mean(part[:, :, middle - 1 : middle + 1], axis=2)  # (F, 4, C)
+    median = np.where(np.isnan(part[:, :, -1]), np.nan, median)  # as np.median's
     gap = median[:, 0::2] - median[:, 1::2]  # (F, 2 directions, C)
-    return float(np.max(np.linalg.norm(gap, axis=-1)))
+    worst = 0.0
+    for largest in np.max(np.linalg.norm(gap, axis=-1), axis=0):  # per direction
+        worst = max(worst, float(largest))  # (a NaN direction is passed over)
+    return worst
 
 
 class _PoseFaces(NamedTuple):
@@ -2483,20 +2488,21 @@ class BoxTracker:
         if tracked and cfg.min_face_foreground_tracked is not None:
             least_face = cfg.min_face_foreground_tracked
         faces = least_face is not None
-        # the fit's face geometry, once for the face checks (only where one is on: the loop's
-        # trackers run none)
-        seen = None
-        if cfg.max_face_split is not None or faces:
-            seen = _pose_faces(rotation, translation, self.size, self.intrinsics)
+        seen = []  # the fit's face geometry, made on first use by a face check
+
+        def faces_seen() -> _PoseFaces:
+            if not seen:
+                seen.append(_pose_faces(rotation, translation, self.size, self.intrinsics))
+            return seen[0]
 
         def projected():  # the fit's projected corners [px]
-            if seen is not None:
-                return seen.pixels
+            if seen:
+                return seen[0].pixels
             return project_corners_np(np.asarray(rotation), translation, self.size, self.intrinsics)
 
         if cfg.max_face_split is not None:
             colour = gray if self._frame_rgb is None else self._frame_rgb
-            args = (colour, seen, self.intrinsics, cfg.face_split_px)
+            args = (colour, faces_seen(), self.intrinsics, cfg.face_split_px)
             if _face_split(*args) > cfg.max_face_split and (
                 cfg.face_seam_step is None or _seam_step(*args) <= cfg.face_seam_step
             ):
@@ -2522,7 +2528,7 @@ class BoxTracker:
         lit = None  # the silhouette's fraction that differs with the shadow test
         kept = {"differences": self._frame_differences(image, background)}
         if faces:
-            args = (seen, cfg.face_foreground_px, thr, faint)
+            args = (faces_seen(), cfg.face_foreground_px, thr, faint)
             if _face_foreground(image, background, *args, kept["differences"]) < least_face:
                 return False
 
