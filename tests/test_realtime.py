@@ -693,6 +693,14 @@ def test_realtime_camera_run_reports_itself(monkeypatch):
     assert by_second["min"] <= by_second["p50"] <= by_second["max"]
     assert by_second["min"] >= cam_log["render_cpu_ms"].min()
     pipeline = 1e3 * (eye_log["t_wall_done"] - eye_log["t_wall_exposure"])
+    # each estimate written after the eye was done with its frame, and taken by the loop after
+    # that; every frame published (each episode's release frame is answered, and the frames
+    # after it with it)
+    published = eye_log["t_wall_published"]
+    assert np.all(published >= eye_log["t_wall_done"])
+    assert eye["eye"]["publish_ms"]["n"] == int(later.sum())
+    assert eye["done_to_taken_ms"]["n"] == eye["latency_wall_ms"]["n"]
+    assert eye["done_to_taken_ms"]["n"] == 0 or eye["done_to_taken_ms"]["p50"] >= 0
     period_ms = eye["frame_period_ms"]
     assert eye["slow_frames"]["over_one_period"] == int(np.sum(later & (pipeline > period_ms)))
     assert 0 <= eye["slow_frames"]["with_control_missed"] <= eye["slow_frames"]["over_one_period"]
@@ -1394,6 +1402,147 @@ def test_host_steal_is_read_per_cpu_from_proc_stat(tmp_path):
     assert host_steal_ms(str(tmp_path / "missing")) == []
     if os.path.exists("/proc/stat"):
         assert len(host_steal_ms()) in (0, os.cpu_count())
+
+
+def test_the_eye_publishes_each_estimate_before_its_bookkeeping(monkeypatch):
+    """``workers.eye_main`` in this process, with a stand-in camera and tracker: each frame's
+    estimate is written to the board before the frame's CPU and steal readings (a camera at
+    real-time priority on the eye's CPU preempts it at each exposure's end, and an estimate
+    done but not yet written waited for the whole render: docs/realtime.md, session 83). The
+    published vectors are those of before (``np.nan_to_num``, zeros while unseen), and the log
+    records when each was written."""
+    import queue
+    import threading
+    from types import SimpleNamespace
+
+    from hec_jax.realtime import clock as rt_clock
+    from hec_jax.realtime import workers
+
+    events: list[str] = []
+    monkeypatch.setattr(rt_clock, "host_steal_ms", lambda: events.append("steal") or [0.0, 0.0])
+    image = np.zeros((240, 320, 3), np.uint8)
+    # the tracker's state per frame: none yet (released, not acquired), then one with a NaN
+    # velocity component (published as 0), then a finite one
+    position = np.array([0.01, 0.02, 0.9])
+    states = [
+        dict(initialised=False, valid=False, velocity=np.zeros(3)),
+        dict(initialised=True, valid=True, velocity=np.array([np.nan, 0.0, 0.5])),
+        dict(initialised=True, valid=True, velocity=np.array([0.1, 0.0, -0.2])),
+    ]
+
+    class StandInTracker:
+        def __init__(self, *args, **kwargs):
+            self.frames = 0
+
+        def warm_up(self, image, occluded):
+            pass
+
+        def reset(self):
+            pass
+
+        def skip(self, frames):
+            pass
+
+        def predict(self, dt):
+            return None
+
+        def update(self, image, occluded):
+            events.append("update")
+            s = states[self.frames]
+            self.frames += 1
+            timing = {"detection_ms": 0.0, "estimation_ms": 0.0}
+            st = dict(position=position, acceleration=np.zeros(3), timing_ms=timing)
+            return SimpleNamespace(**st, **s, fit_source="tracked" if s["valid"] else "")
+
+    monkeypatch.setattr("hec_jax.geometry.BoxTracker", StandInTracker)
+    stop = threading.Event()
+
+    class StandInCamera:
+        calibration = SimpleNamespace(ready=lambda n: True)
+
+        def background(self):
+            return image
+
+        def release_frame(self):
+            return image
+
+        def latest(self, last):
+            if last + 1 == len(states):
+                stop.set()
+                return None
+            k = last + 1
+            return SimpleNamespace(
+                index=k,
+                episode=0,
+                number=k,
+                image=image,
+                q_arm=np.zeros(3),
+                t_exposure=0.033 * k,
+                t_wall_exposure=time.monotonic(),
+            )
+
+    class RecordingBoard:
+        def __init__(self):
+            self.written = []
+
+        def write(self, **values):
+            events.append("write")
+            self.written.append(values)
+
+    cam = L.CameraConfig.void_perfect(width=320, height=240, self_mask_margin_m=None)
+    board, logs = RecordingBoard(), queue.Queue()
+    workers.eye_main(
+        L.catching(eye="camera", camera=cam).task,
+        cam,
+        30.0,
+        L.build_loop(L.catching().task).q_home,
+        StandInCamera(),
+        board,
+        bool(jax.config.jax_enable_x64),
+        None,
+        ready=threading.Event(),
+        stop=stop,
+        log_queue=logs,
+    )
+    log = logs.get_nowait()
+    assert "error" not in log, log.get("error")
+    # per frame: the readings at its start, the tracker, the write (every frame: the release
+    # frame is always answered), and only then the readings at its end
+    assert events == ["steal", "update", "write", "steal"] * len(states)
+    assert log["t_wall_published"].shape == (len(states),)
+    assert np.all(log["t_wall_published"] >= log["t_wall_done"])
+    # the published vectors: as np.nan_to_num did before, zeros where the eye has not seen
+    for values, s, x_est, xd_est in zip(
+        board.written, states, log["x_est"], log["xd_est"], strict=True
+    ):
+        if not s["initialised"]:
+            assert values["seen"] == 0.0 and np.all(np.isnan(x_est))
+            np.testing.assert_array_equal(values["x"], np.zeros(2))
+            np.testing.assert_array_equal(values["xd"], np.zeros(2))
+            continue
+        assert values["seen"] == 1.0
+        np.testing.assert_array_equal(values["x"], np.nan_to_num(x_est))
+        np.testing.assert_array_equal(values["xd"], np.nan_to_num(xd_est))
+    assert np.isnan(log["xd_est"][1][0]) and board.written[1]["xd"][0] == 0.0
+
+
+def test_the_published_vectors_are_nan_to_num_of_the_state():
+    """``workers._board_vector``: ``np.nan_to_num`` (NaN to 0, infinities to the largest
+    finite numbers), the same array where finite, zeros where unseen."""
+    from hec_jax.realtime.workers import _board_vector
+
+    for v in (
+        np.array([0.25, -1.5]),
+        np.array([np.nan, 2.0]),
+        np.array([np.inf, -np.inf]),
+        np.array([-0.0, np.nan]),
+    ):
+        got = _board_vector(v, True)
+        np.testing.assert_array_equal(got, np.nan_to_num(v))
+        assert np.array_equal(np.signbit(got), np.signbit(np.nan_to_num(v)))
+        np.testing.assert_array_equal(_board_vector(v, False), np.zeros(2))
+    finite = np.array([0.25, -1.5])
+    assert _board_vector(finite, True) is finite
 
 
 def test_slow_frames_are_the_ones_published_after_a_frame_period():

@@ -367,6 +367,9 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
         "latency_wall_ms": percentiles((arr["t_wall_taken"] - arr["t_wall_exposure"])[seen], 1e3),
         # exposure -> the eye's estimate published (render + eye)
         "pipeline_wall_ms": percentiles((arr["t_wall_done"] - arr["t_wall_exposure"])[seen], 1e3),
+        # the eye done with a frame -> its estimate taken by the control loop (the write to the
+        # board, then the loop's next tick; a preempted eye's write waits longer)
+        "done_to_taken_ms": percentiles((arr["t_wall_taken"] - arr["t_wall_done"])[seen], 1e3),
         "age_ms": percentiles(tt["index"] * dt - tt["t_stamp"], 1e3),
         "ticks_with_estimate": int(np.isfinite(tt["t_stamp"]).sum()),
     }
@@ -436,6 +439,11 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
             out["eye"]["eye_cpu_ms"] = percentiles(eye_log["eye_cpu_ms"][later])
             out["eye"]["eye_steal_ms_per_cpu"] = _steal_total(eye_log["eye_steal_ms"])
             out["slow_frames"] = slow_frames(camera_log, eye_log, 1e3 / fps, ticks=tt, dt=dt)
+        if "t_wall_published" in eye_log:  # logs since session 83
+            # the eye done with a frame -> its estimate written to the board
+            later = eye_log["number"] > 0
+            published = eye_log["t_wall_published"] - eye_log["t_wall_done"]
+            out["eye"]["publish_ms"] = percentiles(published[later], 1e3)
         if "jax_compile_ms" in eye_log:  # logs since session 47
             # frames in which JAX traced or compiled (a path's first use after the warm-up)
             traced = eye_log["jax_compile_events"] > 0
@@ -669,8 +677,10 @@ def deadline_table(report: dict) -> list[str]:
     eye = report.get("eye")
     if eye:
 
-        def ms(d):
-            return " / ".join("-" if d[k] is None else f"{d[k]:.1f}" for k in ("p50", "p99", "max"))
+        def ms(d, digits: int = 1):
+            return " / ".join(
+                "-" if d[k] is None else f"{d[k]:.{digits}f}" for k in ("p50", "p99", "max")
+            )
 
         rows += [
             ("eye latency exposure -> state p50 / p99 / max [ms]", ms(eye["latency_ms"])),
@@ -737,6 +747,14 @@ def deadline_table(report: dict) -> list[str]:
             ]
             if "eye_cpu_ms" in e:
                 rows.append(("eye process CPU p50 / p99 / max [ms]", ms(e["eye_cpu_ms"])))
+            if "done_to_taken_ms" in eye:
+                written = f"{ms(e['publish_ms'], 3)}; " if "publish_ms" in e else ""
+                rows.append(
+                    (
+                        "eye done -> estimate written; -> taken by the loop p50 / p99 / max [ms]",
+                        f"{written}{ms(eye['done_to_taken_ms'])}",
+                    )
+                )
             if "mask_ms" in e:
                 rows.append(
                     (

@@ -51,6 +51,16 @@ def _stack(rows: list[dict]) -> dict[str, np.ndarray]:
     return {k: np.asarray([r[k] for r in rows]) for k in rows[0]}
 
 
+def _board_vector(v: np.ndarray, seen: bool) -> np.ndarray:
+    """An estimate's vector as the eye publishes it: ``np.nan_to_num(v)`` where ``seen``, else
+    zeros (the same values; ``nan_to_num`` only where ``v`` is not all finite, since its
+    ~20 us a call delayed the publication).
+    """
+    if not seen:
+        return np.zeros(2)
+    return v if np.isfinite(v).all() else np.nan_to_num(v)
+
+
 def _steal_delta(before: list[float], after: list[float]) -> np.ndarray:
     """[ms] per CPU: the host's steal between two :func:`~.clock.host_steal_ms` readings
     (empty without steal accounting; NaN per CPU where one of the two readings failed, so that
@@ -471,9 +481,14 @@ def eye_main(
                 x = (r_wc @ np.asarray(st.position) + t_wc)[[0, 2]]
                 xd = (r_wc @ np.asarray(st.velocity))[[0, 2]]
                 xdd = (r_wc @ np.asarray(st.acceleration))[[0, 2]]
-            t1, cpu1, steal1 = monotonic_s(), time.process_time(), host_steal_ms()
+            t1 = monotonic_s()
             # the acquisition frame (0: the release state, the cube still held) is always
-            # answered, so the control loop knows the eye is done with it
+            # answered, so the control loop knows the eye is done with it. Written before the
+            # frame's bookkeeping (its CPU and steal readings, ~55 us): where the camera shares
+            # the eye's CPU (two CPUs) at real-time priority, it preempts the eye at each
+            # exposure's end for a whole render, and an estimate done but not yet written waited
+            # for it (13 ms once: docs/realtime.md, session 83)
+            t_published = np.nan
             if st.initialised or published or number == 0:
                 seen = bool(st.initialised) and misses <= cam.max_coast_frames
                 estimates.write(
@@ -481,16 +496,19 @@ def eye_main(
                     episode=episode,
                     number=number,
                     t_stamp=frame.t_exposure,
-                    x=np.nan_to_num(x) if seen else np.zeros(2),
-                    xd=np.nan_to_num(xd) if seen else np.zeros(2),
-                    xdd=np.nan_to_num(xdd) if seen else np.zeros(2),
+                    x=_board_vector(x, seen),
+                    xd=_board_vector(xd, seen),
+                    xdd=_board_vector(xdd, seen),
                     seen=float(seen),
                     valid=float(st.valid),
                     initialised=float(st.initialised),
                     t_wall_exposure=frame.t_wall_exposure,
                     t_wall_done=t1,
                 )
+                t_published = monotonic_s()
                 published = True
+            # the frame's CPU time and steal include its publication
+            cpu1, steal1 = time.process_time(), host_steal_ms()
             rows.append(
                 dict(
                     index=frame.index,
@@ -502,6 +520,8 @@ def eye_main(
                     t_wall_exposure=frame.t_wall_exposure,
                     t_wall_start=t0,
                     t_wall_done=t1,
+                    # [s] the estimate written to the control loop's board (NaN: not written)
+                    t_wall_published=t_published,
                     eye_ms=1e3 * (t1 - t0),
                     # the process's CPU time (all threads) and the host's steal per CPU meanwhile
                     eye_cpu_ms=1e3 * (cpu1 - cpu0),
