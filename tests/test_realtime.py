@@ -694,13 +694,22 @@ def test_realtime_camera_run_reports_itself(monkeypatch):
     assert by_second["min"] >= cam_log["render_cpu_ms"].min()
     pipeline = 1e3 * (eye_log["t_wall_done"] - eye_log["t_wall_exposure"])
     # each estimate written after the eye was done with its frame, and taken by the loop after
-    # that; every frame published (each episode's release frame is answered, and the frames
-    # after it with it)
+    # that (not after the write's time stamp: the loop may read the finished write first);
+    # every frame published (each episode's release frame is answered, and the frames after
+    # it with it)
     published = eye_log["t_wall_published"]
     assert np.all(published >= eye_log["t_wall_done"])
     assert eye["eye"]["publish_ms"]["n"] == int(later.sum())
+    for a in result.loop_run.arrivals:
+        assert np.all(a["t_wall_taken"] >= a["t_wall_done"])
     assert eye["done_to_taken_ms"]["n"] == eye["latency_wall_ms"]["n"]
-    assert eye["done_to_taken_ms"]["n"] == 0 or eye["done_to_taken_ms"]["p50"] >= 0
+    # the oldest state: the age's maximum, and the estimate that ended it in stages that add up
+    oldest = eye["oldest_state"]
+    assert oldest["age_ms"] == pytest.approx(eye["age_ms"]["max"])
+    ended = oldest["ended_by"]
+    if ended is not None:
+        assert sum(ended["stages_ms"].values()) == pytest.approx(ended["latency_ms"])
+        assert ended["done_to_written_ms"] >= 0 and ended["renders_during_eye_ms"] >= 0
     period_ms = eye["frame_period_ms"]
     assert eye["slow_frames"]["over_one_period"] == int(np.sum(later & (pipeline > period_ms)))
     assert 0 <= eye["slow_frames"]["with_control_missed"] <= eye["slow_frames"]["over_one_period"]
@@ -1420,6 +1429,16 @@ def test_the_eye_publishes_each_estimate_before_its_bookkeeping(monkeypatch):
 
     events: list[str] = []
     monkeypatch.setattr(rt_clock, "host_steal_ms", lambda: events.append("steal") or [0.0, 0.0])
+    cpu_time = time.process_time
+    monkeypatch.setattr(workers.time, "process_time", lambda: events.append("cpu") or cpu_time())
+
+    class StandInMeter:  # no listener left registered with jax.monitoring
+        ms, events = 0.0, 0
+
+        def install(self):
+            return self
+
+    monkeypatch.setattr(workers, "CompileMeter", StandInMeter)
     image = np.zeros((240, 320, 3), np.uint8)
     # the tracker's state per frame: none yet (released, not acquired), then one with a NaN
     # velocity component (published as 0), then a finite one
@@ -1508,7 +1527,7 @@ def test_the_eye_publishes_each_estimate_before_its_bookkeeping(monkeypatch):
     assert "error" not in log, log.get("error")
     # per frame: the readings at its start, the tracker, the write (every frame: the release
     # frame is always answered), and only then the readings at its end
-    assert events == ["steal", "update", "write", "steal"] * len(states)
+    assert events == ["cpu", "steal", "update", "write", "cpu", "steal"] * len(states)
     assert log["t_wall_published"].shape == (len(states),)
     assert np.all(log["t_wall_published"] >= log["t_wall_done"])
     # the published vectors: as np.nan_to_num did before, zeros where the eye has not seen
@@ -1801,6 +1820,123 @@ def _synthetic_eye_episode(lost_after_s: float | None, n: int = 3000, dt: float 
         "t_wall_taken": zeros,
     }
     return SimpleNamespace(ticks=[rec], arrivals=[arrival], logs=[{"f_contact": np.zeros((n, 3))}])
+
+
+def _two_frame_run(n: int = 200, dt: float = 1e-3, origin: float = 100.0):
+    """An episode of ``n`` steps with frames exposed every 33 steps (wall time ``origin`` + the
+    exposure), each rendered 0.2-8.2 ms after its exposure and taken by the loop 20 steps
+    after it, but frame 2: its eye ran 9.0-43.5 ms after its exposure (frame 3's render,
+    33.2-41.2 ms, inside it), wrote its estimate 0.05 ms later and the loop took it at 45.2 ms
+    (tick 111). Steps 80 (skipped) and 110 (late) missed their deadlines; the hand touched the
+    object at step 110. Returns (run, tick table, camera log, eye log)."""
+    from types import SimpleNamespace
+
+    exposures = np.arange(0, n, 33)
+    latency = np.full(len(exposures), 0.020)
+    latency[0], latency[2] = 0.001, 0.0452
+    ticks = exposures + np.floor(latency / dt + 1e-9).astype(int)
+    keep = ticks < n
+    exposures, latency, ticks = exposures[keep], latency[keep], ticks[keep]
+    wall_exposure = origin + exposures * dt
+    eye_start = wall_exposure + 0.009
+    eye_done = np.where(exposures == 66, wall_exposure + 0.0435, wall_exposure + 0.015)
+    stamp, cur = np.full(n, np.nan), np.nan
+    for j in range(n):
+        if j in ticks:
+            cur = exposures[list(ticks).index(j)] * dt
+        stamp[j] = cur
+    kind = np.zeros(n, int)
+    kind[80], kind[110] = 2, 1
+    stamp[80] = np.nan  # a skipped step has no tick
+    frames = np.arange(len(exposures))
+    run = SimpleNamespace(
+        arrivals=[
+            {
+                "tick": ticks * 1.0,
+                "t_tick": ticks * dt,
+                "t_stamp": exposures * dt,
+                "frame": frames * 1.0,
+                "number": frames * 1.0,
+                "seen": np.ones(len(frames)),
+                "valid": np.ones(len(frames)),
+                "t_wall_exposure": wall_exposure,
+                "t_wall_done": eye_done,
+                "t_wall_taken": wall_exposure + latency,
+            }
+        ],
+        logs=[{"f_contact": np.where(np.arange(n)[:, None] == 110, 1.0, 0.0) * np.ones(3)}],
+    )
+    tt = {
+        "episode": np.zeros(n, int),
+        "index": np.arange(n),
+        "kind": kind,
+        "t_stamp": stamp,
+        "t_origin": np.full(n, origin),
+    }
+    camera_log = {
+        "index": frames,
+        "t_wall_start": wall_exposure + 0.0002,
+        "t_wall_done": wall_exposure + 0.0082,
+        "t_wall_put": wall_exposure + 0.0083,
+    }
+    eye_log = {
+        "index": frames,
+        "t_wall_start": eye_start,
+        "t_wall_done": eye_done,
+        "t_wall_published": eye_done + 5e-5,
+        "eye_cpu_ms": np.full(len(frames), 12.0),
+        "fit_source": np.full(len(frames), 1),
+    }
+    return run, tt, camera_log, eye_log
+
+
+def test_the_oldest_state_is_split_into_the_stages_of_the_estimate_that_ended_it():
+    """``report.oldest_state`` on a hand-made episode: the age peaks at 77 ms at step 110 (frame
+    1's estimate, exposed at 33 ms, still in force), and frame 2's estimate ends it; its 45.2 ms
+    from exposure to taking split by hand: 0.2 to the render, 8.0 render, 0.8 read out and
+    queued, 34.5 eye (8.0 of it frame 3's render), 1.7 done to taken, written 0.05 after done;
+    one control step missed between done and taken, two over the whole latency."""
+    from hec_jax.realtime.report import oldest_state, oldest_text
+
+    run, tt, camera_log, eye_log = _two_frame_run()
+    o = oldest_state(run, tt, 1e-3, camera_log, eye_log)
+    assert (o["episode"], o["tick"], o["in_contact"]) == (0, 110, True)
+    assert o["age_ms"] == pytest.approx(77.0)
+    b = o["ended_by"]
+    assert (b["frame"], b["number"], b["tick"], b["valid"]) == (2, 2, 111, True)
+    assert b["latency_ms"] == pytest.approx(45.2)
+    expected = {
+        "to_render": 0.2,
+        "render": 8.0,
+        "read_out_and_queued": 0.8,
+        "eye": 34.5,
+        "done_to_taken": 1.7,
+    }
+    assert b["stages_ms"] == pytest.approx(expected, abs=1e-6)
+    assert sum(b["stages_ms"].values()) == pytest.approx(b["latency_ms"])
+    assert b["renders_during_eye_ms"] == pytest.approx(8.0)
+    assert b["done_to_written_ms"] == pytest.approx(0.05)
+    assert (b["eye_cpu_ms"], b["fit_source"]) == (12.0, "tracked")
+    assert (b["control_missed_done_to_taken"], b["control_missed_in_latency"]) == (1, 2)
+    text = oldest_text({"oldest_state": o})
+    assert text.startswith("episode 0, step 110: 77 ms (in contact); frame 2's estimate")
+    assert "eye 34.5 (CPU 12.0; later renders in it 8.0; tracked)" in text
+    assert "control steps missed meanwhile 1" in text
+    # without the camera's and eye's logs: the estimate, not its stages
+    bare = oldest_state(run, tt, 1e-3)["ended_by"]
+    assert "stages_ms" not in bare and bare["latency_ms"] == pytest.approx(45.2)
+    # no estimate after the oldest tick (the eye silent from step 150 on): none ended it
+    silent = dict(run.arrivals[0])
+    kept = silent["tick"] < 150
+    run.arrivals[0] = {k: v[kept] for k, v in silent.items()}
+    tt["t_stamp"][150:] = tt["t_stamp"][149]
+    o = oldest_state(run, tt, 1e-3, camera_log, eye_log)
+    assert (o["tick"], o["ended_by"]) == (199, None)
+    assert o["age_ms"] == pytest.approx(199 - 99)
+    assert oldest_text({"oldest_state": o}).endswith("no estimate after it in the episode")
+    # no estimate in force at all
+    tt["t_stamp"][:] = np.nan
+    assert oldest_state(run, tt, 1e-3) is None
 
 
 def test_the_eye_age_target_fails_when_the_eye_has_lost_the_cube():

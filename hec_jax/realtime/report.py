@@ -385,6 +385,8 @@ def eye_report(run, tt: dict, dt: float, fps: float, camera_log, eye_log) -> dic
         age = (tt["index"] * dt - tt["t_stamp"])[~contact]
         out["age_out_of_contact_ms"] = percentiles(age, 1e3)
         out["ticks_in_contact"] = int(contact.sum())
+    # where the state was oldest, and what the estimate that ended it spent its time on
+    out["oldest_state"] = oldest_state(run, tt, dt, camera_log, eye_log)
     if camera_log:
         late = camera_log["step"] - camera_log["step_due"]
         out["camera"] = {
@@ -572,6 +574,121 @@ def slow_frames(
     return out
 
 
+def oldest_state(run, tt: dict, dt: float, camera_log=None, eye_log=None) -> dict | None:
+    """Where the eye's state was oldest: the tick with the largest age of the estimate in force
+    (the maximum of ``age_ms``, the first where tied) and the estimate that ended that stretch
+    (the first the control loop took after it in its episode), with that estimate's time from
+    its exposure to its taking split into stages [ms] on the wall clock: the render's start
+    after the exposure, the render, read out and queued until the eye took the frame, the eye
+    (its wall and CPU time, and the renders of later frames that ran meanwhile: on two CPUs
+    the camera preempts the eye), and done to taken (``done_to_written_ms`` where the log has
+    the write's time). The stages add up to ``latency_ms``. With ``t_origin`` in ``tt``, the
+    control loop's missed steps between the eye's done and the taking (a stalled loop takes
+    the estimate late) and during the whole latency. ``ended_by`` is None where no estimate
+    came after the tick (the episode ended first), and the stages are left out where the
+    camera's or the eye's log lacks the frame. None: no tick had an estimate in force.
+    """
+    age = tt["index"] * dt - tt["t_stamp"]
+    if not np.isfinite(age).any():
+        return None
+    k = int(np.nanargmax(age))
+    e, j = int(tt["episode"][k]), int(tt["index"][k])
+    out = {"episode": e, "tick": j, "age_ms": float(1e3 * age[k])}
+    contact = in_contact(run, tt)
+    if contact is not None:
+        out["in_contact"] = bool(contact[k])
+    a = run.arrivals[e]
+    after = np.flatnonzero(a["tick"] > j)
+    if after.size == 0:
+        out["ended_by"] = None
+        return out
+    m = int(after[0])
+    exposure, done = float(a["t_wall_exposure"][m]), float(a["t_wall_done"][m])
+    taken = float(a["t_wall_taken"][m])
+    ended = {
+        "frame": int(a["frame"][m]),
+        "number": int(a["number"][m]),
+        "tick": int(a["tick"][m]),
+        "valid": bool(a["valid"][m]) if "valid" in a else None,
+        "latency_ms": 1e3 * (taken - exposure),
+        "done_to_taken_ms": 1e3 * (taken - done),
+    }
+    if "t_origin" in tt:
+        ended["control_missed_done_to_taken"] = control_misses_between(tt, dt, done, taken)[0]
+        ended["control_missed_in_latency"] = control_misses_between(tt, dt, exposure, taken)[0]
+    frame = ended["frame"]
+    cam = _row_of(camera_log, frame)
+    eye = _row_of(eye_log, frame)
+    if cam is not None and eye is not None and "t_wall_put" in camera_log:
+        c_start, c_done = camera_log["t_wall_start"], camera_log["t_wall_done"]
+        e_start, e_done = float(eye_log["t_wall_start"][eye]), float(eye_log["t_wall_done"][eye])
+        # the renders that ran while the eye worked on the frame (of later frames: its own
+        # ended before the eye took it)
+        overlap = np.clip(np.minimum(c_done, e_done) - np.maximum(c_start, e_start), 0, None)
+        ended["stages_ms"] = {
+            "to_render": 1e3 * (float(c_start[cam]) - exposure),
+            "render": 1e3 * (float(c_done[cam]) - float(c_start[cam])),
+            "read_out_and_queued": 1e3 * (e_start - float(c_done[cam])),
+            "eye": 1e3 * (e_done - e_start),
+            "done_to_taken": ended["done_to_taken_ms"],
+        }
+        if "eye_cpu_ms" in eye_log:
+            ended["eye_cpu_ms"] = float(eye_log["eye_cpu_ms"][eye])
+        ended["renders_during_eye_ms"] = float(1e3 * np.sum(overlap))
+        if "fit_source" in eye_log:
+            ended["fit_source"] = FIT_SOURCES[int(eye_log["fit_source"][eye])] or "invalid"
+        if "t_wall_published" in eye_log:
+            ended["done_to_written_ms"] = 1e3 * (float(eye_log["t_wall_published"][eye]) - done)
+    out["ended_by"] = ended
+    return out
+
+
+def oldest_text(eye: dict) -> str:
+    """One line of :func:`oldest_state` (``eye["oldest_state"]``) for the report's table."""
+    o = eye["oldest_state"]
+    where = f"episode {o['episode']}, step {o['tick']}: {o['age_ms']:.0f} ms"
+    if "in_contact" in o:
+        where += " (in contact)" if o["in_contact"] else " (out of contact)"
+    b = o.get("ended_by")
+    if b is None:
+        return where + "; no estimate after it in the episode"
+    text = (
+        f"{where}; frame {b['number']}'s estimate, taken {b['latency_ms']:.1f} ms after its "
+        "exposure"
+    )
+    st = b.get("stages_ms")
+    if st is not None:
+        eye_part = f"eye {st['eye']:.1f}"
+        extras = []
+        if "eye_cpu_ms" in b:
+            extras.append(f"CPU {b['eye_cpu_ms']:.1f}")
+        extras.append(f"later renders in it {b['renders_during_eye_ms']:.1f}")
+        if "fit_source" in b:
+            extras.append(b["fit_source"])
+        eye_part += f" ({'; '.join(extras)})"
+        text += (
+            f": to render {st['to_render']:.1f} + render {st['render']:.1f} + read out and "
+            f"queued {st['read_out_and_queued']:.1f} + {eye_part} + done to taken "
+            f"{st['done_to_taken']:.1f}"
+        )
+    else:
+        text += f"; done to taken {b['done_to_taken_ms']:.1f}"
+    notes = []
+    if "done_to_written_ms" in b:
+        notes.append(f"written {b['done_to_written_ms']:.2f} ms after done")
+    if "control_missed_done_to_taken" in b:
+        notes.append(f"control steps missed meanwhile {b['control_missed_done_to_taken']}")
+    return text + (f" ({'; '.join(notes)})" if notes else "")
+
+
+def _row_of(log, frame: int) -> int | None:
+    """The row of the camera's or eye's log holding frame ``frame`` (its ``index``), or None."""
+    if not log or "index" not in log:
+        return None
+    rows = np.flatnonzero(np.asarray(log["index"]) == frame)
+    return int(rows[0]) if rows.size else None
+
+
 _COMPARED = ("peak_force", "settle_force", "hits", "periodic_hits")
 
 
@@ -703,6 +820,8 @@ def deadline_table(report: dict) -> list[str]:
                     ms(eye["age_measured_ms"]),
                 )
             )
+        if eye.get("oldest_state") is not None:
+            rows.append(("... its maximum, and the estimate that ended it", oldest_text(eye)))
         if "camera" in eye:
             cam = eye["camera"]
             rows += [
@@ -747,12 +866,18 @@ def deadline_table(report: dict) -> list[str]:
             ]
             if "eye_cpu_ms" in e:
                 rows.append(("eye process CPU p50 / p99 / max [ms]", ms(e["eye_cpu_ms"])))
-            if "done_to_taken_ms" in eye:
-                written = f"{ms(e['publish_ms'], 3)}; " if "publish_ms" in e else ""
+            if "publish_ms" in e:  # logs since session 83
                 rows.append(
                     (
                         "eye done -> estimate written; -> taken by the loop p50 / p99 / max [ms]",
-                        f"{written}{ms(eye['done_to_taken_ms'])}",
+                        f"{ms(e['publish_ms'], 3)}; {ms(eye['done_to_taken_ms'])}",
+                    )
+                )
+            elif "done_to_taken_ms" in eye:
+                rows.append(
+                    (
+                        "eye done -> estimate taken by the loop p50 / p99 / max [ms]",
+                        ms(eye["done_to_taken_ms"]),
                     )
                 )
             if "mask_ms" in e:

@@ -485,9 +485,9 @@ def eye_main(
             # the acquisition frame (0: the release state, the cube still held) is always
             # answered, so the control loop knows the eye is done with it. Written before the
             # frame's bookkeeping (its CPU and steal readings, ~55 us): where the camera shares
-            # the eye's CPU (two CPUs) at real-time priority, it preempts the eye at each
-            # exposure's end for a whole render, and an estimate done but not yet written waited
-            # for it (13 ms once: docs/realtime.md, session 83)
+            # the eye's CPU (two CPUs) at real-time priority, it preempts the eye from each
+            # frame's mid-exposure for a whole render, and an estimate done but not yet written
+            # waited for it (13 ms once: docs/realtime.md, session 83)
             t_published = np.nan
             if st.initialised or published or number == 0:
                 seen = bool(st.initialised) and misses <= cam.max_coast_frames
@@ -523,7 +523,8 @@ def eye_main(
                     # [s] the estimate written to the control loop's board (NaN: not written)
                     t_wall_published=t_published,
                     eye_ms=1e3 * (t1 - t0),
-                    # the process's CPU time (all threads) and the host's steal per CPU meanwhile
+                    # the process's CPU time (all threads) and the host's steal per CPU from
+                    # t_wall_start to just after the write (eye_ms ends at t_wall_done)
                     eye_cpu_ms=1e3 * (cpu1 - cpu0),
                     eye_steal_ms=_steal_delta(steal0, steal1),
                     # JAX's tracing and compiling within the frame (first use of a path)
