@@ -748,7 +748,8 @@ def test_faint_masks_confirm_a_low_contrast_cube():
 def _fit_from_truth(tracker, seq, t: int, first: bool):
     """(the tracker's final fit of frame ``t`` from its rendered true pose as the prior, the
     frame in gray, the number of segments in the moving window), through the tracked fit's
-    own steps (its segments, ``prior_segments``, the refinement)."""
+    own steps (its segments, ``prior_segments``, the refinement; refined where the located fit
+    failed too, which the tracker itself skips)."""
     from hec_jax.geometry import detect
     from hec_jax.geometry.box_model import project_corners_np
     from hec_jax.geometry.track import _window
@@ -759,7 +760,7 @@ def _fit_from_truth(tracker, seq, t: int, first: bool):
     corners = project_corners_np(*prior, tracker.size, seq.intrinsics)
     seg = tracker._moving_segments(gray, _window(corners, cfg.roi_margin))
     segp, mask = detect.pad_segments(tracker._near_prior(seg, prior), cfg.max_segments)
-    return tracker._fit(prior, segp, mask, gray, first), gray, len(seg)
+    return tracker._fit(prior, segp, mask, gray, first, refine_failed=True), gray, len(seg)
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -796,6 +797,103 @@ def test_segments_near_edges_are_those_the_first_gate_can_assign(seed):
     assigned = np.asarray(asc.weights) > 0
     assert 20 < assigned.sum() < len(seg) - 20  # both kinds present
     np.testing.assert_array_equal(kept, seg[assigned])
+
+
+def test_a_fit_whose_located_fit_failed_is_not_refined_and_nothing_else_changes():
+    """``BoxTracker._fit`` makes no edge points and no refinement where the located fit failed
+    its checks (a refined fit is valid only where the located one is). On development seed
+    43's frames, from priors around and off the true pose (0-10 cm, 0-30 deg), with and
+    without pixels occluded over half the box (which allow ``three``'s fits with hidden
+    edges), the call returns None exactly where the fit refined all the same
+    (``refine_failed``) is invalid, and otherwise the same fit, bit for bit; the ``three``
+    fits are the same either way."""
+    import cv2
+    import jax
+
+    from hec_jax.geometry import BoxTracker, detect
+    from hec_jax.geometry.box_model import EDGE_FAMILY, project_corners_np
+    from hec_jax.geometry.track import _window, usable_edges
+
+    scene = draw_scene(43)
+    seq, background = render_random_sequence(scene, 16, FPS, 640, 480)
+    cfg = RANDOMIZED_BENCHMARK
+    tracker = BoxTracker(seq.intrinsics, scene.edge_m, FPS, cfg, background)
+    rng = np.random.default_rng(0)
+    counts = {"skipped": 0, "refined": 0, "three": 0}
+
+    def same(a, b) -> bool:
+        leaves_a, leaves_b = jax.tree.leaves(a), jax.tree.leaves(b)
+        return len(leaves_a) == len(leaves_b) and all(
+            np.array_equal(np.asarray(x), np.asarray(y), equal_nan=True)
+            for x, y in zip(leaves_a, leaves_b, strict=True)
+        )
+
+    for t in (5, 11, 15):
+        box = project_corners_np(seq.rotation[t], seq.position[t], scene.edge_m, seq.intrinsics)
+        (x0, y0), (x1, y1) = box.min(0).astype(int), box.max(0).astype(int)
+        half = np.zeros(seq.frames[t].shape[:2], bool)
+        half[y0:y1, x0 : (x0 + x1) // 2] = True
+        for occluded in (None, half):
+            # an occluder's pixels replaced by the background's, as the loop's robot mask does
+            frame = seq.frames[t].copy()
+            if occluded is not None:
+                frame[occluded] = background[occluded]
+            gray = detect.to_gray(frame)
+            tracker._frame_rgb = frame
+            tracker._occluded = tracker._occluded_pixels(occluded, gray.shape)
+            for shift_m in (0.0, 0.01, 0.03, 0.1):
+                for turn_deg in (0.0, 10.0, 30.0):
+                    turn = rotation_from_axis_angle(rng.normal(size=3), np.deg2rad(turn_deg))
+                    away = rng.normal(size=3)
+                    prior = (
+                        turn @ seq.rotation[t],
+                        seq.position[t] + shift_m * away / np.linalg.norm(away),
+                    )
+                    corners = project_corners_np(*prior, scene.edge_m, seq.intrinsics)
+                    seg = tracker._moving_segments(gray, _window(corners, cfg.roi_margin))
+                    segp, mask = detect.pad_segments(
+                        tracker._near_prior(seg, prior), cfg.max_segments
+                    )
+                    three, three_refined = [], []
+                    fit = tracker._fit(prior, segp, mask, gray, True, three=three)
+                    full = tracker._fit(
+                        prior, segp, mask, gray, True, three=three_refined, refine_failed=True
+                    )
+                    assert len(three) == len(three_refined)
+                    assert all(same(a, b) for a, b in zip(three, three_refined, strict=True))
+                    counts["three"] += len(three)
+                    if fit is None:
+                        counts["skipped"] += 1
+                        assert not bool(full.valid)
+                    else:
+                        counts["refined"] += 1
+                        assert same(fit, full)
+    # and a fit valid but for its segment count: three segments on edges of two families at the
+    # true pose, every other edge of the box hidden by occluded pixels (``three`` gets its fit)
+    for t in (5, 11, 15):
+        gray = detect.to_gray(seq.frames[t])
+        tracker._frame_rgb = seq.frames[t]
+        truth = (seq.rotation[t], seq.position[t])
+        edges_px, usable = usable_edges(*truth, scene.edge_m, seq.intrinsics, cfg)
+        ids = np.flatnonzero(usable)
+        family = EDGE_FAMILY[ids]
+        chosen = np.concatenate([ids[family == family[0]][:2], ids[family != family[0]][:1]])
+        corners = project_corners_np(*truth, scene.edge_m, seq.intrinsics)
+        occluded = np.zeros(gray.shape, np.uint8)
+        cv2.fillConvexPoly(occluded, cv2.convexHull(corners.astype(np.int32)), 1)
+        occluded = cv2.dilate(occluded, np.ones((31, 31), np.uint8))
+        for p0, p1 in edges_px[chosen].astype(int):
+            cv2.line(occluded, (int(p0[0]), int(p0[1])), (int(p1[0]), int(p1[1])), 0, 13)
+        tracker._occluded = tracker._occluded_pixels(occluded.astype(bool), gray.shape)
+        mid = edges_px[chosen].mean(1, keepdims=True)
+        segp, mask = detect.pad_segments(mid + 0.8 * (edges_px[chosen] - mid), cfg.max_segments)
+        three, three_refined = [], []
+        fit = tracker._fit(truth, segp, mask, gray, True, three=three)
+        full = tracker._fit(truth, segp, mask, gray, True, three=three_refined, refine_failed=True)
+        assert fit is None and not bool(full.valid)
+        assert len(three) == len(three_refined) == 1 and same(three[0], three_refined[0])
+        counts["three"] += 1
+    assert counts["skipped"] > 0 and counts["refined"] > 0, counts
 
 
 def test_prior_segments_keep_a_large_wood_box_s_fit_from_its_true_pose():

@@ -2568,16 +2568,34 @@ class BoxTracker:
         return True
 
     def _fit(
-        self, prior, segp, mask, gray, first, three: list | None = None, texture=None
-    ) -> Finished:
+        self,
+        prior,
+        segp,
+        mask,
+        gray,
+        first,
+        three: list | None = None,
+        texture=None,
+        *,
+        refine_failed: bool = False,
+    ) -> Finished | None:
         """The refined fit from ``prior`` (R, t) on the padded segments; ``three``: where a
         fit is valid but for its segment count, which the hidden edges lower
         (``config.min_segments_hidden``), that fit is appended to it; ``texture``: (M,) bool,
         the segments kept off the silhouette edges (:meth:`_texture_roles`; None: none).
+
+        None where the located fit failed its checks: a refined fit is valid only where the
+        located one is (``_make_finish``), so its edge points and refinement are not made
+        (but for ``three``'s fit). The callers take None as a failed fit. ``refine_failed``:
+        the refined fit of a failed located one all the same (a diagnostic; it is not valid).
         """
         cfg, k, size_a = self.config, self.intrinsics, np.float64(self.size)
         loc = self._locate(Pose(*prior), segp, mask, size_a, k, self._occluded, texture)
-        pose_np = jax.device_get(loc.pose)
+        pose_np, located = jax.device_get((loc.pose, loc.valid))
+        located = bool(located)
+        hidden = not located and three is not None and self._hidden_allowed(loc)
+        if not located and not hidden and not refine_failed:
+            return None
         edges_px, usable = usable_edges(pose_np.rotation, pose_np.translation, self.size, k, cfg)
 
         min_step = detect.EDGE_MIN_STEP
@@ -2628,14 +2646,14 @@ class BoxTracker:
                 np.bool_(relax),
             )
 
-        fin = finish(False)
+        shown = located or refine_failed  # the refined fit is returned
         if support < cfg.min_inner_support:  # inner edges not in the image: a Necker-like twin
-            fin = fin._replace(valid=np.bool_(False))
-        elif three is not None and not bool(fin.valid) and self._hidden_allowed(loc):
+            return finish(False)._replace(valid=np.bool_(False)) if shown else None
+        if hidden:
             # valid but for the count, which the mask's hidden edges lower: kept for the
             # hypothesis after the 4-segment ones (config.min_segments_hidden)
             three.append(finish(True))
-        return fin
+        return finish(False) if shown else None
 
     def _along_sight(self, own_fits, gate: Gate, gray):
         """(fit, "along_sight") of the valid, confirmed fit among ``own_fits`` that passes
