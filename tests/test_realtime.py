@@ -1922,6 +1922,7 @@ def test_the_oldest_state_is_split_into_the_stages_of_the_estimate_that_ended_it
     assert text.startswith("episode 0, step 110: 77 ms (in contact); frame 2's estimate")
     assert "eye 34.5 (CPU 12.0; later renders in it 8.0; tracked)" in text
     assert "control steps missed meanwhile 1" in text
+    assert json.loads(json.dumps(o)) == o  # as deadline.json keeps it
     # without the camera's and eye's logs: the estimate, not its stages
     bare = oldest_state(run, tt, 1e-3)["ended_by"]
     assert "stages_ms" not in bare and bare["latency_ms"] == pytest.approx(45.2)

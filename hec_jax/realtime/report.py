@@ -821,7 +821,9 @@ def deadline_table(report: dict) -> list[str]:
                 )
             )
         if eye.get("oldest_state") is not None:
-            rows.append(("... its maximum, and the estimate that ended it", oldest_text(eye)))
+            rows.append(
+                ("eye state age's maximum, and the estimate that ended it", oldest_text(eye))
+            )
         if "camera" in eye:
             cam = eye["camera"]
             rows += [
