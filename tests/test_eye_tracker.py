@@ -111,6 +111,30 @@ def test_bad_input_raises(seq):
         BoxTracker(seq.intrinsics, 0.0, FPS)
 
 
+def test_warm_up_compiles_the_refinement_even_where_no_located_fit_passes(seq):
+    """``BoxTracker.warm_up`` compiles every path of ``update`` before a real-time run. The
+    tracker no longer refines a fit whose located fit failed (``_fit`` returns None), but in
+    the warm-up it does, so the refinement is compiled on a frame where every located fit
+    fails too (here: every one made to fail); after the warm-up the skip is back on."""
+    tracker = BoxTracker(seq.intrinsics, EDGE, FPS, background=background_model(seq.frames))
+    locate = tracker._locate
+    failed = []
+
+    def failing(*args):
+        loc = locate(*args)
+        failed.append(1)
+        return loc._replace(valid=loc.valid & False)
+
+    tracker._locate = failing
+    tracker.warm_up(seq.frames[3])
+    assert failed and tracker._finish._cache_size() >= 1
+    assert not tracker._refine_failed
+    # out of the warm-up, the same failed located fits are not refined
+    tracker._finish = None  # any refinement would raise
+    tracker.update(seq.frames[3])
+    assert not tracker._refine_failed
+
+
 def test_a_fit_in_another_labelling_of_the_cube_s_axes_changes_nothing(seq):
     # one frame's fit comes back in another of the cube's 24 labellings (as a search's may):
     # the same box, its axes named otherwise. The track keeps its own labelling, so every later
@@ -126,7 +150,9 @@ def test_a_fit_in_another_labelling_of_the_cube_s_axes_changes_nothing(seq):
         fit = tracker._fit
         if relabel:
             tracker._fit = lambda *a, _fit=fit, **k: (
-                lambda fin: fin._replace(rotation=np.asarray(fin.rotation) @ turn)
+                lambda fin: (
+                    None if fin is None else fin._replace(rotation=np.asarray(fin.rotation) @ turn)
+                )
             )(_fit(*a, **k))
         steps.append(tracker.update(seq.frames[8]))
         tracker._fit = fit

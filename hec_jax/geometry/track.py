@@ -1830,6 +1830,9 @@ class BoxTracker:
         self._failed_searches = 0  # searches from scratch run and failed in a row, once lost
         self._searches_skipped = 0  # frames in a row whose search was skipped (lost_search_every)
         self._searched = False  # the last search from scratch had a candidate to refine
+        # every fit refined, a failed located one too (:meth:`warm_up`: each path compiled,
+        # as when _fit always refined)
+        self._refine_failed = False
         self._rot_prev = None
         self._rot_prev2 = None
         self._last_good = None  # (frame, centre [m]) of the last valid frame
@@ -1938,14 +1941,18 @@ class BoxTracker:
         ``config.local_starts``, the local search; then :meth:`reset`. A real-time consumer calls
         it before its first frame (each path compiles in seconds on first use).
         """
-        for _ in range(3):
-            self.update(frame, occluded)
-        if self.config.local_starts > 0 and self._started and self._rot_prev is not None:
-            gray = detect.to_gray(_check_frame(frame))
-            merges = (False, True) if self.config.local_merge > 0 else (False,)
-            for stage in (0, 1):  # each stage on its own: the first may pass
-                for merge in merges:  # with local_merge, one centre or two (two shapes)
-                    self._reacquire_locally(gray, self._rot_prev, bool, (stage,), merge=merge)
+        self._refine_failed = True  # the refinement compiled even where no located fit passes
+        try:
+            for _ in range(3):
+                self.update(frame, occluded)
+            if self.config.local_starts > 0 and self._started and self._rot_prev is not None:
+                gray = detect.to_gray(_check_frame(frame))
+                merges = (False, True) if self.config.local_merge > 0 else (False,)
+                for stage in (0, 1):  # each stage on its own: the first may pass
+                    for merge in merges:  # with local_merge, one centre or two (two shapes)
+                        self._reacquire_locally(gray, self._rot_prev, bool, (stage,), merge=merge)
+        finally:
+            self._refine_failed = False
         self.reset()
 
     def skip(self, frames: int) -> None:
@@ -2593,6 +2600,7 @@ class BoxTracker:
         loc = self._locate(Pose(*prior), segp, mask, size_a, k, self._occluded, texture)
         pose_np, located = jax.device_get((loc.pose, loc.valid))
         located = bool(located)
+        refine_failed = refine_failed or self._refine_failed
         hidden = not located and three is not None and self._hidden_allowed(loc)
         if not located and not hidden and not refine_failed:
             return None
