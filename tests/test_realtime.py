@@ -710,6 +710,11 @@ def test_realtime_camera_run_reports_itself(monkeypatch):
     if ended is not None:
         assert sum(ended["stages_ms"].values()) == pytest.approx(ended["latency_ms"])
         assert ended["done_to_written_ms"] >= 0 and ended["renders_during_eye_ms"] >= 0
+        # the CPU's speed then, from the logs' CPU times: positive ratios (None only where the
+        # log lacks the next frame or the fit source has fewer than 5 frames)
+        own, following = ended["render_cpu_vs_median"]
+        assert own > 0 and (following is None or following > 0)
+        assert ended.get("eye_cpu_vs_median") is None or ended["eye_cpu_vs_median"] > 0
     period_ms = eye["frame_period_ms"]
     assert eye["slow_frames"]["over_one_period"] == int(np.sum(later & (pipeline > period_ms)))
     assert 0 <= eye["slow_frames"]["with_control_missed"] <= eye["slow_frames"]["over_one_period"]
@@ -1878,14 +1883,17 @@ def _two_frame_run(n: int = 200, dt: float = 1e-3, origin: float = 100.0):
         "t_wall_start": wall_exposure + 0.0002,
         "t_wall_done": wall_exposure + 0.0082,
         "t_wall_put": wall_exposure + 0.0083,
+        # frames 2 and 3 rendered at 2.25x and 2.5x the median CPU time (4 ms): a slow CPU
+        "render_cpu_ms": np.array([4.0, 4.0, 9.0, 10.0, 4.0, 4.0])[: len(frames)],
     }
     eye_log = {
         "index": frames,
         "t_wall_start": eye_start,
         "t_wall_done": eye_done,
         "t_wall_published": eye_done + 5e-5,
-        "eye_cpu_ms": np.full(len(frames), 12.0),
-        "fit_source": np.full(len(frames), 1),
+        # frame 2: 2.4x the median of the five tracked fits (10 ms; 11 with the stopped fit's)
+        "eye_cpu_ms": np.array([6.0, 8.0, 24.0, 10.0, 12.0, 30.0])[: len(frames)],
+        "fit_source": np.array([1, 1, 1, 1, 1, 2])[: len(frames)],
     }
     return run, tt, camera_log, eye_log
 
@@ -1916,13 +1924,38 @@ def test_the_oldest_state_is_split_into_the_stages_of_the_estimate_that_ended_it
     assert sum(b["stages_ms"].values()) == pytest.approx(b["latency_ms"])
     assert b["renders_during_eye_ms"] == pytest.approx(8.0)
     assert b["done_to_written_ms"] == pytest.approx(0.05)
-    assert (b["eye_cpu_ms"], b["fit_source"]) == (12.0, "tracked")
+    assert (b["eye_cpu_ms"], b["fit_source"]) == (24.0, "tracked")
+    assert b["eye_cpu_vs_median"] == pytest.approx(2.4)
+    assert b["render_cpu_vs_median"] == pytest.approx([2.25, 2.5])
     assert (b["control_missed_done_to_taken"], b["control_missed_in_latency"]) == (1, 2)
     text = oldest_text({"oldest_state": o})
     assert text.startswith("episode 0, step 110: 77 ms (in contact); frame 2's estimate")
-    assert "eye 34.5 (CPU 12.0; later renders in it 8.0; tracked)" in text
+    assert (
+        "eye 34.5 (CPU 24.0, 2.40x the median of its fit source; later renders in it 8.0; "
+        "tracked)" in text
+    )
     assert "control steps missed meanwhile 1" in text
+    assert text.endswith("render CPU this frame's / the next's 2.25x / 2.50x the median)")
     assert json.loads(json.dumps(o)) == o  # as deadline.json keeps it
+    # the camera's log lacks the next frame: no next render; without CPU times, no ratios
+    short = {k: np.delete(v, 3) for k, v in camera_log.items()}
+    ended = oldest_state(run, tt, 1e-3, short, eye_log)["ended_by"]
+    assert ended["render_cpu_vs_median"][0] == pytest.approx(9.0 / 4.0)
+    assert ended["render_cpu_vs_median"][1] is None
+    assert "render CPU this frame's / the next's 2.25x / - the median" in oldest_text(
+        {"oldest_state": oldest_state(run, tt, 1e-3, short, eye_log)}
+    )
+    # a fit source with fewer than 5 frames in the run: no median to hold the frame against
+    rare = dict(eye_log, fit_source=np.array([1, 1, 2, 1, 1, 2]))
+    ended = oldest_state(run, tt, 1e-3, camera_log, rare)["ended_by"]
+    assert ended["fit_source"] == "stopped" and ended["eye_cpu_vs_median"] is None
+    assert "(CPU 24.0; later renders" in oldest_text(
+        {"oldest_state": oldest_state(run, tt, 1e-3, camera_log, rare)}
+    )
+    plain_cam = {k: v for k, v in camera_log.items() if k != "render_cpu_ms"}
+    plain_eye = {k: v for k, v in eye_log.items() if k != "eye_cpu_ms"}
+    ended = oldest_state(run, tt, 1e-3, plain_cam, plain_eye)["ended_by"]
+    assert "render_cpu_vs_median" not in ended and "eye_cpu_vs_median" not in ended
     # without the camera's and eye's logs: the estimate, not its stages
     bare = oldest_state(run, tt, 1e-3)["ended_by"]
     assert "stages_ms" not in bare and bare["latency_ms"] == pytest.approx(45.2)

@@ -584,9 +584,14 @@ def oldest_state(run, tt: dict, dt: float, camera_log=None, eye_log=None) -> dic
     the camera preempts the eye), and done to taken (``done_to_written_ms`` where the log has
     the write's time). The stages add up to ``latency_ms``. With ``t_origin`` in ``tt``, the
     control loop's missed steps between the eye's done and the taking (a stalled loop takes
-    the estimate late) and during the whole latency. ``ended_by`` is None where no estimate
-    came after the tick (the episode ended first), and the stages are left out where the
-    camera's or the eye's log lacks the frame. None: no tick had an estimate in force.
+    the estimate late) and during the whole latency. Where the logs have the CPU times, the
+    CPU's speed then: ``eye_cpu_vs_median``, the eye's CPU time on the frame over the median of
+    the run's frames with the same fit source (None where fewer than 5 have it), and
+    ``render_cpu_vs_median``, the render CPU times of the frame and the next over the run's
+    median render (a render is the same work every frame: well above 1, the CPU ran slow; an
+    eye ratio well above 1 with renders near 1, the eye had more to do). ``ended_by`` is None where no estimate came after the tick (the
+    episode ended first), and the stages are left out where the camera's or the eye's log
+    lacks the frame. None: no tick had an estimate in force.
     """
     age = tt["index"] * dt - tt["t_stamp"]
     if not np.isfinite(age).any():
@@ -637,6 +642,20 @@ def oldest_state(run, tt: dict, dt: float, camera_log=None, eye_log=None) -> dic
         ended["renders_during_eye_ms"] = float(1e3 * np.sum(overlap))
         if "fit_source" in eye_log:
             ended["fit_source"] = FIT_SOURCES[int(eye_log["fit_source"][eye])] or "invalid"
+            if "eye_cpu_ms" in eye_log:
+                # against the run's frames with the same fit source: the eye's work or its CPU
+                same = np.asarray(eye_log["fit_source"]) == eye_log["fit_source"][eye]
+                ended["eye_cpu_vs_median"] = _over_median(eye_log["eye_cpu_ms"], same, eye)
+        if "render_cpu_ms" in camera_log:
+            # the CPU's speed then: a render is the same work every frame, so its CPU time
+            # against the run's median tells a slow CPU from an eye with more to do; the
+            # frame's own render and the next frame's (None where the log lacks it: the run
+            # ended first)
+            everything = np.ones(len(camera_log["render_cpu_ms"]), bool)
+            ended["render_cpu_vs_median"] = [
+                None if row is None else _over_median(camera_log["render_cpu_ms"], everything, row)
+                for row in (cam, _row_of(camera_log, frame + 1))
+            ]
         if "t_wall_published" in eye_log:
             ended["done_to_written_ms"] = 1e3 * (float(eye_log["t_wall_published"][eye]) - done)
     out["ended_by"] = ended
@@ -661,7 +680,10 @@ def oldest_text(eye: dict) -> str:
         eye_part = f"eye {st['eye']:.1f}"
         extras = []
         if "eye_cpu_ms" in b:
-            extras.append(f"CPU {b['eye_cpu_ms']:.1f}")
+            cpu = f"CPU {b['eye_cpu_ms']:.1f}"
+            if b.get("eye_cpu_vs_median") is not None:
+                cpu += f", {b['eye_cpu_vs_median']:.2f}x the median of its fit source"
+            extras.append(cpu)
         extras.append(f"later renders in it {b['renders_during_eye_ms']:.1f}")
         if "fit_source" in b:
             extras.append(b["fit_source"])
@@ -678,7 +700,26 @@ def oldest_text(eye: dict) -> str:
         notes.append(f"written {b['done_to_written_ms']:.2f} ms after done")
     if "control_missed_done_to_taken" in b:
         notes.append(f"control steps missed meanwhile {b['control_missed_done_to_taken']}")
+    ratios = b.get("render_cpu_vs_median")
+    if ratios is not None:
+        shown = " / ".join("-" if r is None else f"{r:.2f}x" for r in ratios)
+        notes.append(f"render CPU this frame's / the next's {shown} the median")
     return text + (f" ({'; '.join(notes)})" if notes else "")
+
+
+_MEDIAN_OF_AT_LEAST = 5  # frames behind a median that a frame's CPU time is held against
+
+
+def _over_median(values, among, row: int) -> float | None:
+    """``values[row]`` over the median of ``values[among]``; None where ``among`` holds fewer
+    than ``_MEDIAN_OF_AT_LEAST`` values (a frame against itself and a few others says little)
+    or the median is not positive.
+    """
+    chosen = np.asarray(values, np.float64)[among]
+    if chosen.size < _MEDIAN_OF_AT_LEAST:
+        return None
+    median = float(np.median(chosen))
+    return float(values[row]) / median if median > 0 else None
 
 
 def _row_of(log, frame: int) -> int | None:
