@@ -1945,6 +1945,17 @@ def test_the_oldest_state_is_split_into_the_stages_of_the_estimate_that_ended_it
     assert "render CPU this frame's / the next's 2.25x / - the median" in oldest_text(
         {"oldest_state": oldest_state(run, tt, 1e-3, short, eye_log)}
     )
+    # the logs' rows are not the frames' indices: the camera's log without frame 0's render,
+    # the eye's without frame 0 and with a frame 6 the loop never took (tracked, 9 ms)
+    cam_from_1 = {k: np.delete(v, 0) for k, v in camera_log.items()}
+    extra = {"index": 6, "fit_source": 1, "eye_cpu_ms": 9.0}
+    eye_from_1 = {
+        k: np.append(np.delete(v, 0), extra.get(k, v[-1] + 0.033)) for k, v in eye_log.items()
+    }
+    ended = oldest_state(run, tt, 1e-3, cam_from_1, eye_from_1)["ended_by"]
+    assert ended["frame"] == 2 and ended["eye_cpu_ms"] == 24.0
+    assert ended["eye_cpu_vs_median"] == pytest.approx(2.4)  # tracked: 8, 24, 10, 12, 9
+    assert ended["render_cpu_vs_median"] == pytest.approx([2.25, 2.5])
     # a fit source with fewer than 5 frames in the run: no median to hold the frame against
     rare = dict(eye_log, fit_source=np.array([1, 1, 2, 1, 1, 2]))
     ended = oldest_state(run, tt, 1e-3, camera_log, rare)["ended_by"]

@@ -587,11 +587,12 @@ def oldest_state(run, tt: dict, dt: float, camera_log=None, eye_log=None) -> dic
     the estimate late) and during the whole latency. Where the logs have the CPU times, the
     CPU's speed then: ``eye_cpu_vs_median``, the eye's CPU time on the frame over the median of
     the run's frames with the same fit source (None where fewer than 5 have it), and
-    ``render_cpu_vs_median``, the render CPU times of the frame and the next over the run's
-    median render (a render is the same work every frame: well above 1, the CPU ran slow; an
-    eye ratio well above 1 with renders near 1, the eye had more to do). ``ended_by`` is None where no estimate came after the tick (the
-    episode ended first), and the stages are left out where the camera's or the eye's log
-    lacks the frame. None: no tick had an estimate in force.
+    ``render_cpu_vs_median``, the render CPU times of the frame and the next (frame index + 1;
+    at an episode's last frame the next episode's first) over the run's median render (a
+    render is the same work every frame: well above 1, the CPU ran slow; an eye ratio well
+    above 1 with renders near 1, the eye had more to do). ``ended_by`` is None where no
+    estimate came after the tick (the episode ended first), and the stages are left out where
+    the camera's or the eye's log lacks the frame. None: no tick had an estimate in force.
     """
     age = tt["index"] * dt - tt["t_stamp"]
     if not np.isfinite(age).any():
@@ -649,8 +650,7 @@ def oldest_state(run, tt: dict, dt: float, camera_log=None, eye_log=None) -> dic
         if "render_cpu_ms" in camera_log:
             # the CPU's speed then: a render is the same work every frame, so its CPU time
             # against the run's median tells a slow CPU from an eye with more to do; the
-            # frame's own render and the next frame's (None where the log lacks it: the run
-            # ended first)
+            # frame's own render and the next frame's (None where the log lacks it)
             everything = np.ones(len(camera_log["render_cpu_ms"]), bool)
             ended["render_cpu_vs_median"] = [
                 None if row is None else _over_median(camera_log["render_cpu_ms"], everything, row)
