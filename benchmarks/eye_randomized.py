@@ -161,6 +161,10 @@ class EyeRandomized:
     # TrackConfig.min_inner_support of the tracker (the preset's, 0: off since session 50; 0.05
     # for the ablation, docs/eye_randomized.md "Jumps in the smoother; the inner-edge check off")
     min_inner_support: float = TRACK.min_inner_support
+    # TrackConfig.acquired_gates_px of the tracker (the preset's, (1.5,): a search's fit
+    # re-located at the search's last gate only; None: at every gate of gates_px, as before
+    # session 86, for the ablation; docs/eye_randomized.md "The re-location after a search")
+    acquired_gates_px: tuple[float, ...] | None = TRACK.acquired_gates_px
     # SmootherConfig.max_speed_m_s of the smoother (the preset's: the scenes' speed bound; 0: no
     # jump test, for the ablation; same docs section)
     max_speed_m_s: float = SMOOTH.max_speed_m_s
@@ -199,6 +203,8 @@ class EyeRandomized:
             require(self, "fraction", "min_face_foreground_tracked")
         if self.max_deep_shadow is not None:
             require(self, "fraction", "max_deep_shadow")
+        if self.acquired_gates_px is not None:
+            require(self, "positive", "acquired_gates_px")
         require(self, "non_negative", "min_inner_support", "max_speed_m_s")
         require(self, "positive", "hinge_max_cost")
         require(self, "count", "hinge_iters")
@@ -228,6 +234,7 @@ def tracker_config(a: EyeRandomized):
         threads=a.threads,
         cpu_small_kernels=a.cpu_small_kernels,
         min_inner_support=a.min_inner_support,
+        acquired_gates_px=a.acquired_gates_px,
     )
 
 

@@ -243,7 +243,7 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     argv = ["--no-faint-unshadowed", "--lsd-contrast", "20", "--search-texture", "0.25"]
     argv += ["--threads", "1", "--blob-scales", "3", "--no-cpu-small-kernels"]
     argv += ["--max-face-split", "None", "--face-seam-step", "None"]
-    argv += ["--min-inner-support", "0.05"]
+    argv += ["--min-inner-support", "0.05", "--acquired-gates-px", "None"]
     changed = bench.tracker_config(parse(bench.EyeRandomized(), argv))
     assert changed == dataclasses.replace(
         RANDOMIZED_BENCHMARK,
@@ -256,8 +256,9 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
         max_face_split=None,
         face_seam_step=None,
         min_inner_support=0.05,
+        acquired_gates_px=None,
     )
-    assert default.min_inner_support == 0.0
+    assert default.min_inner_support == 0.0 and default.acquired_gates_px == (1.5,)
     # the smoother: the jump test at the scenes' speed bound; 0 turns it off
     from hec_jax.geometry.smooth import NO_EXTRAPOLATION
     from hec_jax.mjx_scene.randomized import max_swing_speed_m_s

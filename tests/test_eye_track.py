@@ -98,6 +98,28 @@ def test_bad_blob_scales_raise(scales):
         BoxTracker(np.diag([500.0, 500.0, 1.0]), EDGE, FPS, config)
 
 
+@pytest.mark.parametrize("gates", [(), [1.5], (1.5, 0.0), (float("nan"),), (True,), ("1.5",)])
+def test_bad_acquired_gates_px_raise(gates):
+    config = dataclasses.replace(TrackConfig(), acquired_gates_px=gates)
+    with pytest.raises(ValueError, match="acquired_gates_px"):
+        BoxTracker(np.diag([500.0, 500.0, 1.0]), EDGE, FPS, config)
+
+
+def test_acquired_gates_equal_to_the_tracked_ones_change_nothing(seq):
+    """``acquired_gates_px`` set to ``gates_px`` runs the search's fit through its own compiled
+    re-location with the same gates: the same track, bit for bit, as the default (None), through
+    a loss (frames 8-11 blacked out) and its re-acquisition by the search."""
+    frames = seq.frames.copy()
+    frames[8:12] = 0
+    base = track_box(frames, seq.intrinsics, EDGE, FPS)
+    same = dataclasses.replace(TrackConfig(), acquired_gates_px=TrackConfig().gates_px)
+    out = track_box(frames, seq.intrinsics, EDGE, FPS, same)
+    assert base.valid[:8].all() and base.valid[12:].any()  # acquired, lost, found again
+    np.testing.assert_array_equal(out.valid, base.valid)
+    np.testing.assert_array_equal(out.measured_position, base.measured_position)
+    np.testing.assert_array_equal(out.causal_pose_rotation, base.causal_pose_rotation)
+
+
 def test_no_box_visible_gives_invalid(seq):
     frames = np.zeros((6, 480, 640, 3), np.uint8)
     out = track_box(frames, seq.intrinsics, EDGE, FPS)
