@@ -409,9 +409,8 @@ class TrackConfig:
             refinement on edge points). None: ``gates_px``, the tracked fit's (as before). The
             search has already run those gates and returned a fit validated at the last one;
             run again from it, the widest gate can take texture or clutter segments and walk
-            the fit off a box it had found (0.6-4.7 cm off before, 5-15 cm or too little
-            coverage after, on development seeds; docs/eye_randomized.md, "The re-location
-            after a search"). ``(gates_px[-1],)`` re-finds the search's own association.
+            the fit off a box it had found (docs/eye_randomized.md, "The re-location after a
+            search"). ``(gates_px[-1],)``: only the gate the search's fit was validated at.
         cpu_small_kernels: compile the jitted fits and searches for the CPU with XLA's
             YNNPACK fusions off and Eigen single-threaded (:data:`CPU_SMALL_KERNEL_OPTIONS`, the
             compiler options of these functions only; other backends ignore it). Their kernels
