@@ -1128,10 +1128,10 @@ def test_acquired_gates_keep_the_search_s_fit_of_a_wood_cube():
     """Development seed 6605 (a wood cube seen from 3 deg above; acquired at frame 11 before the
     option): on frames 1 and 3 the search from scratch returns a fit 1-3 cm from the truth that
     passes the acquisition checks, and the re-location from it at every tracked gate (16 px
-    first) loses its coverage, so the frame is not valid. Re-located at
-    the search's last gate only (``acquired_gates_px`` (1.5,), on in ``RANDOMIZED_BENCHMARK``), a
-    fresh tracker has valid fits among frames 0-3, each within the benchmark's gross bar (5 cm) of
-    the rendered truth; with every gate (None), no valid fit there."""
+    first) loses its coverage, so the frame is not valid. Re-located at the search's last gate
+    only (``acquired_gates_px`` (1.5,), on in ``RANDOMIZED_BENCHMARK``), a fresh tracker has
+    valid fits among frames 0-3, each within the benchmark's gross bar (5 cm) of the rendered
+    truth; with every gate (None), no valid fit there."""
     scene = draw_scene(6605)
     assert scene.look == "wood"
     seq, background = render_random_sequence(scene, 4, FPS, 640, 480)

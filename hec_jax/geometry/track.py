@@ -409,7 +409,8 @@ class TrackConfig:
             refinement on edge points). None: ``gates_px``, the tracked fit's (as before). The
             search has already run those gates and returned a fit validated at the last one;
             run again from it, the widest gate can move the fit off a box it had found or lose
-            its coverage there (docs/eye_randomized.md, "The re-location after a search"). ``(gates_px[-1],)``: only the gate the search's fit was validated at.
+            its coverage there (docs/eye_randomized.md, "The re-location after a search").
+            ``(gates_px[-1],)``: only the gate the search's fit was validated at.
         cpu_small_kernels: compile the jitted fits and searches for the CPU with XLA's
             YNNPACK fusions off and Eigen single-threaded (:data:`CPU_SMALL_KERNEL_OPTIONS`, the
             compiler options of these functions only; other backends ignore it). Their kernels
