@@ -165,6 +165,17 @@ class EyeRandomized:
     # re-located at the search's last gate only; None: at every gate of gates_px, as before
     # session 86, for the ablation; docs/eye_randomized.md "The re-location after a search")
     acquired_gates_px: tuple[float, ...] | None = TRACK.acquired_gates_px
+    # TrackConfig.texture_families of the tracker (the least number of parallel lines inside the
+    # box taken for its texture and dropped; None: off, for the ablation; docs/eye_randomized.md
+    # "Grain families")
+    texture_families: int | None = TRACK.texture_families
+    # TrackConfig.texture_family_keep_step (the preset's, True: each family's line of largest
+    # grey step kept; False: the whole family dropped, session 87's first arm)
+    texture_family_keep_step: bool = TRACK.texture_family_keep_step
+    # TrackConfig.jump_speed_m_s of the tracker (the causal jump test, off in the preset; the
+    # scenes' speed bound, 1.7512, is the value measured in session 87: docs/eye_randomized.md
+    # "A causal jump test")
+    jump_speed_m_s: float | None = TRACK.jump_speed_m_s
     # SmootherConfig.max_speed_m_s of the smoother (the preset's: the scenes' speed bound; 0: no
     # jump test, for the ablation; same docs section)
     max_speed_m_s: float = SMOOTH.max_speed_m_s
@@ -205,6 +216,10 @@ class EyeRandomized:
             require(self, "fraction", "max_deep_shadow")
         if self.acquired_gates_px is not None:
             require(self, "positive", "acquired_gates_px")
+        if self.texture_families is not None and not self.texture_families >= 2:
+            raise ValueError(f"--texture-families: must be >= 2, got {self.texture_families!r}")
+        if self.jump_speed_m_s is not None:
+            require(self, "positive", "jump_speed_m_s")
         require(self, "non_negative", "min_inner_support", "max_speed_m_s")
         require(self, "positive", "hinge_max_cost")
         require(self, "count", "hinge_iters")
@@ -235,6 +250,9 @@ def tracker_config(a: EyeRandomized):
         cpu_small_kernels=a.cpu_small_kernels,
         min_inner_support=a.min_inner_support,
         acquired_gates_px=a.acquired_gates_px,
+        texture_families=a.texture_families,
+        texture_family_keep_step=a.texture_family_keep_step,
+        jump_speed_m_s=a.jump_speed_m_s,
     )
 
 

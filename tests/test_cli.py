@@ -157,6 +157,8 @@ BAD = {
         (["--face-seam-step", "-1"], "--face-seam-step: must be finite and >= 0"),
         (["--min-inner-support", "-1"], "--min-inner-support: must be finite and >= 0"),
         (["--max-speed-m-s", "-1"], "--max-speed-m-s: must be finite and >= 0"),
+        (["--texture-families", "1"], "--texture-families: must be >= 2"),
+        (["--jump-speed-m-s", "0"], "--jump-speed-m-s: must be finite and > 0"),
         (["--threads", "0"], "--threads: must be an integer >= 1"),
         (["--out", USED], "exists and is not empty"),
     ],
@@ -244,6 +246,8 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     argv += ["--threads", "1", "--blob-scales", "3", "--no-cpu-small-kernels"]
     argv += ["--max-face-split", "None", "--face-seam-step", "None"]
     argv += ["--min-inner-support", "0.05", "--acquired-gates-px", "None"]
+    argv += ["--texture-families", "None", "--jump-speed-m-s", "1.75"]
+    argv += ["--no-texture-family-keep-step"]
     changed = bench.tracker_config(parse(bench.EyeRandomized(), argv))
     assert changed == dataclasses.replace(
         RANDOMIZED_BENCHMARK,
@@ -257,8 +261,13 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
         face_seam_step=None,
         min_inner_support=0.05,
         acquired_gates_px=None,
+        texture_families=None,
+        texture_family_keep_step=False,
+        jump_speed_m_s=1.75,
     )
     assert default.min_inner_support == 0.0 and default.acquired_gates_px == (1.5,)
+    assert default.texture_families == 3 and default.jump_speed_m_s is None
+    assert default.texture_family_keep_step
     # the smoother: the jump test at the scenes' speed bound; 0 turns it off
     from hec_jax.geometry.smooth import NO_EXTRAPOLATION
     from hec_jax.mjx_scene.randomized import max_swing_speed_m_s

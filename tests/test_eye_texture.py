@@ -43,6 +43,49 @@ def test_texture_segments_are_those_with_foreground_on_both_sides():
     assert detect.texture_segments(np.zeros((0, 2, 2)), foreground).shape == (0,)
 
 
+def _line(angle_deg, offset_px, along_px=0.0, length_px=20.0, centre=(80.0, 60.0)):
+    """A segment of ``length_px`` along ``angle_deg``, its mid point ``offset_px`` along the
+    normal and ``along_px`` along the line from ``centre`` [px]."""
+    a = np.deg2rad(angle_deg)
+    u, n = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+    mid = np.asarray(centre) + offset_px * n + along_px * u
+    return np.stack([mid - 0.5 * length_px * u, mid + 0.5 * length_px * u])
+
+
+def test_texture_families_are_three_distinct_parallel_lines_inside_the_box():
+    # analytic cases; every segment inside the box's image unless said otherwise
+    def flags(lines, inside=None, **kw):
+        seg = np.array([_line(*x) for x in lines])
+        inside = np.ones(len(seg), bool) if inside is None else np.asarray(inside)
+        return detect.texture_families(seg, inside, **kw).tolist()
+
+    grain = [(30.0, 0.0), (30.0, 3.0), (31.0, 6.0), (29.0, 9.0)]  # 4 lines 3 px apart
+    assert flags(grain) == [True] * 4
+    assert flags(grain[:2]) == [False] * 2  # two lines: one may be the box's inner edge
+    # three lines, but one of them is the box's outline (background on one side): two inside
+    assert flags(grain[:3], inside=[True, True, False]) == [False] * 3
+    # three collinear pieces of one line are one line, with two other lines: three lines
+    pieces = [(30.0, 0.0, -25.0), (30.0, 0.5, 0.0), (30.0, 0.0, 25.0)]
+    assert flags(pieces) == [False] * 3
+    assert flags([*pieces, (30.0, 4.0)]) == [False] * 4
+    assert flags([*pieces, (30.0, 4.0), (30.0, 8.0)]) == [True] * 5
+    # a line across the grain is not of its family; the directions wrap at 180 deg
+    assert flags([*grain[:3], (120.0, 0.0)]) == [True, True, True, False]
+    # (the normal turns with the direction: 180 deg at offset -6 lies 6 px below, as 0 deg at 6)
+    assert flags([(178.0, 0.0), (1.0, 3.0), (180.0, -6.0)]) == [True] * 3
+    assert flags([(0.0, 0.0), (6.0, 3.0), (12.0, 6.0)]) == [False, False, False]  # 6 deg apart
+    assert flags(grain, least_lines=5) == [False] * 4
+    assert flags([(0.0, 0.0), (0.0, 1.4), (0.0, 2.8)]) == [False] * 3  # within 1.5 px: one line
+    assert detect.texture_families(np.zeros((0, 2, 2)), np.zeros(0, bool)).shape == (0,)
+    # with the grey steps: the line of the family's largest step is kept, its pieces too
+    family = [*pieces, (30.0, 4.0), (30.0, 8.0)]
+    seg = np.array([_line(*x) for x in family])
+    kept = ~detect.texture_families(seg, np.ones(5, bool), steps=np.array([1, 9, 1, 2, 3.0]))
+    assert kept.tolist() == [True, True, True, False, False]
+    kept = ~detect.texture_families(seg, np.ones(5, bool), steps=np.array([1, 1, 1, 2, 3.0]))
+    assert kept.tolist() == [False, False, False, False, True]
+
+
 def test_segment_steps_are_the_grey_step_across_a_segment():
     gray = np.full((100, 100), 60, np.uint8)
     gray[:, 50:] = 140  # a vertical step of 80 grey levels between columns 49 and 50

@@ -105,6 +105,46 @@ def test_bad_acquired_gates_px_raise(gates):
         BoxTracker(np.diag([500.0, 500.0, 1.0]), EDGE, FPS, config)
 
 
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("jump_speed_m_s", 0.0),
+        ("jump_speed_m_s", -1.0),
+        ("jump_speed_m_s", float("nan")),
+        ("jump_speed_m_s", True),
+        ("jump_speed_m_s", "2"),
+        ("jump_slack_m", -0.1),
+        ("jump_slack_m", float("nan")),
+        ("jump_slack_m", None),
+        ("texture_families", 1),
+        ("texture_families", 0),
+        ("texture_families", 2.5),
+        ("texture_families", True),
+        ("texture_families", "3"),
+    ],
+)
+def test_bad_jump_test_and_texture_family_settings_raise(field, value):
+    config = dataclasses.replace(TrackConfig(), **{field: value})
+    with pytest.raises(ValueError, match=field):
+        BoxTracker(np.diag([500.0, 500.0, 1.0]), EDGE, FPS, config)
+
+
+def test_a_jump_test_no_fit_violates_changes_nothing(seq):
+    """A bound far above the rendered box's speed (100 m/s) changes no gate decision: the same
+    track, bit for bit, as the default (off), through a loss (frames 8-11 blacked out: the bound
+    grows with the frames missed) and the re-acquisition."""
+    true_speed = np.linalg.norm(np.diff(seq.position, axis=0), axis=-1).max() * FPS
+    assert true_speed < 10.0  # [m/s]
+    frames = seq.frames.copy()
+    frames[8:12] = 0
+    base = track_box(frames, seq.intrinsics, EDGE, FPS)
+    loose = dataclasses.replace(TrackConfig(), jump_speed_m_s=100.0)
+    out = track_box(frames, seq.intrinsics, EDGE, FPS, loose)
+    assert base.valid[:8].all() and base.valid[12:].any()  # acquired, lost, found again
+    np.testing.assert_array_equal(out.valid, base.valid)
+    np.testing.assert_array_equal(out.measured_position, base.measured_position)
+
+
 def test_acquired_gates_equal_to_the_tracked_ones_change_nothing(seq):
     """``acquired_gates_px`` set to ``gates_px`` runs the search's fit through its own compiled
     re-location with the same gates: the same track, bit for bit, as the default (None), through

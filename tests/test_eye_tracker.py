@@ -773,6 +773,25 @@ def test_gate_split_along_the_line_of_sight():
     assert not Gate(centre, 0.075).admits_along_sight(deeper)  # no depth_gate: off
 
 
+def test_gate_jump_bound():
+    # analytic cases: the innovation sphere 30 cm wide around the prediction, the last valid fit
+    # 2 cm from it, the jump bound 12 cm around that fit
+    from hec_jax.geometry.track import Gate
+
+    predicted = np.array([0.1, -0.2, 2.0])
+    last_fit = predicted + np.array([0.0, 0.0, 0.02])
+    gate = Gate(predicted, 0.3, 0.1, last_fit, 0.12)
+    deeper = last_fit * (2.02 + 0.119) / 2.02  # along its line of sight, inside the bound
+    too_deep = last_fit * (2.02 + 0.121) / 2.02
+    assert gate.admits(deeper) and not gate.admits(too_deep)
+    assert Gate(predicted, 0.3).admits(too_deep)  # the sphere alone admits it
+    assert gate.admits_along_sight(deeper) and not gate.admits_along_sight(too_deep)
+    assert Gate(predicted, 0.3, 0.1).admits_along_sight(too_deep)
+    far = predicted + np.array([0.31, 0.0, 0.0])  # outside the sphere, inside no bound
+    assert not Gate(predicted, 0.3, None, far, 1.0).admits(far)
+    assert not gate.admits(np.array([np.nan, 0.0, 2.0]))
+
+
 @pytest.mark.parametrize("depth_gate", [None, 0.1])
 def test_a_filter_run_away_in_depth_gets_the_frame_s_own_fit(depth_gate):
     # independent truth: the simulator's cube centre at each frame's exposure. In these

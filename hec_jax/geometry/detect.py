@@ -202,6 +202,59 @@ def texture_segments(
     return out
 
 
+def texture_families(
+    segments: np.ndarray,
+    inside: np.ndarray,
+    least_lines: int = 3,
+    angle_deg: float = 5.0,
+    separation_px: float = 1.5,
+    steps: np.ndarray | None = None,
+) -> np.ndarray:
+    """(N,) bool: the segments (N, 2, 2) [px] inside a box's image (``inside``, (N,) bool, e.g.
+    :func:`texture_segments`) that lie in a family of at least ``least_lines`` distinct parallel
+    lines inside it: a texture (wood grain), not the box's edges.
+
+    A convex box shows at most one inner edge (both faces beside it visible) of each of its
+    three edge directions; its other visible edges are on the outline, with background on one
+    side. Parallel 3D edges project to nearly parallel image lines, so two or more distinct
+    parallel lines inside the box's image are texture or creases but for one of them, and three
+    or more cannot be the box's edges but for one. Segments within ``angle_deg`` [deg] of one
+    another's direction are parallel; their lines are distinct where their mid points' offsets
+    along the normal differ by more than ``separation_px`` [px] (collinear pieces of one line
+    count once). Outline segments (``inside`` False) are never flagged. ``steps``: optional
+    (N,) grey steps across the segments (:func:`segment_steps`); where given, the line of the
+    family's segment with the largest step (the likeliest boundary of two faces) is kept.
+    """
+    segments = np.asarray(segments, np.float64).reshape(-1, 2, 2)
+    inside = np.asarray(inside, bool)
+    out = np.zeros(len(segments), bool)
+    if inside.sum() < least_lines:
+        return out
+    index = np.flatnonzero(inside)
+    d = segments[index, 1] - segments[index, 0]
+    angle = np.arctan2(d[:, 1], d[:, 0]) % np.pi
+    middle = segments[index].mean(1)
+    # row i: the inside segments parallel to segment i, their mid points' offsets along its normal
+    turn = (angle[None, :] - angle[:, None] + np.pi / 2) % np.pi - np.pi / 2  # in [-pi/2, pi/2)
+    family = np.abs(turn) <= np.deg2rad(angle_deg)
+    normal = np.stack([-np.sin(angle), np.cos(angle)], 1)
+    offsets = np.sort(np.where(family, normal @ middle.T, np.inf), axis=1)  # the family first
+    members = family.sum(1)
+    gaps = np.diff(np.where(np.isfinite(offsets), offsets, 0.0), axis=1)
+    between = np.arange(gaps.shape[1])[None, :] < (members - 1)[:, None]  # gaps in the family
+    lines = 1 + np.count_nonzero(between & (gaps > separation_px), axis=1)
+    flagged = lines >= least_lines
+    if steps is not None:  # keep the line of the family's strongest step
+        step = np.where(family, np.asarray(steps, np.float64)[index][None, :], -np.inf)
+        strongest = np.argmax(step, axis=1)
+        own = np.einsum("ij,ij->i", normal, middle)
+        flagged &= (
+            np.abs(own - (normal @ middle.T)[np.arange(len(index)), strongest]) > separation_px
+        )
+    out[index] = flagged
+    return out
+
+
 def segment_steps(
     segments: np.ndarray, gray: np.ndarray, offset_px: float = 2.0, samples: int = 8
 ) -> np.ndarray:
