@@ -417,9 +417,10 @@ class TrackConfig:
             foreground at ``foreground_threshold``, before its dilation) that lie in a family of
             at least this many distinct parallel lines are dropped (:func:`detect.texture_families`:
             a box shows at most one inner edge of each direction, so such a family is texture,
-            wood grain). With their grain lines the fits of wood boxes set the box's faces on
-            the grain and walked off along the line of sight, from the true pose too
-            (docs/eye_randomized.md, "Grain families"). None: off (as before).
+            wood grain). With its grain lines the fits of a wood box (development seed 2074)
+            walked 22-34 cm off, from the true pose too (docs/eye_randomized.md, "Grain
+            families"). It can also fire inside a plain box (same section). None: off (as
+            before).
         texture_family_keep_step: with ``texture_families``, the line of each family's
             segment with the largest grey step across it (:func:`detect.segment_steps`) is
             kept: the likeliest boundary of two differently lit faces, the one inner edge of
