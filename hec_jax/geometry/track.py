@@ -2507,10 +2507,12 @@ class BoxTracker:
         if least is None or not len(seg):
             return seg
         inside = detect.texture_segments(seg, core, (x0, y0))
-        steps = None
-        if self.config.texture_family_keep_step and inside.any():
+        drop = detect.texture_families(seg, inside, least)
+        if drop.any() and self.config.texture_family_keep_step:
+            # keeping each family's strongest line only un-flags: the steps matter only here
             steps = detect.segment_steps(seg, gray)
-        return seg[~detect.texture_families(seg, inside, least, steps=steps)]
+            drop = detect.texture_families(seg, inside, least, steps=steps)
+        return seg[~drop]
 
     def _foreground_window(self, image, background, roi):
         """(dilated foreground mask of the window, its top-left pixel (x0, y0), segments of the
