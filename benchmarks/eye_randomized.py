@@ -176,6 +176,10 @@ class EyeRandomized:
     # scenes' speed bound, 1.7512, is the value measured in session 87: docs/eye_randomized.md
     # "A causal jump test")
     jump_speed_m_s: float | None = TRACK.jump_speed_m_s
+    # TrackConfig.close_edge_points of the tracker (both edges of a face seen nearly edge-on
+    # sampled, each within half their distance; off in the preset: measured in session 88,
+    # docs/eye_randomized.md "Thin faces")
+    close_edge_points: bool = TRACK.close_edge_points
     # SmootherConfig.max_speed_m_s of the smoother (the preset's: the scenes' speed bound; 0: no
     # jump test, for the ablation; same docs section)
     max_speed_m_s: float = SMOOTH.max_speed_m_s
@@ -253,6 +257,7 @@ def tracker_config(a: EyeRandomized):
         texture_families=a.texture_families,
         texture_family_keep_step=a.texture_family_keep_step,
         jump_speed_m_s=a.jump_speed_m_s,
+        close_edge_points=a.close_edge_points,
     )
 
 

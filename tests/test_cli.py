@@ -247,7 +247,7 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     argv += ["--max-face-split", "None", "--face-seam-step", "None"]
     argv += ["--min-inner-support", "0.05", "--acquired-gates-px", "None"]
     argv += ["--texture-families", "None", "--jump-speed-m-s", "1.75"]
-    argv += ["--no-texture-family-keep-step"]
+    argv += ["--no-texture-family-keep-step", "--close-edge-points"]
     changed = bench.tracker_config(parse(bench.EyeRandomized(), argv))
     assert changed == dataclasses.replace(
         RANDOMIZED_BENCHMARK,
@@ -264,10 +264,11 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
         texture_families=None,
         texture_family_keep_step=False,
         jump_speed_m_s=1.75,
+        close_edge_points=True,
     )
     assert default.min_inner_support == 0.0 and default.acquired_gates_px == (1.5,)
     assert default.texture_families == 3 and default.jump_speed_m_s is None
-    assert default.texture_family_keep_step
+    assert default.texture_family_keep_step and not default.close_edge_points
     # the smoother: the jump test at the scenes' speed bound; 0 turns it off
     from hec_jax.geometry.smooth import NO_EXTRAPOLATION
     from hec_jax.mjx_scene.randomized import max_swing_speed_m_s

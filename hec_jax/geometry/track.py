@@ -438,6 +438,15 @@ class TrackConfig:
             correct fits (docs/eye_randomized.md, "A causal jump test"). The bound grows with
             the frames missed; after a loss the ``max_speed`` gate applies instead. None (the
             default): off, as before.
+        close_edge_points: of two same-family visible edges closer than ``min_separation_px`` in
+            the image (a face seen nearly edge-on), the final refinement samples both, each
+            searching for its step only half the distance to the other (at least 0.75 px, at
+            most ``search_px``: :func:`close_edge_searches`). False (as before): only the edge
+            bordering the larger face is sampled, and within ``search_px`` it finds the stronger
+            step, mostly the outline's against the background, so the front face grows by the
+            thin face's width and the box is fitted nearer (from the true pose, development
+            seed 6617's fits lay 61 mm nearer on average at 2 m; docs/eye_randomized.md, "Thin
+            faces").
         cpu_small_kernels: compile the jitted fits and searches for the CPU with XLA's
             YNNPACK fusions off and Eigen single-threaded (:data:`CPU_SMALL_KERNEL_OPTIONS`, the
             compiler options of these functions only; other backends ignore it). Their kernels
@@ -526,6 +535,7 @@ class TrackConfig:
     texture_family_keep_step: bool = True
     jump_speed_m_s: float | None = None
     jump_slack_m: float = 0.1
+    close_edge_points: bool = False
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -1065,6 +1075,33 @@ def usable_edges(
     beaten = same & other & vis[None, :] & (dist < cfg.min_separation_px)
     beaten &= border[None, :] >= border[:, None]
     return e, usable & ~np.any(beaten, axis=1)
+
+
+def close_edge_searches(
+    rotation: np.ndarray, translation: np.ndarray, size, intrinsics, cfg: TrackConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """(usable (12,), search (12,) [px]) of ``TrackConfig.close_edge_points``: the edges of
+    :func:`usable_edges` and those it dropped for a same-family visible edge closer than
+    ``min_separation_px`` (a face seen nearly edge-on), each of the latter pairs searched only
+    half the distance to the other line (at least 0.75 px, at most ``search_px``), so that each
+    edge takes the image step nearest its own line; the other edges ``search_px``. NumPy.
+    """
+    e, usable = usable_edges(rotation, translation, size, intrinsics, cfg)
+    free = dataclasses.replace(cfg, min_separation_px=0.0)
+    _, seen = usable_edges(rotation, translation, size, intrinsics, free)  # visible and long
+    d = e[:, 1] - e[:, 0]
+    length = np.linalg.norm(d, axis=-1)
+    n = np.stack([-d[:, 1], d[:, 0]], -1) / np.maximum(length, 1e-9)[:, None]
+    mid = e.mean(1)
+    dist = np.abs(np.einsum("ijk,ik->ij", mid[None, :, :] - e[:, None, 0, :], n))  # (i, j)
+    same = EDGE_FAMILY[:, None] == EDGE_FAMILY[None, :]
+    close = same & ~np.eye(12, dtype=bool) & seen[:, None] & seen[None, :]
+    close &= dist < cfg.min_separation_px
+    nearest = np.min(np.where(close, dist, np.inf), axis=1)
+    search = np.where(
+        np.isfinite(nearest), np.clip(0.5 * nearest, 0.75, cfg.search_px), cfg.search_px
+    )
+    return seen & (usable | close.any(axis=1)), search
 
 
 def segments_near_edges(
@@ -2740,16 +2777,32 @@ class BoxTracker:
             box = detect.clip_roi(_window(ends, cfg.roi_margin), *gray.shape[::-1])
             if box is not None:
                 min_step /= detect.stretch_gain(gray[box[1] : box[3], box[0] : box[2]])
-        pts, ids = detect.edge_points(
-            gray,
-            edges_px,
-            usable,
-            spacing=cfg.edge_spacing_px,
-            search=cfg.search_px,
-            min_step=min_step,
-            blur=cfg.edge_blur_px,
-            interpolation=cv2.INTER_CUBIC if cfg.edge_cubic else cv2.INTER_LINEAR,
-        )
+
+        def points(on, search):
+            return detect.edge_points(
+                gray,
+                edges_px,
+                on,
+                spacing=cfg.edge_spacing_px,
+                search=search,
+                min_step=min_step,
+                blur=cfg.edge_blur_px,
+                interpolation=cv2.INTER_CUBIC if cfg.edge_cubic else cv2.INTER_LINEAR,
+            )
+
+        if cfg.close_edge_points:  # both edges of a thin face, each its own step
+            sampled, search = close_edge_searches(
+                pose_np.rotation, pose_np.translation, self.size, k, cfg
+            )
+            wide = sampled & (search >= cfg.search_px)
+            found = [points(wide, cfg.search_px)]
+            found += [
+                points(np.arange(12) == j, search[j]) for j in np.flatnonzero(sampled & ~wide)
+            ]
+            pts = np.concatenate([f[0] for f in found])
+            ids = np.concatenate([f[1] for f in found])
+        else:
+            pts, ids = points(usable, cfg.search_px)
         support = 1.0
         if cfg.min_inner_support > 0:
             support = _inner_support(
