@@ -1082,9 +1082,11 @@ def close_edge_searches(
 ) -> tuple[np.ndarray, np.ndarray]:
     """(usable (12,), search (12,) [px]) of ``TrackConfig.close_edge_points``: the edges of
     :func:`usable_edges` and those it dropped for a same-family visible edge closer than
-    ``min_separation_px`` (a face seen nearly edge-on), each of the latter pairs searched only
-    half the distance to the other line (at least 0.75 px, at most ``search_px``), so that each
-    edge takes the image step nearest its own line; the other edges ``search_px``. NumPy.
+    ``min_separation_px`` (a face seen nearly edge-on). An edge of such a pair is searched only
+    half the distance of the other edge's midpoint from its line, so that it takes the image
+    step on its own side; but at least 0.75 px (three candidate offsets of
+    :func:`detect.edge_points`' 0.25 px steps; under 1.5 px apart both searches reach the same
+    step) and at most ``search_px``. The other edges: ``search_px``. NumPy.
     """
     e, usable = usable_edges(rotation, translation, size, intrinsics, cfg)
     free = dataclasses.replace(cfg, min_separation_px=0.0)
