@@ -1049,6 +1049,18 @@ def _make_finish(cfg: TrackConfig, fcfg: kf.FilterConfig):
     return _OneTransfer(finish, cfg)
 
 
+def _edge_line_distances(edges_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """((12,) the edges' image lengths [px], (12, 12) the distance of edge j's midpoint from
+    edge i's line [px]) of projected edges (12, 2, 2).
+    """
+    d = edges_px[:, 1] - edges_px[:, 0]
+    length = np.linalg.norm(d, axis=-1)
+    n = np.stack([-d[:, 1], d[:, 0]], -1) / np.maximum(length, 1e-9)[:, None]
+    mid = edges_px.mean(1)
+    dist = np.abs(np.einsum("ijk,ik->ij", mid[None, :, :] - edges_px[:, None, 0, :], n))
+    return length, dist
+
+
 def usable_edges(
     rotation: np.ndarray, translation: np.ndarray, size, intrinsics, cfg: TrackConfig
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -1060,16 +1072,13 @@ def usable_edges(
     e = corners[EDGES]
     vis_f = face_visibility_np(rotation, translation, size)
     vis = np.any(vis_f[EDGE_FACES], axis=-1)
-    d = e[:, 1] - e[:, 0]
-    length = np.linalg.norm(d, axis=-1)
+    length, dist = _edge_line_distances(e)
     usable = vis & (length > cfg.min_edge_px)
     # of two same-family edges closer than the separation (a face seen nearly edge-on) keep the
-    # one bordering the larger visible face: it carries the image step.
+    # one bordering the larger visible face: it carries the image step (or sample both, each
+    # near its own line: TrackConfig.close_edge_points)
     area = image_face_area_np(corners)
     border = np.max(np.where(vis_f[EDGE_FACES], area[EDGE_FACES], 0.0), axis=1)
-    mid = e.mean(1)
-    n = np.stack([-d[:, 1], d[:, 0]], -1) / np.maximum(length, 1e-9)[:, None]
-    dist = np.abs(np.einsum("ijk,ik->ij", mid[None, :, :] - e[:, None, 0, :], n))  # (i, j)
     same = EDGE_FAMILY[:, None] == EDGE_FAMILY[None, :]
     other = ~np.eye(12, dtype=bool)
     beaten = same & other & vis[None, :] & (dist < cfg.min_separation_px)
@@ -1091,11 +1100,7 @@ def close_edge_searches(
     e, usable = usable_edges(rotation, translation, size, intrinsics, cfg)
     free = dataclasses.replace(cfg, min_separation_px=0.0)
     _, seen = usable_edges(rotation, translation, size, intrinsics, free)  # visible and long
-    d = e[:, 1] - e[:, 0]
-    length = np.linalg.norm(d, axis=-1)
-    n = np.stack([-d[:, 1], d[:, 0]], -1) / np.maximum(length, 1e-9)[:, None]
-    mid = e.mean(1)
-    dist = np.abs(np.einsum("ijk,ik->ij", mid[None, :, :] - e[:, None, 0, :], n))  # (i, j)
+    _, dist = _edge_line_distances(e)
     same = EDGE_FAMILY[:, None] == EDGE_FAMILY[None, :]
     close = same & ~np.eye(12, dtype=bool) & seen[:, None] & seen[None, :]
     close &= dist < cfg.min_separation_px
