@@ -24,8 +24,9 @@ Methods, on the same frames:
   ``depth_gate``, on two host threads (``--threads``; the baselines on one), its jitted fits and
   searches compiled with ``cpu_small_kernels`` (``--no-cpu-small-kernels``: XLA's defaults);
   ``SMOOTH`` = ``smooth.NO_EXTRAPOLATION``:
-  ``max_gap_s=0.2`` and the robust whole-track fixed-axis model ``hinge_whole_track``
-  (accepted up to ``hinge_max_cost=2``, ``--hinge-max-cost``), plus the
+  ``max_gap_s=0.2``, the robust whole-track fixed-axis model ``hinge_whole_track``
+  (accepted up to ``hinge_max_cost=2``, ``--hinge-max-cost``) and the fits' cube labellings
+  unwrapped (``unwrap_labelling``, since session 89; ``--no-unwrap-labelling``), plus the
   jump test ``max_speed_m_s`` at the scenes' speed bound, which also caps the smoothed speed
   (``--max-speed-m-s``; the library's
   defaults, which the hand-eye loop uses, have them off): its
@@ -197,6 +198,10 @@ class EyeRandomized:
     # smoothed row's frames are then BoxTrack.offline_valid, its acquisition still the forward
     # tracker's (docs/eye_randomized.md, "Tracking backward from each re-acquisition")
     extend_backward: bool = SMOOTH.extend_backward
+    # SmootherConfig.unwrap_labelling (the preset's, on since session 89): the fits' cube
+    # labellings unwrapped before smoothing; --no-unwrap-labelling for the ablation, the smoother
+    # before (docs/eye_randomized.md, "Labellings unwrapped")
+    unwrap_labelling: bool = SMOOTH.unwrap_labelling
 
     def __post_init__(self):
         require(self, "count", "sequences", "width", "height", "threads")
@@ -287,6 +292,7 @@ def smoother_config(a: EyeRandomized):
         hinge_step_check=a.hinge_step_check,
         hinge_iters=a.hinge_iters,
         extend_backward=a.extend_backward,
+        unwrap_labelling=a.unwrap_labelling,
     )
 
 

@@ -281,6 +281,10 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     assert smooth.hinge_max_cost == 2.0
     half = bench.smoother_config(parse(bench.EyeRandomized(), ["--hinge-max-cost", "0.5"]))
     assert half == dataclasses.replace(smooth, hinge_max_cost=0.5)
+    # the cube's labellings unwrapped (session 89); the flag turns it off for the ablation
+    assert smooth.unwrap_labelling
+    wrapped = bench.smoother_config(parse(bench.EyeRandomized(), ["--no-unwrap-labelling"]))
+    assert wrapped == dataclasses.replace(smooth, unwrap_labelling=False)
     with pytest.raises(SystemExit):
         parse(bench.EyeRandomized(), ["--hinge-max-cost", "0"])
     two = bench.tracker_config(parse(bench.EyeRandomized(), ["--blob-scales", "2", "3"]))

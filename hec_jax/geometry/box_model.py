@@ -38,6 +38,44 @@ EDGE_FACES = np.array(
 )
 
 
+def cube_symmetries() -> np.ndarray:
+    """(24, 3, 3) proper rotations mapping the cube onto itself (signed permutation matrices)."""
+    out = []
+    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
+        for signs in np.ndindex(2, 2, 2):
+            m = np.zeros((3, 3))
+            m[np.arange(3), perm] = 1.0 - 2.0 * np.asarray(signs)
+            if np.linalg.det(m) > 0:
+                out.append(m)
+    return np.stack(out)
+
+
+_SYMMETRIES = cube_symmetries()
+
+
+def snap_to_symmetry(rotation: np.ndarray, reference: np.ndarray) -> np.ndarray:
+    """The labelling ``rotation @ S`` (S a cube symmetry) closest to ``reference``."""
+    cands = rotation[None] @ _SYMMETRIES
+    traces = np.einsum("nij,ij->n", cands, reference)
+    return cands[int(np.argmax(traces))]
+
+
+def nearest_labellings(rotations: Array, references: Array) -> Array:
+    """(T, 3, 3) each ``rotations[t] @ S`` (S one of the cube's 24 symmetries) nearest
+    ``references[t]`` (largest trace of ``references[t]^T rotations[t] S``, i.e. least angle);
+    pure JAX, the batched form of :func:`snap_to_symmetry`.
+
+    A cube's orientation is known only up to these labellings of its axes: the same box, its
+    faces named otherwise. Ties (a rotation 45 deg from two labellings) go to the first in
+    :func:`cube_symmetries`' order.
+    """
+    sym = jnp.asarray(_SYMMETRIES, rotations.dtype)
+    cands = jnp.einsum("tij,njk->tnik", rotations, sym)  # (T, 24, 3, 3)
+    traces = jnp.einsum("tnij,tij->tn", cands, references)
+    best = jnp.argmax(traces, axis=1)
+    return jnp.take_along_axis(cands, best[:, None, None, None], axis=1)[:, 0]
+
+
 class Pose(NamedTuple):
     """Rigid pose of the box in the camera frame (a pytree).
 

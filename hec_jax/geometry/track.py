@@ -48,12 +48,14 @@ from hec_jax.geometry.box_model import (
     FACE_NORMALS,
     FACES,
     Pose,
+    cube_symmetries,  # noqa: F401  (re-exported: accuracy, tests and benchmarks import it here)
     edge_visibility,
     face_visibility,
     face_visibility_np,
     image_face_area_np,
     project_corners_np,
     project_edges,
+    snap_to_symmetry,
 )
 from hec_jax.geometry.camera import check_camera_args
 from hec_jax.geometry.refine import (
@@ -1566,28 +1568,6 @@ class BoxTrack(NamedTuple):
     initialised: np.ndarray
     offline_valid: np.ndarray
     backward_filled: np.ndarray
-
-
-def cube_symmetries() -> np.ndarray:
-    """(24, 3, 3) proper rotations mapping the cube onto itself (signed permutation matrices)."""
-    out = []
-    for perm in ((0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)):
-        for signs in np.ndindex(2, 2, 2):
-            m = np.zeros((3, 3))
-            m[np.arange(3), perm] = 1.0 - 2.0 * np.asarray(signs)
-            if np.linalg.det(m) > 0:
-                out.append(m)
-    return np.stack(out)
-
-
-_SYMMETRIES = cube_symmetries()
-
-
-def snap_to_symmetry(rotation: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    """The labelling ``rotation @ S`` (S a cube symmetry) closest to ``reference``."""
-    cands = rotation[None] @ _SYMMETRIES
-    traces = np.einsum("nij,ij->n", cands, reference)
-    return cands[int(np.argmax(traces))]
 
 
 _CACHE: dict = {}
