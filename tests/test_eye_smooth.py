@@ -672,7 +672,8 @@ def test_unwrap_labellings_gives_one_labelling_over_a_turning_cube():
 def test_whole_track_fit_relabels_each_frame_to_its_model():
     """The robust whole-track fixed-axis fit on a pendulum whose every fit comes under a random
     labelling, started from the truth: with ``unwrap_labelling`` each pass relabels the fits to
-    the model's rotations: accepted, axis within 1 deg, centres within 1 cm, no outlier. Without
+    the model's rotations: accepted, axis within 1 deg, centres within 1 cm, no outlier (started
+    from the truth, so this checks the relabelled passes, not their start). Without
     it the labellings are read as motion: rejected (most frames outliers)."""
     (rot, pos, _, axis), (meas_rot, meas_pos, info) = _pendulum(seed=6)
     meas_rot = meas_rot @ _random_labellings(len(rot), seed=2)
@@ -694,15 +695,17 @@ def test_whole_track_fit_relabels_each_frame_to_its_model():
 
 
 def test_unwrap_labelling_keeps_a_run_of_turning_wrong_fits_from_relabelling_the_track():
-    """Session 89's finding on development seed 2034, drawn synthetic: three wrong fits (30 cm
-    off, the box turned by 30, 60 and 80 deg) then the good fits under another labelling (a
-    quarter turn, as the tracker's labelling chain carried the wrong fits' turn on). With
-    ``unwrap_labelling`` (the jump test rejects the three, the chain skips them) the whole-track
-    model is accepted and every other frame is within 1 cm and 2 deg of the truth (seeds 5 and
-    9-14 gave at most 5.3 mm and 0.8 deg). Without it the quarter turn is read as motion: the
-    rotation after it is over 45 deg off, and on these seeds a wrong fixed-axis model is
-    accepted that bends the centres over 5 cm (15.9-16.7 cm on seeds 9-12 and 14; on seeds 5
-    and 13 the model was rejected instead, the centres then within 4 mm)."""
+    """The labelling pattern of development seed 2034 (session 89), drawn synthetic: three wrong
+    fits (30 cm off, the box turned by 30, 60 and 80 deg) then the good fits under another
+    labelling (a quarter turn, as the tracker's labelling chain carried the wrong fits' turn
+    on). With ``unwrap_labelling`` (the jump test rejects the three, the chain skips them) the
+    whole-track model is accepted over every frame with no outlier, and every other frame is
+    within 1 cm and 2 deg of the truth (seeds 5 and 9-14 gave at most 5.3 mm and 0.8 deg).
+    Without it the quarter turn is read as motion: the rotation after it is over 45 deg off,
+    and (a failure of another kind than 2034's, where the model was rejected) a whole-track
+    model is accepted that flags the 22 good fits before the wrong run as outliers and bends
+    the centres over 5 cm (15.9-16.7 cm on seeds 9-12 and 14; on seeds 5 and 13 the model was
+    rejected instead, the centres then within 4 mm)."""
     for seed in (9, 10, 11):
         (rot, pos, _, _), (meas_rot, meas_pos, info) = _pendulum(seed=seed)
         meas_rot, meas_pos = meas_rot.copy(), meas_pos.copy()
@@ -718,20 +721,48 @@ def test_unwrap_labelling_keeps_a_run_of_turning_wrong_fits_from_relabelling_the
         unwrapped = smooth_track(*args, dataclasses.replace(cfg, unwrap_labelling=True))
         plain = smooth_track(*args, cfg)
         np.testing.assert_array_equal(unwrapped.jump_rejected, ~good)
-        assert unwrapped.hinge
+        assert unwrapped.hinge_modelled.all() and not unwrapped.hinge_outlier.any()
         err = np.linalg.norm(unwrapped.position - pos, axis=-1)[good]
         rot_err = rotation_error_deg(unwrapped.rotation[good], rot[good])
         assert err.max() < 0.01 and rot_err.max() < 2.0, (seed, err.max(), rot_err.max())
         assert rotation_error_deg(plain.rotation[25:], rot[25:]).min() > 45.0
+        assert plain.hinge_modelled.any() and plain.hinge_outlier[:22].all()
         plain_err = np.linalg.norm(plain.position - pos, axis=-1)[good]
         assert plain_err.max() > 0.05, (seed, plain_err.max())
 
 
+def test_unwrap_labelling_on_one_segment_without_the_jump_test():
+    """The smoother's path without gaps or the jump test (one segment, a fixed-axis fit per
+    segment): a pendulum whose every fit comes under a random labelling. With the option the
+    chain gives every frame the first one's labelling: the fixed-axis model is used, rotations
+    within 2 deg, centres within 1 cm, velocity RMS under 5 cm/s (seeds 3-6 gave at most 0.6
+    deg, 3.0 mm and 1.2 cm/s). Without it the model is rejected, the rotations are up to 176-180
+    deg off and the velocity RMS over 0.2 m/s (0.24-0.37)."""
+    for seed in (3, 4, 5):
+        (rot, pos, vel, _), (meas_rot, meas_pos, info) = _pendulum(seed=seed)
+        labels = _random_labellings(len(rot), seed=seed)
+        labels[0] = np.eye(3)
+        args = (meas_rot @ labels, meas_pos, info, np.ones(len(rot), bool), DT)
+        cfg = SmootherConfig(info_scale=1.0, hinge_max_cost=12.6)
+        unwrapped = smooth_track(*args, dataclasses.replace(cfg, unwrap_labelling=True))
+        plain = smooth_track(*args, cfg)
+        assert unwrapped.hinge and not plain.hinge
+        assert rotation_error_deg(unwrapped.rotation, rot).max() < 2.0
+        assert np.linalg.norm(unwrapped.position - pos, axis=-1).max() < 0.01
+        vel_rms = [
+            np.sqrt(np.mean(np.linalg.norm(out.velocity - vel, axis=-1) ** 2))
+            for out in (unwrapped, plain)
+        ]
+        assert vel_rms[0] < 0.05 and vel_rms[1] > 0.2, vel_rms
+        assert rotation_error_deg(plain.rotation, rot).max() > 90.0
+
+
 def test_unwrap_labelling_changes_little_where_the_fits_keep_one_labelling():
     """With one labelling throughout (a pendulum, two fits 15 cm deep, a 12-frame loss), the
-    option has nothing to unwrap: the same frames flagged, and the whole-track model's centres and
-    rotations those without it to round-off (its relabelled passes refit the same frames to the
-    same minimum; seeds 5-8 of the noise gave at most 2e-12 m and 8e-10 deg)."""
+    option has nothing to unwrap: the whole-track model is accepted with the same frames flagged
+    (the two deep fits), its centres and rotations those without it to round-off (its
+    relabelled passes refit the same frames to the same minimum; seeds 5-8 of the noise gave at
+    most 2e-12 m and 8e-10 deg)."""
     for seed in (5, 6, 7):
         (_, pos, _, _), (meas_rot, meas_pos, info) = _pendulum(seed=seed)
         meas_pos = meas_pos.copy()
@@ -743,7 +774,8 @@ def test_unwrap_labelling_changes_little_where_the_fits_keep_one_labelling():
         args = (meas_rot, meas_pos, info, valid, DT)
         plain = smooth_track(*args, cfg)
         unwrapped = smooth_track(*args, dataclasses.replace(cfg, unwrap_labelling=True))
-        assert plain.hinge and unwrapped.hinge
+        assert plain.hinge_modelled.any() and unwrapped.hinge_modelled.any()
+        np.testing.assert_array_equal(np.flatnonzero(unwrapped.hinge_outlier), [40, 41])
         np.testing.assert_array_equal(unwrapped.hinge_outlier, plain.hinge_outlier)
         assert np.max(np.linalg.norm(unwrapped.position - plain.position, axis=-1)) < 1e-9
         assert rotation_error_deg(unwrapped.rotation, plain.rotation).max() < 1e-6

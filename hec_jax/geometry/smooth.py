@@ -189,12 +189,14 @@ class SmootherConfig:
             labellings of its axes (:func:`hec_jax.geometry.box_model.cube_symmetries`), and
             are unwrapped before they are smoothed (6. above): each kept valid frame's rotation
             is relabelled to the labelling nearest the previous kept frame's (the frames the
-            jump test rejects are left out of the chain, so their turn is not carried on), and
+            jump test rejects are left out of the chain, so a run of wrong fits that it rejects
+            does not carry its turn on; one whose centres pass it still does), and
             the whole-track fit also runs passes in which each frame's rotation is relabelled to
             the labelling nearest the model's of the pass before, from two starts, keeping the
             better (:func:`fit_hinge_robust`). A relabelling is then not read as motion. The
-            chain is exact while the object turns by under 45 deg between consecutive kept
-            frames. Costs two more whole-track fits. False (the default,
+            chain is exact while the fitted rotations (the true turn plus the fits' errors)
+            change by under 45 deg between consecutive kept frames. Costs two more runs of the
+            whole-track fit's passes. False (the default,
             the smoother as it was): the rotations as given (the tracker keeps one labelling
             by snapping each fit to the last accepted one, ``TrackConfig.keep_labelling``, so a
             run of wrong fits that turns the box can leave the good fits after it relabelled).
@@ -581,11 +583,13 @@ def fit_hinge_robust(
         return fit, costs(fit, weight)
 
     def robust_objective(fit, cost):
-        # the Cauchy loss the reweighting minimises, plus the angle's prior
+        # the Cauchy loss the reweighting minimises, plus the angle's prior; inf where any of it
+        # is not finite (a run that diverged is never kept over a finite one)
         sigma = jnp.sqrt(2.0 / 3.0 * cfg.angular_accel_psd * dt**3)
         second = (fit.angle[2:] - 2.0 * fit.angle[1:-1] + fit.angle[:-2]) / sigma
-        data = jnp.sum(jnp.where(valid, c0 * jnp.log1p(jnp.nan_to_num(cost, nan=0.0) / c0), 0.0))
-        return jnp.where(jnp.isfinite(data), data + jnp.sum(second**2), jnp.inf)
+        data = jnp.sum(jnp.where(valid, c0 * jnp.log1p(jnp.where(valid, cost, 0.0) / c0), 0.0))
+        total = data + jnp.sum(second**2)
+        return jnp.where(jnp.isfinite(total), total, jnp.inf)
 
     fit, cost = irls(False, rot_init, pos_init)
     if cfg.unwrap_labelling:
@@ -840,8 +844,8 @@ def unwrap_labellings(rotations: np.ndarray, idx: np.ndarray) -> np.ndarray:
     """(T, 3, 3) ``rotations`` with each frame of ``idx`` (sorted) after the first relabelled
     to the cube labelling nearest the frame of ``idx`` before it (already relabelled): a chain,
     as a phase is unwrapped (module docstring, 6.). The other frames and the first of ``idx``
-    are returned as given. Right whenever the true rotation between consecutive frames of
-    ``idx`` is under 45 deg.
+    are returned as given. Right whenever the fitted rotations of consecutive frames of ``idx``
+    differ by under 45 deg (up to their labelling).
     """
     out = np.array(rotations, np.float64)
     for before, t in zip(idx[:-1], idx[1:], strict=True):
