@@ -285,6 +285,9 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     assert smooth.unwrap_labelling
     wrapped = bench.smoother_config(parse(bench.EyeRandomized(), ["--no-unwrap-labelling"]))
     assert wrapped == dataclasses.replace(smooth, unwrap_labelling=False)
+    # gravity in the fixed-axis fits (session 90): off unless asked for
+    assert not parse(bench.EyeRandomized(), []).gravity
+    assert parse(bench.EyeRandomized(), ["--gravity"]).gravity
     with pytest.raises(SystemExit):
         parse(bench.EyeRandomized(), ["--hinge-max-cost", "0"])
     two = bench.tracker_config(parse(bench.EyeRandomized(), ["--blob-scales", "2", "3"]))
@@ -867,6 +870,24 @@ def test_the_eye_benchmark_s_splits_give_their_seeds():
     for seed in range(6000, 6049):
         scene = draw_scene(seed)
         assert (seed in wood) == (scene.look == "wood" and scene.elevation_deg < 12)
+
+
+@pytest.mark.slow  # two whole benchmark sequences; the option is off by default
+def test_the_eye_benchmark_s_gravity_changes_only_the_smoothed_row():
+    """``benchmarks/eye_randomized.py --gravity`` on development scene 5: the scene's gravity
+    reaches the smoother (its fixed-axis fits held horizontal), so only the smoothed row may
+    change; the causal row and the baselines are the same bit for bit."""
+    from hec_jax.cli import parse
+
+    bench = _script("benchmarks/eye_randomized.py")
+    off = parse(bench.EyeRandomized(), ["--split", "dev"])
+    on = dataclasses.replace(off, gravity=True)
+    (res_off, _), (res_on, _) = (bench.run_sequence(5, a) for a in (off, on))
+    for name in ("tracker_causal", "opencv_pnp", "paper"):
+        for key, value in res_off[name].items():
+            if not key.startswith("time"):  # the wall clock
+                np.testing.assert_array_equal(res_on[name][key], value, err_msg=(name, key))
+    assert res_on["tracker"]["valid_visible_frames"] == res_off["tracker"]["valid_visible_frames"]
 
 
 # slow (73 s on the CI's CPU, two whole benchmark sequences): the option is off by default, and

@@ -88,6 +88,36 @@ def test_max_swing_speed_bounds_the_simulated_cube():
     assert max_swing_speed_m_s(RandomSceneRanges(release_rad=(0.1, 0.3))) < bound
 
 
+def test_world_from_camera_is_the_rendering_camera_s_pose():
+    """``world_from_camera`` (the scenes' calibrated extrinsics) against MuJoCo's own camera after
+    ``mj_forward``: the cube at rest (``swing_bottom``, world) has the camera coordinates that
+    ``body_in_camera`` gives, it is ``distance_m`` from the camera (the orbit) and projects into
+    the image, and the camera has no roll (gravity has no image-x component). Before session 90
+    it returned a zero pose (``mj_kinematics`` does not place cameras)."""
+    import mujoco
+
+    from hec_jax.mjx_scene.camera import camera_intrinsics
+    from hec_jax.mjx_scene.randomized import scene_mjcf, swing_bottom, world_from_camera
+    from hec_jax.mjx_scene.render import body_in_camera
+
+    for seed in (DEV_SEED, 3, 11):
+        scene = draw_scene(seed)
+        r_wc, p_wc = world_from_camera(scene)
+        np.testing.assert_allclose(r_wc.T @ r_wc, np.eye(3), atol=1e-9)
+        m = mujoco.MjModel.from_xml_string(*scene_mjcf(scene, 640, 480))
+        d = mujoco.MjData(m)  # qpos 0: the pendulum hangs at rest
+        mujoco.mj_forward(m, d)
+        at_rest, _ = body_in_camera(m, d, "cube", "eye")
+        mine = r_wc.T @ (swing_bottom(scene) - p_wc)
+        np.testing.assert_allclose(mine, at_rest, atol=1e-6)
+        # the MJCF holds the camera's position to 6 significant digits (scene_mjcf): ~1e-5 m
+        assert abs(np.linalg.norm(mine) - scene.distance_m) < 1e-5
+        uvw = camera_intrinsics(m, "eye", 640, 480) @ mine
+        assert 0 < uvw[0] / uvw[2] < 640 and 0 < uvw[1] / uvw[2] < 480
+        gravity_cam = r_wc.T @ np.array([0.0, 0.0, -1.0])
+        assert abs(gravity_cam[0]) < 1e-9 and gravity_cam[1] > 0  # no roll; down is image +y
+
+
 @pytest.fixture(scope="module")
 def rendered():
     scene = draw_scene(DEV_SEED)

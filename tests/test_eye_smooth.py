@@ -532,8 +532,8 @@ def test_settings_differing_in_numbers_share_one_compilation_and_each_number_act
     ref = smooth_track(*args, base)
     assert ref.hinge
     static, _ = smooth_mod._compiled_form(base)
-    segment_fit = smooth_mod._JIT[(static, float(DT))]
-    whole_fit = smooth_mod._JIT[("whole", static, float(DT))]
+    segment_fit = smooth_mod._JIT[(static, float(DT), False)]  # (False: no gravity)
+    whole_fit = smooth_mod._JIT[("whole", static, float(DT), False)]
     # programs of this length now compiled (other tests may have compiled other lengths)
     compiled = (segment_fit._cache_size(), whole_fit._cache_size())
     jitted = len(smooth_mod._JIT)
@@ -779,3 +779,106 @@ def test_unwrap_labelling_changes_little_where_the_fits_keep_one_labelling():
         np.testing.assert_array_equal(unwrapped.hinge_outlier, plain.hinge_outlier)
         assert np.max(np.linalg.norm(unwrapped.position - plain.position, axis=-1)) < 1e-9
         assert rotation_error_deg(unwrapped.rotation, plain.rotation).max() < 1e-6
+
+
+def _horizontal_pendulum(gravity, t_n=60, seed=0, depth_sd=0.03):
+    """A pendulum whose hinge is horizontal (perpendicular to ``gravity``, camera frame), its
+    centre hanging below the pivot, measured with a centre noise of ``depth_sd`` [m] along the
+    line of sight (z) and 3 mm across, and 1 deg in rotation: (truth axis, rot, pos), (meas_rot,
+    meas_pos, info)."""
+    g = np.asarray(gravity, float) / np.linalg.norm(gravity)
+    axis = np.cross(g, [0.3, -0.2, 1.0])  # horizontal: perpendicular to gravity
+    axis /= np.linalg.norm(axis)
+    t = np.arange(t_n) * DT
+    theta = 0.5 * np.cos(3.0 * t)  # [rad]
+    e = np.asarray(so3_exp(jnp.asarray(theta[:, None] * axis[None])))
+    r0 = np.asarray(so3_exp(jnp.array([0.3, -0.1, 0.2])))
+    pivot = np.array([0.05, -0.2, 1.8])  # [m]
+    rot, pos = e @ r0, pivot + e @ (0.6 * g)  # the arm hangs along gravity at theta = 0
+    rng = np.random.default_rng(seed)
+    s_w, s_p = np.deg2rad(1.0), np.array([3e-3, 3e-3, depth_sd])
+    meas_rot = np.asarray(so3_exp(jnp.asarray(rng.normal(0.0, s_w, (t_n, 3))))) @ rot
+    meas_pos = pos + rng.normal(0.0, 1.0, (t_n, 3)) * s_p
+    info = np.tile(np.diag(np.r_[np.full(3, s_w**-2), s_p**-2]), (t_n, 1, 1))
+    return (axis, rot, pos), (meas_rot, meas_pos, info)
+
+
+# a camera looking down 35 deg and rolled 10 deg: gravity in its frame (y down in the image)
+GRAVITY_CAM = np.asarray(so3_exp(jnp.array([np.deg2rad(-35.0), 0.0, np.deg2rad(10.0)]))) @ [
+    0.0,
+    1.0,
+    0.0,
+]
+GRAVITY_CFG = dataclasses.replace(
+    NO_EXTRAPOLATION, info_scale=1.0, hinge_max_cost=12.6, hinge_robust_scale=6.0
+)
+
+
+def test_gravity_holds_the_fixed_axis_horizontal_and_nearer_the_truth():
+    """With ``gravity_cam`` every fixed-axis fit keeps its axis perpendicular to gravity (to
+    round-off) and, on depth-noisy fits of a pendulum whose hinge is horizontal, the axis and the
+    centres come nearer the truth than without it, on the mean over 6 noise seeds (the free
+    axis tilts with the depth noise; the constrained one cannot). Both models are accepted.
+    (Measured: mean axis errors 0.21 against 0.41 deg.)"""
+    axis_err, pos_err = {True: [], False: []}, {True: [], False: []}
+    for seed in range(6):
+        (axis, _, pos), (meas_rot, meas_pos, info) = _horizontal_pendulum(GRAVITY_CAM, seed=seed)
+        valid = np.ones(len(pos), bool)
+        for constrained in (True, False):
+            g = GRAVITY_CAM if constrained else None
+            out = smooth_track(meas_rot, meas_pos, info, valid, DT, GRAVITY_CFG, gravity_cam=g)
+            assert out.hinge and out.hinge_modelled.all()
+            if constrained:
+                assert abs(out.hinge_axis @ GRAVITY_CAM) < 1e-9
+            axis_err[constrained].append(np.degrees(np.arccos(abs(out.hinge_axis @ axis))))
+            pos_err[constrained].append(np.sqrt(np.mean(np.sum((out.position - pos) ** 2, -1))))
+    assert np.mean(axis_err[True]) < np.mean(axis_err[False]), axis_err
+    assert np.mean(pos_err[True]) < np.mean(pos_err[False]), pos_err
+
+
+def test_gravity_of_noise_free_fits_gives_the_truth_and_refuses_a_tilted_hinge():
+    """Noise-free fits of a horizontal hinge: the constrained fit recovers the axis and centres
+    (the constraint biases nothing that is true). Told a gravity 30 deg off (the hinge then not
+    horizontal), the whole-track model no longer explains the fits: rejected, not bent."""
+    (axis, rot, pos), _ = _horizontal_pendulum(GRAVITY_CAM, seed=0)
+    meas_rot, meas_pos = rot, pos  # noise free
+    info = np.tile(np.diag([1e4] * 3 + [1e6] * 3), (len(pos), 1, 1))
+    valid = np.ones(len(pos), bool)
+    out = smooth_track(meas_rot, meas_pos, info, valid, DT, GRAVITY_CFG, gravity_cam=GRAVITY_CAM)
+    assert out.hinge_modelled.all()
+    assert np.degrees(np.arccos(abs(out.hinge_axis @ axis))) < 0.01
+    assert np.max(np.linalg.norm(out.position - pos, axis=-1)) < 1e-4
+    g = GRAVITY_CAM / np.linalg.norm(GRAVITY_CAM)
+    tilt = np.cos(np.deg2rad(30.0)) * g + np.sin(np.deg2rad(30.0)) * axis  # a gravity 30 deg off
+    wrong = smooth_track(meas_rot, meas_pos, info, valid, DT, GRAVITY_CFG, gravity_cam=tilt)
+    assert abs(np.degrees(np.arcsin(abs(tilt @ axis))) - 30.0) < 1e-6  # the hinge 30 deg off
+    assert not wrong.hinge_modelled.any()
+    assert abs(wrong.hinge_axis @ tilt) < 1e-9  # the per-segment fit: held horizontal, refused
+
+
+def test_gravity_cam_bad_values_raise():
+    (_, _, pos), (meas_rot, meas_pos, info) = _horizontal_pendulum(GRAVITY_CAM, t_n=12)
+    valid = np.ones(len(pos), bool)
+    for bad in ([0.0, 1.0], [0.0, 0.0, 0.0], [np.nan, 1.0, 0.0]):
+        with pytest.raises(ValueError, match="gravity_cam"):
+            smooth_track(meas_rot, meas_pos, info, valid, DT, gravity_cam=bad)
+
+
+@pytest.mark.slow  # compiles, for a contract on compile counts (as the warm-up test above)
+def test_warm_up_with_gravity_compiles_the_constrained_fits():
+    """``warm_up(..., gravity=True)`` compiles the fits ``gravity_cam`` calls: after it, tracks
+    smoothed with a gravity compile nothing (the meter hears JAX's compilations); a frame
+    interval no other test uses."""
+    from hec_jax.report import CompileMeter
+
+    (_, _, pos), (meas_rot, meas_pos, info) = _horizontal_pendulum(GRAVITY_CAM, t_n=45)
+    dt = 1 / 28.71
+    assert smooth_mod.warm_up(45, dt, NO_EXTRAPOLATION, gravity=True) == 2
+    meter = CompileMeter().install()
+    try:
+        valid = np.ones(45, bool)
+        valid[20:30] = False  # two segments, padded to 32 frames, and the whole-track fit
+        smooth_track(meas_rot, meas_pos, info, valid, dt, NO_EXTRAPOLATION, gravity_cam=[0, 1, 0])
+    finally:
+        meter.uninstall()
+    assert meter.compilations == 0

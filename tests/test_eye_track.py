@@ -89,6 +89,9 @@ def test_bad_arguments_raise(seq):
         track_box(seq.frames[:2], seq.intrinsics, -1.0, FPS)
     with pytest.raises(ValueError):
         track_box(seq.frames[:2], seq.intrinsics, EDGE, 0.0)
+    for gravity in ([0.0, 1.0], [0.0, 0.0, 0.0], [np.inf, 1.0, 0.0]):  # before any frame is tracked
+        with pytest.raises(ValueError, match="gravity_cam"):
+            track_box(seq.frames[:2], seq.intrinsics, EDGE, FPS, gravity_cam=gravity)
 
 
 @pytest.mark.parametrize("scales", [[3.0], (3.0, 0.0), (float("nan"),), ("3",)])

@@ -450,3 +450,29 @@ def test_the_hold_counts_the_same_steps_in_float32_and_float64(phase):
         assert held == [k < expected for k in range(400)], (dtype, phase)
     times = jnp.asarray(np.arange(400) * dt, jnp.float32)
     assert int(jnp.sum(held_at(times, jnp.float32(phase), dt))) == expected
+
+
+def test_render_rollout_times_are_its_frames_states_times():
+    """``render.render_rollout``'s ``times`` against an independent replay of the same simulation
+    from a state whose clock does not start at 0: each frame's true centre is the replay's
+    state at the frame's time, to round-off (before session 90 ``times`` was i / fps, a step
+    early)."""
+    from hec_jax.mjx_scene.render import body_in_camera, render_rollout
+
+    m = S.load_mj_model()
+    d = mujoco.MjData(m)
+    hinge = m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, "hinge")]
+    d.qpos[hinge], d.time = 0.5, 0.25
+    start_qpos = d.qpos.copy()
+    seq = render_rollout(m, d, 4, 30.0, "eye", "cube", 64, 48)  # (the time step shrunk in m)
+    replay = mujoco.MjData(m)
+    replay.qpos[:], replay.time = start_qpos, 0.25
+    mujoco.mj_forward(m, replay)
+    at_time = {}
+    while replay.time < seq.times[-1] + 0.5 * m.opt.timestep:
+        at_time[round(replay.time / m.opt.timestep)] = body_in_camera(m, replay, "cube", "eye")[0]
+        mujoco.mj_step(m, replay)
+        mujoco.mj_forward(m, replay)
+    assert seq.times[0] > 0.25 and np.allclose(np.diff(seq.times), 1 / 30.0)
+    for t, centre in zip(seq.times, seq.position, strict=True):
+        np.testing.assert_allclose(centre, at_time[round(t / m.opt.timestep)], atol=1e-12)

@@ -123,6 +123,7 @@ def guarded_backward_fill(
     cfg: SmootherConfig,
     track_backward: TrackBackward,
     first: SmoothedTrack | None = None,
+    gravity_cam=None,
 ) -> BackwardFill:
     """The guarded backward extension (module docstring), NumPy in and out.
 
@@ -133,6 +134,7 @@ def guarded_backward_fill(
             needs ``cfg.hinge_whole_track``, without which nothing is extended).
         track_backward: runs a tracker backward from a segment's first frame (:data:`TrackBackward`).
         first: the smoothing of ``fits`` with ``cfg`` if already computed (else computed here).
+        gravity_cam: gravity in the camera frame for every smoothing (:func:`smooth_track`).
 
     Returns:
         :class:`BackwardFill`. Where no frame is kept, ``fits`` and ``first`` come back as they
@@ -161,7 +163,9 @@ def guarded_backward_fill(
         if f.valid.any():  # before the first valid frame, its rotation (track_box's convention)
             first_valid = int(np.argmax(f.valid))
             rot[:first_valid] = rot[first_valid]
-        return smooth_track(rot, f.position, f.information, f.valid, dt, cfg, f.restarted)
+        return smooth_track(
+            rot, f.position, f.information, f.valid, dt, cfg, f.restarted, gravity_cam
+        )
 
     if first is None:
         first = smooth(fits)

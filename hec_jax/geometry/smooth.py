@@ -346,6 +346,7 @@ def fit_hinge(
     pos_init: Array,
     dt: float,
     cfg: SmootherConfig,
+    gravity: Array | None = None,
 ) -> HingeFit:
     """Rigid rotation about one fixed line (a hinge) fitted to a pose sequence (pure JAX).
 
@@ -367,6 +368,12 @@ def fit_hinge(
     Started from a smoothed sequence (``rot_init``, ``pos_init``): a = the principal direction of
     the rotation vectors log(R_i R_f^T) (f the first valid frame), theta_i their component
     along a, p from (I - E_i) p = t_i - E_i t_f in least squares.
+
+    ``gravity``: None, or a (3,) unit vector along gravity in the measurements' frame (the camera
+    frame of a calibrated camera). Given, the axis is held perpendicular to it (a pendulum's
+    hinge is horizontal): the start is the principal direction of the rotation vectors projected
+    on the horizontal plane, and every step moves the axis within that plane (one degree of
+    freedom instead of two).
     """
     t_n = rotations.shape[0]
     dtype = rotations.dtype
@@ -376,8 +383,18 @@ def fit_hinge(
     f = jnp.argmax(valid)
     r_ref, t_ref = rot_init[f], pos_init[f]
     w = so3_log(rot_init @ r_ref.T) * wv[:, None]  # (T, 3) [rad]
-    _, evecs = jnp.linalg.eigh(w.T @ w)
+    scatter = w.T @ w
+    if gravity is not None:  # the principal direction within the plane perpendicular to gravity
+        g = gravity / jnp.linalg.norm(gravity)
+        flat = jnp.eye(3, dtype=dtype) - jnp.outer(g, g)
+        scatter = flat @ scatter @ flat
+    _, evecs = jnp.linalg.eigh(scatter)
     axis = evecs[:, -1]
+    if gravity is not None:  # exactly horizontal (a scatter of zero leaves any eigenvector)
+        axis = flat @ axis
+        fallback = flat @ jnp.eye(3, dtype=dtype)[jnp.argmin(jnp.abs(g))]
+        axis = jnp.where(jnp.linalg.norm(axis) > 0.5, axis, fallback)
+        axis = axis / jnp.linalg.norm(axis)
     theta = w @ axis
     e = so3_exp(theta[:, None] * axis[None])
     a_ls = (jnp.eye(3, dtype=dtype)[None] - e) * wv[:, None, None]
@@ -389,7 +406,12 @@ def fit_hinge(
         r0, t0, a, p = state
         r0 = so3_exp(x[:3]) @ r0
         t0 = t0 + x[3:6]
-        a = a + x[6:9] - (x[6:9] @ a) * a
+        da = x[6:9] - (x[6:9] @ a) * a
+        if gravity is not None:  # the axis moves within the horizontal plane
+            da = da - (da @ g) * g
+        a = a + da
+        if gravity is not None:
+            a = a - (a @ g) * g
         a = a / jnp.linalg.norm(a)
         p = p + x[9:12]
         return r0, t0, a, p - ((p - t0) @ a) * a  # the point of the axis nearest to t0
@@ -529,11 +551,12 @@ def fit_hinge_robust(
     pos_init: Array,
     dt: float,
     cfg: SmootherConfig,
+    gravity: Array | None = None,
 ) -> RobustHinge:
     """:func:`fit_hinge` reweighted against outlier frames (module docstring, 4.; pure JAX).
 
     ``information`` (T, 6, 6) is already scaled by ``cfg.info_scale`` and zero where not
-    ``valid``. Each pass refits from the previous pass's poses with every frame's information
+    ``valid``. ``gravity``: as :func:`fit_hinge` (every pass holds the axis horizontal). Each pass refits from the previous pass's poses with every frame's information
     times its Cauchy weight 1 / (1 + c_i / c0); c_i is the frame's normalised squared residual
     under the unweighted information. Acceptance: finite, at least ``hinge_min_frames`` and
     ``hinge_min_inliers`` of the valid frames inliers (weight over 0.1), median inlier c_i at
@@ -568,7 +591,7 @@ def fit_hinge_robust(
         def refit(weight, r_init, p_init):
             info = information * weight[:, None, None]
             meas = measured(r_init, relabel)
-            return fit_hinge(meas, positions, info, valid, r_init, p_init, dt, cfg)
+            return fit_hinge(meas, positions, info, valid, r_init, p_init, dt, cfg, gravity)
 
         def one_pass(carry, _):
             weight, r_init, p_init = carry
@@ -621,7 +644,7 @@ def fit_hinge_robust(
     return RobustHinge(fit, velocity, acceleration, inlier, accepted)
 
 
-def _smooth(rotations, positions, information, valid, dt, cfg: SmootherConfig):
+def _smooth(rotations, positions, information, valid, dt, cfg: SmootherConfig, gravity=None):
     info = jnp.where(valid[:, None, None], cfg.info_scale * information, 0.0)
     marg, ltt_inv, cond = jax.vmap(_split)(info)
     rot = smooth_rotations(rotations, marg, dt, cfg)
@@ -630,7 +653,7 @@ def _smooth(rotations, positions, information, valid, dt, cfg: SmootherConfig):
     nan = jnp.full((), jnp.nan, rotations.dtype)
     hinge, axis, cost = jnp.asarray(False), jnp.full(3, nan), nan
     if cfg.hinge:
-        fit = fit_hinge(rotations, positions, info, valid, rot, pos, dt, cfg)
+        fit = fit_hinge(rotations, positions, info, valid, rot, pos, dt, cfg, gravity)
         finite = jnp.all(jnp.isfinite(fit.rotation)) & jnp.all(jnp.isfinite(fit.position))
         hinge = finite & (fit.cost <= cfg.hinge_max_cost)
         rot = jnp.where(hinge, fit.rotation, rot)
@@ -657,6 +680,7 @@ def smooth_track(
     dt: float,
     cfg: SmootherConfig = SmootherConfig(),
     restarts=None,
+    gravity_cam=None,
 ) -> SmoothedTrack:
     """Smooth a tracked sequence (NumPy in and out), segment by segment (``cfg.max_gap_s``,
     ``cfg.split_at_restarts``, ``cfg.max_speed_m_s``).
@@ -677,23 +701,46 @@ def smooth_track(
         cfg: the smoother's settings.
         restarts: (T,) bool, the frames where the causal tracker started a new filter
             (``TrackStep.restarted``); used with ``cfg.split_at_restarts``. None: none.
+        gravity_cam: (3,) the direction of gravity in the camera frame (any length; from a
+            calibrated camera's extrinsics, e.g. ``R_world_cam.T @ (0, 0, -1)``), or None. Given,
+            every fixed-axis fit (``cfg.hinge``, per segment and over the whole track) keeps its
+            axis horizontal, as a pendulum's hinge is (:func:`fit_hinge`). None: the axis is free
+            (as before).
 
     Computed in float64 whatever ``jax_enable_x64`` says (``jax.enable_x64`` around the jitted
     fits): in float32 the fixed-axis fit returns NaN on many sequences and is silently dropped.
 
     Raises:
         ValueError: ``restarts`` not of ``valid``'s shape; ``cfg.max_speed_m_s`` not positive
-            or ``cfg.jump_slack_m`` negative.
+            or ``cfg.jump_slack_m`` negative; ``gravity_cam`` not a finite nonzero (3,) vector.
     """
     if cfg.max_speed_m_s is not None and not cfg.max_speed_m_s > 0:
         raise ValueError(f"max_speed_m_s must be positive or None, got {cfg.max_speed_m_s}")
     if not cfg.jump_slack_m >= 0:
         raise ValueError(f"jump_slack_m must be >= 0, got {cfg.jump_slack_m}")
+    gravity = check_gravity(gravity_cam)
     with jax.enable_x64(True):
-        return _smooth_track(rotations, positions, information, valid, dt, cfg, restarts)
+        return _smooth_track(rotations, positions, information, valid, dt, cfg, restarts, gravity)
 
 
-def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -> SmoothedTrack:
+def check_gravity(gravity_cam) -> np.ndarray | None:
+    """``gravity_cam`` as a (3,) float64 unit vector, or None where None (the public boundary's
+    check of :func:`smooth_track`'s argument).
+
+    Raises:
+        ValueError: not a finite nonzero (3,) vector.
+    """
+    if gravity_cam is None:
+        return None
+    gravity = np.asarray(gravity_cam, np.float64)
+    if gravity.shape != (3,) or not np.all(np.isfinite(gravity)) or not np.linalg.norm(gravity) > 0:
+        raise ValueError(f"gravity_cam must be a finite nonzero (3,) vector, got {gravity_cam!r}")
+    return gravity / np.linalg.norm(gravity)
+
+
+def _smooth_track(
+    rotations, positions, information, valid, dt, cfg, restarts, gravity=None
+) -> SmoothedTrack:
     """:func:`smooth_track` under float64 (the same arguments, all given)."""
     valid = np.asarray(valid, bool)
     t_n = len(valid)
@@ -725,7 +772,7 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
     if cfg.max_gap_s is None and not split and cfg.max_speed_m_s is None:
         if cfg.unwrap_labelling:
             rotations = unwrap_labellings(rotations, idx)
-        seg = _smooth_segment(rotations, positions, information, valid, dt, cfg)
+        seg = _smooth_segment(rotations, positions, information, valid, dt, cfg, gravity)
         out = seg._replace(
             hinge_outlier=np.zeros(t_n, bool),
             jump_rejected=np.zeros(t_n, bool),
@@ -733,7 +780,7 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
         )
         if cfg.hinge and cfg.hinge_whole_track:
             out, modelled = _whole_track(
-                out, rotations, positions, information, valid, [(0, t_n)], dt, cfg
+                out, rotations, positions, information, valid, [(0, t_n)], dt, cfg, gravity
             )
             out = out._replace(hinge_modelled=modelled)
         return out
@@ -769,7 +816,9 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
     for a, b in zip(starts, ends, strict=True):
         sl = slice(a, b)
         if valid[sl].sum() >= 4:
-            seg = _smooth_segment(rotations[sl], positions[sl], information[sl], valid[sl], dt, cfg)
+            seg = _smooth_segment(
+                rotations[sl], positions[sl], information[sl], valid[sl], dt, cfg, gravity
+            )
             for name in ("rotation", "position", "velocity", "acceleration", "position_cov"):
                 getattr(out, name)[sl] = getattr(seg, name)
             if b - a > longest:
@@ -789,7 +838,7 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
     ends_all = np.asarray(ends_all)
     if cfg.hinge and cfg.hinge_whole_track:
         out, modelled = _whole_track(
-            out, rotations, positions, information, valid, model_segments, dt, cfg
+            out, rotations, positions, information, valid, model_segments, dt, cfg, gravity
         )
         inside |= modelled  # the model's state across a jump inside a segment it agrees with
         out = out._replace(hinge_modelled=modelled)
@@ -804,7 +853,9 @@ def _smooth_track(rotations, positions, information, valid, dt, cfg, restarts) -
     return out._replace(jump_rejected=rejected)
 
 
-def warm_up(t_n: int, dt: float, cfg: SmootherConfig = SmootherConfig()) -> int:
+def warm_up(
+    t_n: int, dt: float, cfg: SmootherConfig = SmootherConfig(), gravity: bool = False
+) -> int:
     """Compile every jitted fit that :func:`smooth_track` with ``dt`` and ``cfg`` can call on a
     track of ``t_n`` frames, so that a timed caller does not time a compilation (each takes
     seconds on first use): the per-segment fit for each padded segment length (a multiple of
@@ -812,7 +863,8 @@ def warm_up(t_n: int, dt: float, cfg: SmootherConfig = SmootherConfig()) -> int:
     fall) and, with ``cfg.hinge`` and ``cfg.hinge_whole_track``, the whole-track fit. Runs
     ``smooth_track`` on synthetic tracks (a slow straight motion, one valid segment of each
     padded length) and returns how many tracks it ran (not how many programs compiled: a
-    program compiled earlier is not compiled again); their results are discarded.
+    program compiled earlier is not compiled again); their results are discarded. ``gravity``:
+    compile the fits that hold the axis horizontal (``smooth_track``'s ``gravity_cam`` given).
 
     Raises:
         ValueError: ``t_n`` not an integer >= 1 or ``dt`` not positive.
@@ -835,7 +887,9 @@ def warm_up(t_n: int, dt: float, cfg: SmootherConfig = SmootherConfig()) -> int:
             continue
         valid = np.zeros(t_n, bool)
         valid[:length] = True
-        smooth_track(rotations, positions, information, valid, dt, cfg, np.zeros(t_n, bool))
+        gravity_cam = np.array([0.0, 1.0, 0.0]) if gravity else None
+        restarts = np.zeros(t_n, bool)
+        smooth_track(rotations, positions, information, valid, dt, cfg, restarts, gravity_cam)
         runs += 1
     return runs
 
@@ -925,15 +979,25 @@ def _segments(idx: np.ndarray, new_segment: np.ndarray) -> tuple[np.ndarray, np.
     return starts, ends
 
 
-def _smooth_segment(rotations, positions, information, valid, dt, cfg) -> SmoothedTrack:
-    """:func:`_smooth` on one segment (>= 4 valid frames), padded to a multiple of ``PAD``."""
+def _smooth_segment(rotations, positions, information, valid, dt, cfg, gravity=None):
+    """:func:`_smooth` on one segment (>= 4 valid frames), padded to a multiple of ``PAD``
+    (a :class:`SmoothedTrack`).
+    """
     t_n = len(valid)
     static, numbers = _compiled_form(cfg)
-    key = (static, float(dt))
+    key = (static, float(dt), gravity is not None)
     if key not in _JIT:
-        _JIT[key] = jax.jit(lambda r, p, i, v, x: _smooth(r, p, i, v, dt, _with_numbers(static, x)))
+        if gravity is None:
+            _JIT[key] = jax.jit(
+                lambda r, p, i, v, x: _smooth(r, p, i, v, dt, _with_numbers(static, x))
+            )
+        else:
+            _JIT[key] = jax.jit(
+                lambda r, p, i, v, x, g: _smooth(r, p, i, v, dt, _with_numbers(static, x), g)
+            )
     # padded to a multiple of PAD frames to share compilations
-    out = _JIT[key](*_pad_inputs(rotations, positions, information, valid), numbers)
+    args = (*_pad_inputs(rotations, positions, information, valid), numbers)
+    out = _JIT[key](*args) if gravity is None else _JIT[key](*args, gravity)
     per_frame = (np.array(x)[:t_n] for x in out[:5])
     return SmoothedTrack(*per_frame, *(np.asarray(x) for x in out[5:8]))
 
@@ -955,7 +1019,7 @@ def _pad_inputs(rotations, positions, information, valid):
     )
 
 
-def _whole_track(out, rotations, positions, information, valid, segments, dt, cfg):
+def _whole_track(out, rotations, positions, information, valid, segments, dt, cfg, gravity=None):
     """The robust whole-track fixed-axis fit (module docstring, 4.) on top of the per-segment
     result ``out`` (its poses start the fit). Where accepted, each segment [a, b) of
     ``segments`` in which at least half the valid frames are inliers takes the model's state; a
@@ -965,18 +1029,19 @@ def _whole_track(out, rotations, positions, information, valid, segments, dt, cf
     """
     t_n = len(valid)
     static, numbers = _compiled_form(cfg)
-    key = ("whole", static, float(dt))
+    key = ("whole", static, float(dt), gravity is not None)
     if key not in _JIT:
 
-        def run(r, p, i, v, r0, p0, x):
+        def run(r, p, i, v, r0, p0, x, g=None):
             traced = _with_numbers(static, x)
             info = jnp.where(v[:, None, None], traced.info_scale * i, 0.0)
-            return fit_hinge_robust(r, p, info, v, r0, p0, dt, traced)
+            return fit_hinge_robust(r, p, info, v, r0, p0, dt, traced, g)
 
         _JIT[key] = jax.jit(run)
     r, p, i, v = _pad_inputs(rotations, positions, information, valid)
     r0, p0, _, _ = _pad_inputs(out.rotation, out.position, information, valid)  # the start
-    robust = _JIT[key](r, p, i, v, r0, p0, numbers)
+    args = (r, p, i, v, r0, p0, numbers)
+    robust = _JIT[key](*args) if gravity is None else _JIT[key](*args, gravity)
     if not bool(robust.accepted):
         return out, np.zeros(t_n, bool)
     fit = robust.fit

@@ -66,7 +66,7 @@ from hec_jax.geometry.refine import (
     retract,
     so3_log,
 )
-from hec_jax.geometry.smooth import SmootherConfig, smooth_track
+from hec_jax.geometry.smooth import SmootherConfig, check_gravity, smooth_track
 from hec_jax.geometry.synthetic import CUBE_CORNERS_UNIT, random_rotation
 
 
@@ -3092,6 +3092,7 @@ def track_box(
     config: TrackConfig = TrackConfig(),
     smoother: SmootherConfig | None = None,
     background=None,
+    gravity_cam=None,
 ) -> BoxTrack:
     """Pose, velocity and acceleration of a single box of edge ``size`` [m] in a camera sequence.
 
@@ -3109,6 +3110,10 @@ def track_box(
             (:mod:`hec_jax.geometry.backward`).
         background: the static scene without the box ((H, W) gray or (H, W, 3) RGB uint8), or
             None: then the per-pixel median of the sequence (5 frames or more) is used.
+        gravity_cam: (3,) gravity's direction in the camera frame (a calibrated camera's
+            extrinsics), or None: given, the offline smoother's fixed-axis fits hold the axis
+            horizontal, as a pendulum's hinge (:func:`smooth.smooth_track`). The causal fields
+            do not use it.
 
     Returns:
         :class:`BoxTrack`. Frames where the box was not found have ``valid == False`` (their state
@@ -3116,9 +3121,11 @@ def track_box(
         detection for the causal filter).
 
     Raises:
-        ValueError: frames not (T, H, W, 3) uint8, bad intrinsics, size or fps.
+        ValueError: frames not (T, H, W, 3) uint8, bad intrinsics, size or fps; ``gravity_cam``
+            not a finite nonzero (3,) vector.
     """
     frames = detect.check_frames(frames)
+    check_gravity(gravity_cam)  # before the frames are tracked
     check_camera_args(intrinsics, size, fps)
     cfg = config
     scfg = smoother if smoother is not None else SmootherConfig()
@@ -3166,6 +3173,7 @@ def track_box(
         1.0 / fps,
         scfg,
         restarts=out["restarted"],
+        gravity_cam=gravity_cam,
     )
     filled = np.zeros(t_n, bool)
     t_backward = 0.0
@@ -3192,7 +3200,9 @@ def track_box(
                     bool(st.valid), st.pose_rotation, st.measured_position, st.information
                 )
 
-        fill = backward.guarded_backward_fill(fits, 1.0 / fps, scfg, track_backward, first=sm)
+        fill = backward.guarded_backward_fill(
+            fits, 1.0 / fps, scfg, track_backward, first=sm, gravity_cam=gravity_cam
+        )
         sm, filled = fill.smoothed, fill.filled
         t_backward = time.perf_counter() - t4
     t_smooth = time.perf_counter() - t3

@@ -47,7 +47,8 @@ def camera_pose_world(
     (x right, y down, z forward).
 
     A world point X has camera coordinates R_world_cam.T @ (X - p_world_cam). Needs mj_kinematics
-    (or mj_forward) to have been run on ``d``.
+    and then mj_camlight (or mj_forward, which runs both) to have been run on ``d``: mj_kinematics
+    alone leaves the cameras' poses unset.
     """
     cam = camera_id(m, camera)
     return pinhole_rotation_from_mujoco(d.cam_xmat[cam]), d.cam_xpos[cam].copy()

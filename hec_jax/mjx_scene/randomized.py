@@ -416,4 +416,5 @@ def world_from_camera(scene: RandomScene, width: int = 640, height: int = 480):
     m = mujoco.MjModel.from_xml_string(xml, assets)
     d = mujoco.MjData(m)
     mujoco.mj_kinematics(m, d)
+    mujoco.mj_camlight(m, d)  # the camera's pose (cam_xpos, cam_xmat): not set by mj_kinematics
     return camera_pose_world(m, d, "eye")

@@ -249,9 +249,12 @@ def render_rollout(
     """Simulate from ``data`` and render ``n_frames`` frames at ``fps`` (full-quality renderer).
 
     The model's time step is shrunk (at most to the next integer number of steps per frame) so that
-    frames fall exactly on simulation steps. ``hold_dofs``: dof addresses held still by
-    compensating their bias forces (e.g. an arm that should stay in place). ``model.opt.timestep``
-    is changed in place.
+    frames fall exactly on simulation steps. Frame i is the state one step after i frame periods
+    (so that every frame has a central difference); ``times`` holds each frame's simulated time,
+    ``data.time`` at the start plus ``(1 + i * steps) * timestep`` (before session 90 it held
+    ``i / fps``, a step early). ``hold_dofs``: dof addresses held still by compensating their
+    bias forces (e.g. an arm that should stay in place). ``model.opt.timestep`` is changed in
+    place.
     """
     steps = int(np.ceil(1.0 / (fps * model.opt.timestep) - 1e-9))
     model.opt.timestep = 1.0 / (fps * steps)
@@ -265,6 +268,7 @@ def render_rollout(
     # start, so that every frame has a central difference).
     track = np.empty((n_frames * steps + 2, 3))
     renderer = mujoco.Renderer(model, height, width)
+    start_s = float(data.time)  # [s] the simulated time at the start
     try:
         mujoco.mj_forward(model, data)
         for s in range(len(track)):
@@ -282,7 +286,8 @@ def render_rollout(
     finally:
         renderer.close()
     pos, vel, acc = sampled_motion(track, steps, n_frames, dt)
-    return RenderedSequence(frames, k, np.arange(n_frames) / fps, pos, rot, vel, acc)
+    times = start_s + (1 + steps * np.arange(n_frames)) * dt  # [s] each frame's state's time
+    return RenderedSequence(frames, k, times, pos, rot, vel, acc)
 
 
 def render_swing(
