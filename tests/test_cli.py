@@ -873,16 +873,30 @@ def test_the_eye_benchmark_s_splits_give_their_seeds():
 
 
 @pytest.mark.slow  # two whole benchmark sequences; the option is off by default
-def test_the_eye_benchmark_s_gravity_changes_only_the_smoothed_row():
-    """``benchmarks/eye_randomized.py --gravity`` on development scene 5: the scene's gravity
-    reaches the smoother (its fixed-axis fits held horizontal), so only the smoothed row may
-    change; the causal row and the baselines are the same bit for bit."""
+def test_the_eye_benchmark_s_gravity_changes_only_the_smoothed_row(monkeypatch):
+    """``benchmarks/eye_randomized.py --gravity`` on development scene 5: the scene's gravity in
+    its camera frame (world -z seen from ``world_from_camera``'s pose) reaches ``track_box``, and
+    none without the flag; only the smoothed row may change: the causal row and the baselines
+    are the same bit for bit."""
     from hec_jax.cli import parse
+    from hec_jax.mjx_scene.randomized import draw_scene, world_from_camera
 
     bench = _script("benchmarks/eye_randomized.py")
+    given = []
+    real = bench.track_box
+
+    def recording(*args, **kwargs):
+        given.append(kwargs.get("gravity_cam"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(bench, "track_box", recording)
     off = parse(bench.EyeRandomized(), ["--split", "dev"])
     on = dataclasses.replace(off, gravity=True)
     (res_off, _), (res_on, _) = (bench.run_sequence(5, a) for a in (off, on))
+    r_world_cam, _ = world_from_camera(draw_scene(5))
+    assert given[0] is None
+    np.testing.assert_allclose(given[1], r_world_cam.T @ [0.0, 0.0, -1.0], atol=1e-12)
+    assert abs(np.linalg.norm(given[1]) - 1.0) < 1e-12 and given[1][1] > 0.5  # down, in view
     for name in ("tracker_causal", "opencv_pnp", "paper"):
         for key, value in res_off[name].items():
             if not key.startswith("time"):  # the wall clock

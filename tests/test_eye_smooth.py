@@ -852,8 +852,10 @@ def test_gravity_of_noise_free_fits_gives_the_truth_and_refuses_a_tilted_hinge()
     tilt = np.cos(np.deg2rad(30.0)) * g + np.sin(np.deg2rad(30.0)) * axis  # a gravity 30 deg off
     wrong = smooth_track(meas_rot, meas_pos, info, valid, DT, GRAVITY_CFG, gravity_cam=tilt)
     assert abs(np.degrees(np.arcsin(abs(tilt @ axis))) - 30.0) < 1e-6  # the hinge 30 deg off
-    assert not wrong.hinge_modelled.any()
-    assert abs(wrong.hinge_axis @ tilt) < 1e-9  # the per-segment fit: held horizontal, refused
+    assert not wrong.hinge_modelled.any() and not wrong.hinge  # both fits refused
+    assert abs(wrong.hinge_axis @ tilt) < 1e-9  # the per-segment fit was held horizontal
+    # not bent: the per-segment smoother's own result on the (exact) fits, near the truth
+    assert np.max(np.linalg.norm(wrong.position - pos, axis=-1)) < 0.01
 
 
 def test_gravity_cam_bad_values_raise():

@@ -89,7 +89,16 @@ def test_bad_arguments_raise(seq):
         track_box(seq.frames[:2], seq.intrinsics, -1.0, FPS)
     with pytest.raises(ValueError):
         track_box(seq.frames[:2], seq.intrinsics, EDGE, 0.0)
-    for gravity in ([0.0, 1.0], [0.0, 0.0, 0.0], [np.inf, 1.0, 0.0]):  # before any frame is tracked
+
+
+def test_bad_gravity_raises_before_any_frame_is_tracked(seq, monkeypatch):
+    """``track_box`` checks ``gravity_cam`` before tracking (a frame tracked would fail here)."""
+
+    def tracked(*args, **kwargs):
+        raise AssertionError("a frame was tracked")
+
+    monkeypatch.setattr(BoxTracker, "update", tracked)
+    for gravity in ([0.0, 1.0], [0.0, 0.0, 0.0], [np.inf, 1.0, 0.0]):
         with pytest.raises(ValueError, match="gravity_cam"):
             track_box(seq.frames[:2], seq.intrinsics, EDGE, FPS, gravity_cam=gravity)
 

@@ -369,8 +369,9 @@ def fit_hinge(
     the rotation vectors log(R_i R_f^T) (f the first valid frame), theta_i their component
     along a, p from (I - E_i) p = t_i - E_i t_f in least squares.
 
-    ``gravity``: None, or a (3,) unit vector along gravity in the measurements' frame (the camera
-    frame of a calibrated camera). Given, the axis is held perpendicular to it (a pendulum's
+    ``gravity``: None, or a (3,) nonzero vector along gravity in the measurements' frame (the
+    camera frame of a calibrated camera; normalised here, not checked: :func:`check_gravity` is
+    the public boundary's check). Given, the axis is held perpendicular to it (a pendulum's
     hinge is horizontal): the start is the principal direction of the rotation vectors projected
     on the horizontal plane, and every step moves the axis within that plane (one degree of
     freedom instead of two).
@@ -406,11 +407,11 @@ def fit_hinge(
         r0, t0, a, p = state
         r0 = so3_exp(x[:3]) @ r0
         t0 = t0 + x[3:6]
-        da = x[6:9] - (x[6:9] @ a) * a
-        if gravity is not None:  # the axis moves within the horizontal plane
-            da = da - (da @ g) * g
-        a = a + da
-        if gravity is not None:
+        if gravity is None:
+            a = a + x[6:9] - (x[6:9] @ a) * a
+        else:  # the axis moves within the horizontal plane
+            da = x[6:9] - (x[6:9] @ a) * a
+            a = a + (da - (da @ g) * g)
             a = a - (a @ g) * g
         a = a / jnp.linalg.norm(a)
         p = p + x[9:12]
