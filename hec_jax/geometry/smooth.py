@@ -557,7 +557,8 @@ def fit_hinge_robust(
     """:func:`fit_hinge` reweighted against outlier frames (module docstring, 4.; pure JAX).
 
     ``information`` (T, 6, 6) is already scaled by ``cfg.info_scale`` and zero where not
-    ``valid``. ``gravity``: as :func:`fit_hinge` (every pass holds the axis horizontal). Each pass refits from the previous pass's poses with every frame's information
+    ``valid``. ``gravity``: as :func:`fit_hinge` (every pass holds the axis horizontal). Each
+    pass refits from the previous pass's poses with every frame's information
     times its Cauchy weight 1 / (1 + c_i / c0); c_i is the frame's normalised squared residual
     under the unweighted information. Acceptance: finite, at least ``hinge_min_frames`` and
     ``hinge_min_inliers`` of the valid frames inliers (weight over 0.1), median inlier c_i at
@@ -988,14 +989,9 @@ def _smooth_segment(rotations, positions, information, valid, dt, cfg, gravity=N
     static, numbers = _compiled_form(cfg)
     key = (static, float(dt), gravity is not None)
     if key not in _JIT:
-        if gravity is None:
-            _JIT[key] = jax.jit(
-                lambda r, p, i, v, x: _smooth(r, p, i, v, dt, _with_numbers(static, x))
-            )
-        else:
-            _JIT[key] = jax.jit(
-                lambda r, p, i, v, x, g: _smooth(r, p, i, v, dt, _with_numbers(static, x), g)
-            )
+        _JIT[key] = jax.jit(
+            lambda r, p, i, v, x, g=None: _smooth(r, p, i, v, dt, _with_numbers(static, x), g)
+        )
     # padded to a multiple of PAD frames to share compilations
     args = (*_pad_inputs(rotations, positions, information, valid), numbers)
     out = _JIT[key](*args) if gravity is None else _JIT[key](*args, gravity)
