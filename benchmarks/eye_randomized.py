@@ -182,6 +182,10 @@ class EyeRandomized:
     # sampled, each within half their distance; off in the preset: measured in session 88,
     # docs/eye_randomized.md "Thin faces")
     close_edge_points: bool = TRACK.close_edge_points
+    # TrackConfig.tracked_without_shadow_test of the tracker (on in the preset since session 91:
+    # while the filter runs, the silhouette check counts the shadow test's pixels; docs/
+    # eye_randomized.md "A darker cube of the wall's hue while tracking"; False for the ablation)
+    tracked_without_shadow_test: bool = TRACK.tracked_without_shadow_test
     # SmootherConfig.max_speed_m_s of the smoother (the preset's: the scenes' speed bound; 0: no
     # jump test, for the ablation; same docs section)
     max_speed_m_s: float = SMOOTH.max_speed_m_s
@@ -269,6 +273,7 @@ def tracker_config(a: EyeRandomized):
         texture_family_keep_step=a.texture_family_keep_step,
         jump_speed_m_s=a.jump_speed_m_s,
         close_edge_points=a.close_edge_points,
+        tracked_without_shadow_test=a.tracked_without_shadow_test,
     )
 
 

@@ -449,6 +449,16 @@ class TrackConfig:
             thin face's width and the box is fitted nearer (from the true pose, development
             seed 6617's fits lay 61 mm nearer on average at 2 m; docs/eye_randomized.md, "Thin
             faces").
+        tracked_without_shadow_test: while the filter runs, the silhouette check of the frame's
+            fits (``min_foreground_tracked``) also counts the pixels the colour difference's
+            shadow test removes (:func:`detect.difference`), whatever ``shadow_faces`` says. A
+            cube of the background's hue, darker, is to that test a shadow in every pixel, its
+            true pose refused frame after frame (development seed 3097: 6-10% of the true
+            silhouette differs with the test, all of it without). The search from scratch,
+            ``min_iou_acquire`` and the ring (``max_outside_foreground``) keep the test, so a
+            fit to the cube's own shadow is still refused there; while tracking, the innovation
+            gate and the ring are what keep a fit off the shadow. False (the default): as
+            before.
         cpu_small_kernels: compile the jitted fits and searches for the CPU with XLA's
             YNNPACK fusions off and Eigen single-threaded (:data:`CPU_SMALL_KERNEL_OPTIONS`, the
             compiler options of these functions only; other backends ignore it). Their kernels
@@ -538,6 +548,7 @@ class TrackConfig:
     jump_speed_m_s: float | None = None
     jump_slack_m: float = 0.1
     close_edge_points: bool = False
+    tracked_without_shadow_test: bool = False
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -617,7 +628,11 @@ UNSEEN_SCENES = TrackConfig(
 # +3.1%, gross frames 385 -> 242; then, by a second rule written before its run, each family's
 # line of largest grey step kept (``texture_family_keep_step``): valid frames +0.2%, gross
 # frames 242 -> 216, the median position error 1.937 -> 1.922 mm (docs/eye_randomized.md,
-# "Grain families")
+# "Grain families"). Session 91: ``tracked_without_shadow_test``, by a rule written before the
+# runs: on the 840 development sequences where the failure was found (a cube of the wall's hue,
+# darker, refused while tracked) valid frames +74 in 7 sequences, none worse, gross frames
+# 304 -> 302; on 200 new development seeds (3400-3599) it changed nothing
+# (docs/eye_randomized.md, "A darker cube of the wall's hue while tracking")
 RANDOMIZED_BENCHMARK = dataclasses.replace(
     UNSEEN_SCENES,
     min_region_fraction=0.25,
@@ -648,6 +663,7 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
     min_face_foreground_tracked=0.5,
     acquired_gates_px=(1.5,),
     texture_families=3,
+    tracked_without_shadow_test=True,
 )
 
 
@@ -2695,7 +2711,8 @@ class BoxTracker:
         if least > 0:
             lit = detect.foreground_fraction(image, background, corners, thr, faint, **kept)
             fraction = lit
-            if fraction < least and shadowed_faces():
+            unshadowed = tracked and cfg.tracked_without_shadow_test
+            if fraction < least and (unshadowed or shadowed_faces()):
                 fraction = detect.foreground_fraction(
                     image, background, corners, thr, faint, shadows=False, **kept
                 )
