@@ -55,8 +55,10 @@ def _scene(seed: int = 0):
     return _noisy(frame, seed + 1), background
 
 
-def _tracker(option: bool, background) -> BoxTracker:
-    cfg = dataclasses.replace(RANDOMIZED_BENCHMARK, threads=1, tracked_without_shadow_test=option)
+def _tracker(option: bool, background, **changes) -> BoxTracker:
+    cfg = dataclasses.replace(
+        RANDOMIZED_BENCHMARK, threads=1, tracked_without_shadow_test=option, **changes
+    )
     return BoxTracker(K, SIZE, 30.0, cfg, background)
 
 
@@ -76,7 +78,8 @@ def test_the_drawn_cube_is_a_shadow_to_the_test_and_foreground_without_it(seed):
 def test_the_option_passes_the_cube_and_its_shadow_while_tracking_only(where, seed):
     """Without the option the preset refuses the cube's true pose in every check (the shadow
     test's pixels count only where a tenth of the silhouette differs with it: ``shadow_faces``).
-    With it the tracked check passes it; the search's check (``acquire``) still refuses it.
+    With it the tracked check passes it; the search's check (``acquire``) still refuses it (the
+    IoU check too; the next test turns that off).
     The cast shadow, photometrically the same as the cube, goes the same way: the documented
     limit (while tracking, only the innovation gate keeps a fit off it)."""
     translation = CUBE_T if where == "cube" else SHADOW_T
@@ -87,6 +90,20 @@ def test_the_option_passes_the_cube_and_its_shadow_while_tracking_only(where, se
         tracker._frame_rgb = frame
         assert tracker._confirmed(gray, ROT, translation, tracked=True) == option
         assert not tracker._confirmed(gray, ROT, translation, acquire=True)
+
+
+@pytest.mark.parametrize("acquire", [False, True])
+def test_the_option_leaves_the_silhouette_check_of_an_untracked_fit_alone(acquire):
+    """With the IoU check off (so the silhouette check alone decides), a fit checked without
+    ``tracked`` (a search's fit, or any other) is refused with the option as without it: only
+    the tracked check counts the shadow test's pixels."""
+    frame, background = _scene()
+    gray = detect.to_gray(frame)
+    for option in (False, True):
+        tracker = _tracker(option, background, min_iou_acquire=0.0)
+        tracker._frame_rgb = frame
+        assert not tracker._confirmed(gray, ROT, CUBE_T, acquire=acquire)
+        assert tracker._confirmed(gray, ROT, CUBE_T, tracked=True) == option
 
 
 def test_the_option_does_not_pass_a_box_on_the_plain_wall():

@@ -450,15 +450,20 @@ class TrackConfig:
             seed 6617's fits lay 61 mm nearer on average at 2 m; docs/eye_randomized.md, "Thin
             faces").
         tracked_without_shadow_test: while the filter runs, the silhouette check of the frame's
-            fits (``min_foreground_tracked``) also counts the pixels the colour difference's
-            shadow test removes (:func:`detect.difference`), whatever ``shadow_faces`` says. A
-            cube of the background's hue, darker, is to that test a shadow in every pixel, its
-            true pose refused frame after frame (development seed 3097: 6-10% of the true
-            silhouette differs with the test, all of it without). The search from scratch,
-            ``min_iou_acquire`` and the ring (``max_outside_foreground``) keep the test, so a
-            fit to the cube's own shadow is still refused there; while tracking, the innovation
-            gate and the ring are what keep a fit off the shadow. False (the default): as
-            before.
+            fits (``min_foreground_tracked``, else ``min_foreground``) also counts the pixels the
+            colour difference's shadow test removes (:func:`detect.difference`), whatever
+            ``shadow_faces`` says. A cube of the background's hue, darker, is to that test a
+            shadow in every pixel, its true pose refused frame after frame (development seed
+            3097: 6-10% of the true silhouette differs with the test, all of it without). It
+            applies to every fit checked while the filter runs (until ``lost_after`` frames
+            missed): the tracked fit, the stop hypothesis, the fits with hidden edges and the
+            local search around the prediction. The search from scratch once lost keeps the
+            test, and so do ``min_iou_acquire`` and the ring (``max_outside_foreground``).
+            The cost: while tracking, a fit lying on any cube's cast shadow (within the shadow
+            test's darkening, 0.25-0.92) now passes the silhouette check, and the ring cannot
+            refuse it where the cube is of the background's hue (to the test the cube is shadow
+            too); the innovation gate alone keeps the fit off it, and that gate widens while
+            the filter coasts. False (the default, and the hand-eye loop's): as before.
         cpu_small_kernels: compile the jitted fits and searches for the CPU with XLA's
             YNNPACK fusions off and Eigen single-threaded (:data:`CPU_SMALL_KERNEL_OPTIONS`, the
             compiler options of these functions only; other backends ignore it). Their kernels
@@ -2648,7 +2653,8 @@ class BoxTracker:
         and, for a box found from scratch (``acquire``), it
         covers the moving blob (``min_iou_acquire``); the foreground with the faint one where
         ``faint_masks``, and with the shadow test's pixels in the silhouette checks where
-        ``shadow_faces`` allows. True where a check is off or impossible (no background yet:
+        ``shadow_faces`` allows (in the silhouette check of a ``tracked`` fit also where
+        ``tracked_without_shadow_test``). True where a check is off or impossible (no background yet:
         the silhouette checks).
         """
         cfg = self.config
