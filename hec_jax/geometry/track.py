@@ -455,10 +455,12 @@ class TrackConfig:
             ``shadow_faces`` says. A cube of the background's hue, darker, is to that test a
             shadow in every pixel, its true pose refused frame after frame (development seed
             3097: 6-10% of the true silhouette differs with the test, all of it without). It
-            applies to every fit checked while the filter runs (until ``lost_after`` frames
-            missed): the tracked fit, the stop hypothesis, the fits with hidden edges and the
-            local search around the prediction. The search from scratch once lost keeps the
-            test, and so do ``min_iou_acquire`` and the ring (``max_outside_foreground``).
+            applies to the fits checked as tracked while the filter runs (until ``lost_after``
+            frames missed): the tracked fit, the stop hypothesis, the fits with hidden edges and
+            the local search around the prediction. The search from scratch keeps the test (its
+            fit must also pass the search's check, ``acquire``, while the filter runs), so do
+            the fits along the line of sight (``depth_gate``), ``min_iou_acquire`` and the ring
+            (``max_outside_foreground``).
             The cost: while tracking, a fit lying on any cube's cast shadow (within the shadow
             test's darkening, 0.25-0.92) now passes the silhouette check, and the ring cannot
             refuse it where the cube is of the background's hue (to the test the cube is shadow
@@ -2654,8 +2656,8 @@ class BoxTracker:
         covers the moving blob (``min_iou_acquire``); the foreground with the faint one where
         ``faint_masks``, and with the shadow test's pixels in the silhouette checks where
         ``shadow_faces`` allows (in the silhouette check of a ``tracked`` fit also where
-        ``tracked_without_shadow_test``). True where a check is off or impossible (no background yet:
-        the silhouette checks).
+        ``tracked_without_shadow_test``). True where a check is off or impossible (no
+        background yet: the silhouette checks).
         """
         cfg = self.config
         least_face = cfg.min_face_foreground
