@@ -248,7 +248,7 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     argv += ["--min-inner-support", "0.05", "--acquired-gates-px", "None"]
     argv += ["--texture-families", "None", "--jump-speed-m-s", "1.75"]
     argv += ["--no-texture-family-keep-step", "--close-edge-points"]
-    argv += ["--no-tracked-without-shadow-test"]
+    argv += ["--no-tracked-without-shadow-test", "--short-edge-margin-px", "1.6"]
     changed = bench.tracker_config(parse(bench.EyeRandomized(), argv))
     assert changed == dataclasses.replace(
         RANDOMIZED_BENCHMARK,
@@ -267,8 +267,9 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
         jump_speed_m_s=1.75,
         close_edge_points=True,
         tracked_without_shadow_test=False,
+        short_edge_margin_px=1.6,
     )
-    assert default.tracked_without_shadow_test
+    assert default.tracked_without_shadow_test and default.short_edge_margin_px is None
     assert default.min_inner_support == 0.0 and default.acquired_gates_px == (1.5,)
     assert default.texture_families == 3 and default.jump_speed_m_s is None
     assert default.texture_family_keep_step and not default.close_edge_points

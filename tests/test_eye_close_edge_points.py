@@ -11,34 +11,14 @@ start and the reference: from it, the refinement's depth must come nearer the tr
 
 import dataclasses
 
-import cv2
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from drawn_box import DEPTH, SIZE, K, draw_box, nearly_face_on
 
 from hec_jax.geometry import BoxTracker, TrackConfig, detect
-from hec_jax.geometry.box_model import (
-    EDGE_FACES,
-    EDGE_FAMILY,
-    FACES,
-    Pose,
-    face_visibility_np,
-    project_corners_np,
-)
-from hec_jax.geometry.synthetic import rotation_from_axis_angle
+from hec_jax.geometry.box_model import EDGE_FACES, EDGE_FAMILY, Pose, face_visibility_np
 from hec_jax.geometry.track import close_edge_searches, refine_points, usable_edges
-
-K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
-SIZE = 0.06  # [m]
-DEPTH = 2.0  # [m]: the box 18 px across
-
-
-def _nearly_face_on(yaw_deg: float, pitch_deg: float):
-    """A box seen nearly face on: its front face square to the camera but for a small yaw
-    and pitch, which show two thin side faces (0.2-1.8 px wide at the poses below)."""
-    yaw = rotation_from_axis_angle(np.array([0.0, 1.0, 0.0]), np.deg2rad(yaw_deg))
-    pitch = rotation_from_axis_angle(np.array([1.0, 0.0, 0.0]), np.deg2rad(pitch_deg))
-    return pitch @ yaw, np.array([0.01, -0.02, DEPTH])
 
 
 def _close_pairs(rotation, t, cfg):
@@ -69,7 +49,7 @@ def test_both_edges_of_a_thin_face_are_sampled_each_within_half_their_distance()
     """At yaw -6, pitch 3 deg the two thin faces are about 0.5 and 1.7 px wide: one pair's
     searches at the 0.75 px floor, the other's at half their distance."""
     cfg = TrackConfig()
-    rotation, t = _nearly_face_on(-6.0, 3.0)
+    rotation, t = nearly_face_on(-6.0, 3.0)
     e, pairs = _close_pairs(rotation, t, cfg)
     assert len(pairs) == 2  # the two thin faces' outline edges, each beaten by an inner one
     vis = face_visibility_np(rotation, t, SIZE)
@@ -88,33 +68,17 @@ def test_both_edges_of_a_thin_face_are_sampled_each_within_half_their_distance()
     assert np.array_equal(sampled[others], usable[others])
     assert np.all(search[others] == cfg.search_px)
     # a box turned well away from face on has no close pair: the usable edges, as they were
-    rotation, t = _nearly_face_on(35.0, -25.0)
+    rotation, t = nearly_face_on(35.0, -25.0)
     sampled, search = close_edge_searches(rotation, t, SIZE, K, cfg)
     assert np.array_equal(sampled, usable_edges(rotation, t, SIZE, K, cfg)[1])
     assert np.all(search == cfg.search_px)
-
-
-FACE_GREYS = (150, 200, 60, 90, 40, 110)  # each face its own grey, all far from the background
-
-
-def _draw(rotation, translation, background=230, scale=8):
-    """(480, 640) uint8: the visible faces filled with their greys, each pixel the mean over
-    ``scale`` x ``scale`` sub-pixels (area coverage; OpenCV's anti-aliased fill spreads an
-    outline a pixel wide around a polygon, which moves its edges outward)."""
-    image = np.full((480 * scale, 640 * scale), background, np.uint8)
-    # intrinsics convention (pixel i covers [i, i + 1)) at the sub-pixel scale, OpenCV centres
-    px = project_corners_np(rotation, translation, SIZE, K) * scale - 0.5
-    for f in np.flatnonzero(face_visibility_np(rotation, translation, SIZE)):
-        pts = np.round(px[FACES[f]] * 16).astype(np.int32)
-        cv2.fillConvexPoly(image, pts, FACE_GREYS[f], cv2.LINE_8, 4)
-    return cv2.resize(image, (640, 480), interpolation=cv2.INTER_AREA)
 
 
 def _refined_depth_error(rotation, t, close: bool) -> float:
     """[m] the refinement's error along the line of sight, from the true pose, on the drawn
     box's edge points (the tracker's final stage, with its default settings)."""
     cfg = dataclasses.replace(TrackConfig(), close_edge_points=close)
-    gray = _draw(rotation, t)
+    gray = draw_box(rotation, t)
     e, usable = usable_edges(rotation, t, SIZE, K, cfg)
     search = np.full(12, cfg.search_px)
     if close:
@@ -155,7 +119,7 @@ def test_a_thin_face_draws_the_box_less_near(yaw_deg, pitch_deg):
     their distance, 10-60 mm. The two steps of a face under 2 px wide merge under the edge
     blur, so the bias is reduced, not removed (at yaw 3, pitch -3 deg hardly at all:
     docs/eye_randomized.md, "Thin faces")."""
-    rotation, t = _nearly_face_on(yaw_deg, pitch_deg)
+    rotation, t = nearly_face_on(yaw_deg, pitch_deg)
     assert len(_close_pairs(rotation, t, TrackConfig())[1]) >= 1
     before = _refined_depth_error(rotation, t, close=False)
     after = _refined_depth_error(rotation, t, close=True)
@@ -166,7 +130,7 @@ def test_a_thin_face_draws_the_box_less_near(yaw_deg, pitch_deg):
 def _tracked_fits(rotation, t, close: bool, frames: int = 3) -> np.ndarray:
     """(frames, 3) the fitted centres [m] of a fresh ``BoxTracker`` (the default settings, the
     empty background given) on the drawn box, the same frame repeated."""
-    rgb = np.repeat(_draw(rotation, t)[..., None], 3, axis=2)
+    rgb = np.repeat(draw_box(rotation, t)[..., None], 3, axis=2)
     background = np.full_like(rgb, 230)
     tracker = BoxTracker(K, SIZE, 30.0, TrackConfig(close_edge_points=close), background)
     steps = [tracker.update(rgb) for _ in range(frames)]
@@ -179,8 +143,8 @@ def test_the_tracker_s_fits_change_only_where_a_face_is_thin():
     has no two edges of one direction within the separation, and the option leaves every fit
     the same to the bit; the thin-face box's fits change (in which direction varies with the
     pose, docs/eye_randomized.md, "Thin faces")."""
-    turned = _nearly_face_on(35.0, -25.0)
+    turned = nearly_face_on(35.0, -25.0)
     assert not _close_pairs(*turned, TrackConfig())[1]
     assert np.array_equal(_tracked_fits(*turned, False), _tracked_fits(*turned, True))
-    thin = _nearly_face_on(5.0, -4.0)
+    thin = nearly_face_on(5.0, -4.0)
     assert not np.allclose(_tracked_fits(*thin, False), _tracked_fits(*thin, True), atol=1e-3)

@@ -681,6 +681,7 @@ def edge_points(
     blur: float = 0.8,
     interpolation: int = cv2.INTER_LINEAR,
     blurred: np.ndarray | None = None,
+    short_end_margin: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Sub-pixel edge points along predicted model edges ("moving edges").
 
@@ -693,8 +694,13 @@ def edge_points(
     far outside, as a wrong fit can project, costs nothing). Returns (points (N, 2) [px], edge
     index (N,)). ``blurred``: :func:`edge_blur` of ``gray`` and ``blur``, if already made; None:
     only the window the samples read is smoothed (:func:`sample_window`), the same values as
-    the whole image's :func:`edge_blur` there.
+    the whole image's :func:`edge_blur` there. ``short_end_margin``: an edge too short for
+    ``end_margin`` (under 2 ``end_margin`` + ``spacing`` px, which gets no point) is sampled from
+    this many px of its corners instead, where it is at least twice as long; longer edges as
+    before. None: short edges get no point (as before).
     """
+    if short_end_margin is not None and not short_end_margin > 0:
+        raise ValueError(f"short_end_margin must be positive or None, got {short_end_margin}")
     offs = np.arange(-search, search + 1e-9, step)
     h, w = gray.shape[:2]
     pad = search + 2.0  # [px] points farther outside the image sample only its replicated border
@@ -708,14 +714,17 @@ def edge_points(
     for j, e in enumerate(use):
         a, d = starts[j], deltas[j]
         length = float(lengths[j])
+        margin = end_margin
         if not length >= 2 * end_margin + spacing:  # also NaN
-            continue
+            if short_end_margin is None or not length >= 2 * short_end_margin:
+                continue
+            margin = short_end_margin  # a short edge (short_end_margin)
         u = d / length
-        # the points every ``spacing`` from ``end_margin``, those within ``pad`` of the image
+        # the points every ``spacing`` from ``margin``, those within ``pad`` of the image
         # only (a wrong fit's edge can project to millions of px)
         lo, hi = _inside_interval(a, u, length, (-pad, -pad, w + pad, h + pad))
-        first = end_margin + spacing * max(np.ceil((lo - end_margin) / spacing), 0.0)
-        ts = np.arange(first, min(hi, length - end_margin) + 1e-9, spacing)
+        first = margin + spacing * max(np.ceil((lo - margin) / spacing), 0.0)
+        ts = np.arange(first, min(hi, length - margin) + 1e-9, spacing)
         if ts.size == 0:
             continue
         pts.append(a + ts[:, None] * u)

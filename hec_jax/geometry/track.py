@@ -466,6 +466,21 @@ class TrackConfig:
             refuse it where the cube is of the background's hue (to the test the cube is shadow
             too); the innovation gate alone keeps the fit off it, and that gate widens while
             the filter coasts. False (the default, and the hand-eye loop's): as before.
+        short_edge_margin_px: the final refinement's gray edge points start 3 px from each
+            corner (:func:`detect.edge_points`' ``end_margin``), so an edge shorter than
+            6 px + ``edge_spacing_px`` gets none. On a cube some 16 px across, the receding
+            edges of its narrower faces (the outline's short sides, 4-6 px) are then never
+            sampled, and the turn against the depth rests on the long inner edges alone
+            (development seed 3176: refined from the true pose on points at the true pose,
+            73-231 mm nearer on eight frames; docs/eye_randomized.md, "Short edges"). With a
+            value, such
+            short edges are sampled from this many px of their corners (where at least twice
+            as long); longer edges as before. The edge points from the difference to the
+            background (``foreground_edges``) are taken on the edges the gray image left weak,
+            counted against 3 px margins, so never on a short edge. None (the default, the
+            hand-eye loop's and the benchmark preset's): as before. Measured in session 92 at
+            1.6 (two ``edge_blur_px``) and not adopted by its rule (fewer gross frames, one
+            acquisition fewer; docs/eye_randomized.md, "Short edges").
         cpu_small_kernels: compile the jitted fits and searches for the CPU with XLA's
             YNNPACK fusions off and Eigen single-threaded (:data:`CPU_SMALL_KERNEL_OPTIONS`, the
             compiler options of these functions only; other backends ignore it). Their kernels
@@ -556,6 +571,7 @@ class TrackConfig:
     jump_slack_m: float = 0.1
     close_edge_points: bool = False
     tracked_without_shadow_test: bool = False
+    short_edge_margin_px: float | None = None
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -1942,6 +1958,14 @@ class BoxTracker:
         slack = config.jump_slack_m
         if not (isinstance(slack, int | float) and not isinstance(slack, bool) and slack >= 0):
             raise ValueError(f"TrackConfig.jump_slack_m must be a number >= 0, got {slack!r}")
+        margin = config.short_edge_margin_px
+        if margin is not None and not (
+            isinstance(margin, int | float) and not isinstance(margin, bool) and 0 < margin < 3
+        ):
+            raise ValueError(
+                "TrackConfig.short_edge_margin_px must be None or a number in (0, 3) [px],"
+                f" got {margin!r}"
+            )
         for name, least in (("lost_search_every", 1), ("lost_search_after", 0), ("threads", 1)):
             value = getattr(config, name)
             if not (isinstance(value, int) and value >= least):
@@ -2800,6 +2824,7 @@ class BoxTracker:
                 min_step=min_step,
                 blur=cfg.edge_blur_px,
                 interpolation=cv2.INTER_CUBIC if cfg.edge_cubic else cv2.INTER_LINEAR,
+                short_end_margin=cfg.short_edge_margin_px,
             )
 
         if cfg.close_edge_points:  # both edges of a thin face, each its own step
