@@ -469,13 +469,14 @@ class TrackConfig:
         short_edge_margin_px: the final refinement's gray edge points start 3 px from each
             corner (:func:`detect.edge_points`' ``end_margin``), so an edge shorter than
             6 px + ``edge_spacing_px`` gets none. On a cube some 16 px across, the receding
-            edges of its narrower faces (the outline's short sides, 4-6 px) are then never
-            sampled, and the turn against the depth rests on the long inner edges alone
-            (development seed 3176: refined from the true pose on points at the true pose,
-            73-231 mm nearer on eight frames; docs/eye_randomized.md, "Short edges"). With a
-            value, such
-            short edges are sampled from this many px of their corners (where at least twice
-            as long); longer edges as before. The edge points from the difference to the
+            edges of its narrower faces (short sides of the outline and short inner edges,
+            4-6 px) are then never sampled, and the turn against the depth rests on the long
+            inner edges alone (development seed 3176: refined from the true pose on points at
+            the true pose, 73-231 mm nearer on eight frames; docs/eye_randomized.md, "Short
+            edges"). With a value in (0, 3) [px], such short edges are sampled from this many
+            px of their corners (where at least twice as long); longer edges get the same
+            points (but where the extra points push the total over ``max_points``, whose even
+            thinning then keeps other ones). The edge points from the difference to the
             background (``foreground_edges``) are taken on the edges the gray image left weak,
             counted against 3 px margins, so never on a short edge. None (the default, the
             hand-eye loop's and the benchmark preset's): as before. Measured in session 92 at
