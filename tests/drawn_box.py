@@ -5,6 +5,7 @@ and edge code but for the pinhole corners)."""
 import cv2
 import numpy as np
 
+from hec_jax.geometry import BoxTracker
 from hec_jax.geometry.box_model import FACES, face_visibility_np, project_corners_np
 from hec_jax.geometry.synthetic import rotation_from_axis_angle
 
@@ -33,3 +34,14 @@ def draw_box(rotation, translation, background=230, scale=8):
         pts = np.round(px[FACES[f]] * 16).astype(np.int32)
         cv2.fillConvexPoly(image, pts, FACE_GREYS[f], cv2.LINE_8, 4)
     return cv2.resize(image, (640, 480), interpolation=cv2.INTER_AREA)
+
+
+def tracked_fits(rotation, translation, config, frames: int = 3) -> np.ndarray:
+    """(frames, 3) the fitted centres [m] of a fresh ``BoxTracker`` with ``config`` (the empty
+    background given) on the drawn box, the same frame repeated; every frame must be valid."""
+    rgb = np.repeat(draw_box(rotation, translation)[..., None], 3, axis=2)
+    background = np.full_like(rgb, 230)
+    tracker = BoxTracker(K, SIZE, 30.0, config, background)
+    steps = [tracker.update(rgb) for _ in range(frames)]
+    assert all(bool(st.valid) for st in steps)
+    return np.stack([st.measured_position for st in steps])

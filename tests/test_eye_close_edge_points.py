@@ -14,9 +14,9 @@ import dataclasses
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from drawn_box import DEPTH, SIZE, K, draw_box, nearly_face_on
+from drawn_box import DEPTH, SIZE, K, draw_box, nearly_face_on, tracked_fits
 
-from hec_jax.geometry import BoxTracker, TrackConfig, detect
+from hec_jax.geometry import TrackConfig, detect
 from hec_jax.geometry.box_model import EDGE_FACES, EDGE_FAMILY, Pose, face_visibility_np
 from hec_jax.geometry.track import close_edge_searches, refine_points, usable_edges
 
@@ -127,15 +127,9 @@ def test_a_thin_face_draws_the_box_less_near(yaw_deg, pitch_deg):
     assert abs(after) < 0.6 * abs(before)
 
 
-def _tracked_fits(rotation, t, close: bool, frames: int = 3) -> np.ndarray:
-    """(frames, 3) the fitted centres [m] of a fresh ``BoxTracker`` (the default settings, the
-    empty background given) on the drawn box, the same frame repeated."""
-    rgb = np.repeat(draw_box(rotation, t)[..., None], 3, axis=2)
-    background = np.full_like(rgb, 230)
-    tracker = BoxTracker(K, SIZE, 30.0, TrackConfig(close_edge_points=close), background)
-    steps = [tracker.update(rgb) for _ in range(frames)]
-    assert all(bool(st.valid) for st in steps)
-    return np.stack([st.measured_position for st in steps])
+def _tracked_fits(rotation, t, close: bool) -> np.ndarray:
+    """``drawn_box.tracked_fits`` with the default settings but ``close_edge_points``."""
+    return tracked_fits(rotation, t, TrackConfig(close_edge_points=close))
 
 
 def test_the_tracker_s_fits_change_only_where_a_face_is_thin():

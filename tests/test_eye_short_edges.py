@@ -10,7 +10,7 @@ import dataclasses
 
 import numpy as np
 import pytest
-from drawn_box import DEPTH, SIZE, K, draw_box, nearly_face_on
+from drawn_box import DEPTH, SIZE, K, draw_box, nearly_face_on, tracked_fits
 
 from hec_jax.geometry import BoxTracker, TrackConfig, detect
 from hec_jax.geometry.track import usable_edges
@@ -75,16 +75,9 @@ def test_an_edge_shorter_than_twice_the_margin_gets_no_point():
     assert abs(pts[0, 0] - 20.0) < 0.25  # on the step, within the search's 0.25 px grid
 
 
-def _tracked_fits(rotation, t, margin, frames: int = 3) -> np.ndarray:
-    """(frames, 3) the fitted centres [m] of a fresh ``BoxTracker`` (the default settings but
-    ``short_edge_margin_px``, the empty background given) on the drawn box, the same frame
-    repeated."""
-    rgb = np.repeat(draw_box(rotation, t)[..., None], 3, axis=2)
-    background = np.full_like(rgb, 230)
-    tracker = BoxTracker(K, SIZE, 30.0, TrackConfig(short_edge_margin_px=margin), background)
-    steps = [tracker.update(rgb) for _ in range(frames)]
-    assert all(bool(st.valid) for st in steps)
-    return np.stack([st.measured_position for st in steps])
+def _tracked_fits(rotation, t, margin) -> np.ndarray:
+    """``drawn_box.tracked_fits`` with the default settings but ``short_edge_margin_px``."""
+    return tracked_fits(rotation, t, TrackConfig(short_edge_margin_px=margin))
 
 
 def test_the_tracker_s_fits_change_only_where_an_edge_is_short():
