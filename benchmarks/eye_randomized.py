@@ -190,6 +190,11 @@ class EyeRandomized:
     # margin sampled from this many px of their corners; off in the preset: measured at 1.6 in
     # session 92 and not adopted by its rule, docs/eye_randomized.md "Short edges")
     short_edge_margin_px: float | None = TRACK.short_edge_margin_px
+    # track_box's photometric refinement of small boxes before the smoother
+    # (hec_jax.geometry.photometric.refine_measurements, library defaults; off in the preset:
+    # measured on the development sequences in session 93, about 120 ms a refined frame against
+    # the 15 ms budget; docs/eye_randomized.md "Photometric refinement of small boxes")
+    photometric: bool = False
     # SmootherConfig.max_speed_m_s of the smoother (the preset's: the scenes' speed bound; 0: no
     # jump test, for the ablation; same docs section)
     max_speed_m_s: float = SMOOTH.max_speed_m_s
@@ -312,6 +317,13 @@ def smoother_config(a: EyeRandomized):
     )
 
 
+def photometric_config(a: EyeRandomized):
+    """``track_box``'s ``photometric``: the library's defaults with ``--photometric``, else None."""
+    from hec_jax.geometry.photometric import PhotometricConfig
+
+    return PhotometricConfig() if a.photometric else None
+
+
 def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:
     """Render one scene and run every method: ({method: sequence_errors}, summary)."""
     from hec_jax.mjx_scene.randomized import (
@@ -340,6 +352,7 @@ def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:
         smoother_config(a),
         background=bg,
         gravity_cam=gravity_cam,
+        photometric=photometric_config(a),
     )
     t_ms = tr.timing_ms["total_ms"]  # per frame, as the causal tracker runs
     t_smoothed_ms = t_ms + tr.timing_ms["smoothing_ms"]  # the offline smoother's time added

@@ -273,6 +273,12 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     assert default.min_inner_support == 0.0 and default.acquired_gates_px == (1.5,)
     assert default.texture_families == 3 and default.jump_speed_m_s is None
     assert default.texture_family_keep_step and not default.close_edge_points
+    # the photometric refinement of small boxes: off by default, the library's defaults on
+    from hec_jax.geometry.photometric import PhotometricConfig
+
+    assert bench.photometric_config(parse(bench.EyeRandomized(), [])) is None
+    on = bench.photometric_config(parse(bench.EyeRandomized(), ["--photometric"]))
+    assert on == PhotometricConfig()
     # the smoother: the jump test at the scenes' speed bound; 0 turns it off
     from hec_jax.geometry.smooth import NO_EXTRAPOLATION
     from hec_jax.mjx_scene.randomized import max_swing_speed_m_s

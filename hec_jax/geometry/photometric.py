@@ -1,0 +1,473 @@
+"""Photometric refinement of a box's pose on a known background (pure JAX).
+
+The edge fits (:mod:`hec_jax.geometry.refine`, :func:`hec_jax.geometry.track.refine_points`)
+take each model edge's image position from a grey-level step. Where a face is seen nearly edge-on,
+its two edges lie under a pixel or two apart and their steps merge, so the edge points of both
+sit on the stronger step; a small box seen face on then comes out tens of centimetres nearer
+than it is (docs/eye_randomized.md, "Thin faces"). Here the pose is fitted to the pixels
+themselves instead:
+
+    image(x) = sum_f c_f * g * a_f(x) + g * ((1 - sum_f a_f) * background)(x) + noise,
+
+with ``a_f(x)`` the exact area of face ``f``'s projected polygon inside pixel ``x`` (so a face
+0.3 px wide adds 0.3 of its colour to the pixels it crosses), ``g`` a Gaussian point spread of
+``PhotometricConfig.blur_px``, ``background`` the image of the empty scene (the tracker's
+``background``), and ``c_f`` each visible face's colour, one constant a face and channel, solved
+linearly for every pose (variable projection). The pose minimises the Huber-weighted sum of
+squared residuals over a square window by Levenberg-Marquardt with forward-mode derivatives
+(the coverage is continuous and piecewise smooth in the pose).
+
+What the model leaves out: texture (wood grain) and shading within a face, specular highlights,
+the rod and anything else in front of the box, the box's shadow on the background, and motion
+blur. The Huber weights cap what such pixels can pull.
+
+Pixel convention: pixel (row i, column j) covers ``[j, j + 1) x [i, i + 1)`` in the intrinsics'
+pixel coordinates (its centre at ``(j + 0.5, i + 0.5)``), the convention of the tests' drawn box
+(tests/test_eye_photometric.py) and the one under which the scene's renders fit (the cost at
+the true pose is lower with it: docs/eye_randomized.md, session 93).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from hec_jax.geometry import box_model
+
+
+@dataclasses.dataclass(frozen=True)
+class PhotometricConfig:
+    """Static settings of :func:`refine_photometric`.
+
+    Attributes:
+        window_px: side of the square image window the fit reads [px] (static: one compiled
+            function a size).
+        blur_px: sigma of the Gaussian point spread [px].
+        iterations: Levenberg-Marquardt iterations (fixed; a rejected step raises the damping).
+        huber_sigmas: residuals beyond this many robust sigmas (1.4826 x the median absolute
+            residual at the start pose, floored at ``min_noise``) are down-weighted (Huber).
+        min_noise: floor of the robust sigma [grey levels].
+        damping: the initial Levenberg-Marquardt damping (relative to the normal matrix's
+            diagonal).
+        margin_px: :func:`refine_measurements` refines a frame only where the measured pose's
+            projected box lies this far inside the window all round (a box at most
+            ``window_px - 2 margin_px`` across; larger boxes keep their edge fit).
+    """
+
+    window_px: int = 48
+    blur_px: float = 0.8
+    iterations: int = 10
+    huber_sigmas: float = 3.0
+    min_noise: float = 1.0
+    damping: float = 1e-3
+    margin_px: int = 4
+
+    def __post_init__(self):
+        if int(self.window_px) != self.window_px or self.window_px < 8:
+            raise ValueError(f"window_px must be an integer >= 8, got {self.window_px!r}")
+        if not (0.0 <= self.blur_px <= 5.0):
+            raise ValueError(f"blur_px must lie in [0, 5], got {self.blur_px!r}")
+        if int(self.iterations) != self.iterations or self.iterations < 1:
+            raise ValueError(f"iterations must be a positive integer, got {self.iterations!r}")
+        if not self.huber_sigmas > 0 or not self.min_noise > 0 or not self.damping > 0:
+            raise ValueError("huber_sigmas, min_noise and damping must be positive")
+        if int(self.margin_px) != self.margin_px or not 0 <= 2 * self.margin_px < self.window_px:
+            raise ValueError(
+                f"margin_px must be an integer in [0, window_px / 2), got {self.margin_px!r}"
+            )
+
+
+class PhotometricFit(NamedTuple):
+    """Result of :func:`refine_photometric`.
+
+    Attributes:
+        rotation: (3, 3) refined R (object axes in the camera frame).
+        translation: (3,) refined t [m].
+        cost: Huber-weighted sum of squared residuals at the refined pose [grey levels^2], with the
+            weights of the start pose's residuals.
+        start_cost: the same at the start pose.
+        colours: (3, C) fitted colours of the three faces the refined pose shows most of.
+        noise: the robust sigma of the start pose's residuals [grey levels] (floored at
+            ``PhotometricConfig.min_noise``), which sets the Huber bar.
+        valid: the fit is finite and its projection lies inside the window.
+    """
+
+    rotation: Array
+    translation: Array
+    cost: Array
+    start_cost: Array
+    colours: Array
+    noise: Array
+    valid: Array
+
+
+def pixel_coverage(polygon: Array, offsets: Array) -> Array:
+    """Exact area of a convex polygon inside unit pixels.
+
+    Args:
+        polygon: (K, 2) vertices [px] of a convex polygon, either turning sense.
+        offsets: (N, 2) the pixels' centres [px]; pixel n is the unit square about ``offsets[n]``.
+
+    Returns:
+        (N,) the area of the polygon inside each pixel, in [0, 1].
+
+    The area is the integral of the winding number over the pixel, summed edge by edge: each
+    edge, clipped to the pixel's rows, adds the integral over y of the part of the pixel's width
+    left of it, signed by its direction in y (exact for a closed polygon; continuous and
+    piecewise smooth in the vertices). Each pixel's coordinates are taken about its own corner
+    (no cancellation in float32).
+    """
+    q = jnp.roll(polygon, -1, axis=0)
+    shoelace = jnp.sum(polygon[:, 0] * q[:, 1] - q[:, 0] * polygon[:, 1])
+    poly = jnp.where(shoelace < 0, polygon[::-1], polygon)  # positive shoelace (x right, y down)
+    start = poly[None, :, :] - offsets[:, None, :] + 0.5  # (N, K, 2) about each pixel's corner
+    d = jnp.roll(start, -1, axis=1) - start
+    dy = d[..., 1]
+    flat = dy == 0
+    safe_dy = jnp.where(flat, 1.0, dy)
+    sa, sb = (0.0 - start[..., 1]) / safe_dy, (1.0 - start[..., 1]) / safe_dy
+    s0 = jnp.clip(jnp.minimum(sa, sb), 0.0, 1.0)
+    s1 = jnp.clip(jnp.maximum(sa, sb), 0.0, 1.0)
+    xa, xb = start[..., 0] + s0 * d[..., 0], start[..., 0] + s1 * d[..., 0]
+    height = jnp.where(flat, 0.0, (s1 - s0) * dy)  # signed span of the edge within the row
+
+    def ramp(u):  # the integral of clip(u, 0, 1)
+        return jnp.where(u < 0, 0.0, jnp.where(u > 1, u - 0.5, 0.5 * u * u))
+
+    span = xb - xa
+    steep = jnp.abs(span) < 1e-9
+    safe_span = jnp.where(steep, 1.0, span)
+    mean_width = jnp.where(  # the mean of clip(x, 0, 1) along the clipped edge
+        steep, jnp.clip(0.5 * (xa + xb), 0.0, 1.0), (ramp(xb) - ramp(xa)) / safe_span
+    )
+    return jnp.clip(jnp.sum(height * mean_width, axis=1), 0.0, 1.0)
+
+
+def _gaussian_matrix(n: int, sigma: float) -> np.ndarray:
+    """(n, n) row-normalised Gaussian blur along one axis (edges replicate the mass inward)."""
+    if sigma <= 0:
+        return np.eye(n)
+    i = np.arange(n)
+    g = np.exp(-0.5 * ((i[:, None] - i[None, :]) / sigma) ** 2)
+    return g / g.sum(axis=1, keepdims=True)
+
+
+def _rotation_from_vector(w: Array) -> Array:
+    """Rodrigues' formula, safe (and differentiable) at w = 0."""
+    theta2 = jnp.sum(w * w)
+    theta = jnp.sqrt(jnp.where(theta2 > 1e-12, theta2, 1.0))
+    small = theta2 <= 1e-12
+    a = jnp.where(small, 1.0 - theta2 / 6.0, jnp.sin(theta) / theta)
+    b = jnp.where(small, 0.5 - theta2 / 24.0, (1.0 - jnp.cos(theta)) / theta**2)
+    k = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    return jnp.eye(3) + a * k + b * (k @ k)
+
+
+def _front_faces(rotation: Array, translation: Array, size) -> tuple[Array, Array]:
+    """The three faces turned most towards the camera: indices (3,) and their visibility (3,)."""
+    corners = box_model.corners_camera(box_model.Pose(rotation, translation), size)
+    centres = jnp.mean(corners[jnp.asarray(box_model.FACES)], axis=1)
+    normals = jnp.asarray(box_model.FACE_NORMALS) @ rotation.T
+    facing = -jnp.sum(normals * centres, axis=-1)  # > 0: turned towards the camera
+    order = jnp.argsort(-facing)[:3]
+    return order, facing[order] > 0
+
+
+def face_coverage(
+    rotation: Array, translation: Array, size, intrinsics: Array, origin: Array, window_px: int
+) -> Array:
+    """(3, W, W) area of each of the three front faces inside each window pixel (0 if hidden).
+
+    ``origin`` (2,) [px] is the window's top-left pixel (column, row); pixel (i, j) of the window
+    covers ``[origin_x + j, origin_x + j + 1) x [origin_y + i, origin_y + i + 1)``.
+    """
+    faces, visible = _front_faces(rotation, translation, size)
+    pixels = box_model.project_corners(box_model.Pose(rotation, translation), size, intrinsics)
+    rows, cols = jnp.mgrid[0:window_px, 0:window_px]
+    centres = jnp.stack([cols.ravel(), rows.ravel()], axis=-1) + origin[None, :] + 0.5
+    polygons = pixels[jnp.asarray(box_model.FACES)[faces]]  # (3, 4, 2)
+    cover = jax.vmap(pixel_coverage, in_axes=(0, None))(polygons, centres)
+    return (cover * visible[:, None]).reshape(3, window_px, window_px)
+
+
+def _residual(
+    rotation, translation, image, background, origin, size, intrinsics, weights, cfg, blur
+):
+    """Residuals (W*W, C) after the faces' colours are solved (weighted least squares)."""
+    w = cfg.window_px
+    cover = face_coverage(rotation, translation, size, intrinsics, origin, w)
+    blurred = jnp.einsum("ij,fjk,lk->fil", blur, cover, blur).reshape(3, -1).T  # (N, 3)
+    rest = (1.0 - jnp.sum(cover, axis=0))[..., None] * background  # (W, W, C)
+    offset = jnp.einsum("ij,jkc,lk->ilc", blur, rest, blur).reshape(w * w, -1)
+    target = image.reshape(w * w, -1) - offset
+    aw = blurred * weights[:, None]
+    normal = aw.T @ blurred + 1e-6 * jnp.eye(3)
+    colours = jnp.linalg.solve(normal, aw.T @ target)  # (3, C)
+    return target - blurred @ colours, colours
+
+
+def _window_arrays(image, background, origin, cfg: PhotometricConfig):
+    """The window's image and background as (W, W, C) floats, the origin and the blur matrix."""
+    w = cfg.window_px
+    image = jnp.asarray(image, jnp.result_type(float)).reshape(w, w, -1)
+    background = jnp.asarray(background, image.dtype).reshape(w, w, -1)
+    blur = jnp.asarray(_gaussian_matrix(w, cfg.blur_px), image.dtype)
+    return image, background, jnp.asarray(origin, image.dtype), blur
+
+
+def refine_photometric(
+    rotation: Array,
+    translation: Array,
+    image: Array,
+    background: Array,
+    origin: Array,
+    size,
+    intrinsics: Array,
+    cfg: PhotometricConfig = PhotometricConfig(),
+) -> PhotometricFit:
+    """Fit a box's pose to the pixels of one window (the model in the module's docstring).
+
+    Args:
+        rotation: (3, 3) the start pose's R (object axes in the camera frame).
+        translation: (3,) the start pose's t [m].
+        image: (W, W, C) the frame's window, grey levels (C channels, 1 or 3), W =
+            ``cfg.window_px``.
+        background: (W, W, C) the empty scene's image over the same pixels.
+        origin: (2,) [px] the window's top-left pixel (column, row) in the frame.
+        size: the cube's edge [m].
+        intrinsics: (3, 3) K.
+        cfg: static settings.
+
+    Returns:
+        :class:`PhotometricFit`. Jittable; ``cfg`` is static. The caller checks that the start
+        pose's projection fits inside the window (``valid`` is False where the refined one does
+        not).
+    """
+    w = cfg.window_px
+    image, background, origin, blur = _window_arrays(image, background, origin, cfg)
+    args = (image, background, origin, size, intrinsics)
+
+    def residual_at(delta, rot, trans, weights):
+        r = _rotation_from_vector(delta[:3]) @ rot
+        return _residual(r, trans + delta[3:], *args, weights, cfg, blur)[0]
+
+    ones = jnp.ones(w * w, image.dtype)
+    r0 = residual_at(jnp.zeros(6), rotation, translation, ones)
+    norms = jnp.sqrt(jnp.sum(r0 * r0, axis=-1))
+    channels = r0.shape[-1]
+    sigma = jnp.maximum(1.4826 * jnp.median(norms) / jnp.sqrt(channels), cfg.min_noise)
+    bar = cfg.huber_sigmas * sigma * jnp.sqrt(channels)
+    weights = jnp.where(norms <= bar, 1.0, bar / jnp.maximum(norms, 1e-12))
+    weights = jax.lax.stop_gradient(weights)
+
+    def cost_of(r):
+        return jnp.sum(weights[:, None] * r * r)
+
+    start_cost = cost_of(r0)
+
+    def step(_, carry):
+        rot, trans, lam, cost = carry
+        zero = jnp.zeros(6, image.dtype)
+        r = residual_at(zero, rot, trans, weights).ravel()
+        jac = jax.jacfwd(lambda d: residual_at(d, rot, trans, weights).ravel())(zero)
+        jw = jac * jnp.repeat(weights, channels)[:, None]
+        h = jw.T @ jac
+        g = jw.T @ r
+        delta = -jnp.linalg.solve(h + lam * jnp.diag(jnp.diag(h) + 1e-12), g)
+        new_rot = _rotation_from_vector(delta[:3]) @ rot
+        new_trans = trans + delta[3:]
+        new_cost = cost_of(residual_at(zero, new_rot, new_trans, weights))
+        better = jnp.isfinite(new_cost) & (new_cost < cost)
+        return (
+            jnp.where(better, new_rot, rot),
+            jnp.where(better, new_trans, trans),
+            jnp.where(better, jnp.maximum(lam / 3.0, 1e-7), lam * 4.0),
+            jnp.where(better, new_cost, cost),
+        )
+
+    lam0 = jnp.asarray(cfg.damping, image.dtype)
+    rot, trans, _, cost = jax.lax.fori_loop(
+        0, cfg.iterations, step, (rotation, translation, lam0, start_cost)
+    )
+    _, colours = _residual(rot, trans, *args, weights, cfg, blur)
+    corners = (
+        box_model.project_corners(box_model.Pose(rot, trans), size, intrinsics) - origin[None, :]
+    )
+    inside = jnp.all((corners >= 0) & (corners <= w))
+    valid = inside & jnp.isfinite(cost) & jnp.all(jnp.isfinite(trans)) & (trans[2] > 0)
+    return PhotometricFit(rot, trans, cost, start_cost, colours, sigma, valid)
+
+
+def window_cost(
+    rotation: Array,
+    translation: Array,
+    image: Array,
+    background: Array,
+    origin: Array,
+    size,
+    intrinsics: Array,
+    noise,
+    cfg: PhotometricConfig = PhotometricConfig(),
+) -> Array:
+    """The Huber cost of a pose on a window (bar ``cfg.huber_sigmas`` x ``noise`` per channel):
+    sum of r^2 / 2 within the bar, bar (|r| - bar / 2) beyond, over pixels (|r| over channels).
+    Compares poses on the same window and noise, whatever they were refined from.
+    """
+    w = cfg.window_px
+    image, background, origin, blur = _window_arrays(image, background, origin, cfg)
+    ones = jnp.ones(w * w, image.dtype)
+    r, _ = _residual(
+        rotation,
+        translation,
+        image,
+        background,
+        origin,
+        size,
+        intrinsics,
+        ones,
+        cfg,
+        blur,
+    )
+    norms = jnp.sqrt(jnp.sum(r * r, axis=-1))
+    bar = cfg.huber_sigmas * noise * jnp.sqrt(r.shape[-1])
+    return jnp.sum(jnp.where(norms <= bar, 0.5 * norms**2, bar * (norms - 0.5 * bar)))
+
+
+class RefinedMeasurements(NamedTuple):
+    """Result of :func:`refine_measurements` (NumPy arrays).
+
+    Attributes:
+        rotation: (T, 3, 3) R_cam_box, refined where ``refined`` (else as given).
+        position: (T, 3) box centre [m], likewise.
+        refined: (T,) bool, the frames whose pose was replaced by a photometric fit.
+        carried: (T,) bool, the refined frames whose kept fit started from the previous frame's
+            correction (else from the frame's own measurement).
+        frame_seconds: (T,) wall time of each frame's refinement [s] (0 where none ran).
+    """
+
+    rotation: np.ndarray
+    position: np.ndarray
+    refined: np.ndarray
+    carried: np.ndarray
+    frame_seconds: np.ndarray
+
+
+def refine_measurements(
+    frames,
+    background,
+    rotation,
+    position,
+    valid,
+    size: float,
+    intrinsics,
+    cfg: PhotometricConfig = PhotometricConfig(),
+) -> RefinedMeasurements:
+    """A tracker's per-frame poses of a small box refined on the frames' pixels (causal).
+
+    For each valid frame whose measured pose projects into a box that fits the window with
+    ``cfg.margin_px`` to spare, :func:`refine_photometric` runs from (a) the measured pose and
+    (b) the previous frame's correction carried onto it (the previous refined pose times the
+    inverse of the previous measured one, where the previous frame was refined); the fit of
+    lower :func:`window_cost` on the window about the measured pose, at (a)'s noise, is kept.
+    Only the frame and the one before it are used, so the pass can run online.
+
+    Args:
+        frames: (T, H, W, 3) or (T, H, W) uint8.
+        background: the empty scene, (H, W, 3) or (H, W) as the frames.
+        rotation: (T, 3, 3) measured R_cam_box.
+        position: (T, 3) measured centres [m].
+        valid: (T,) bool, the frames with a measurement.
+        size: the cube's edge [m].
+        intrinsics: (3, 3) K.
+        cfg: static settings.
+
+    Returns:
+        :class:`RefinedMeasurements`; frames not refined keep their poses.
+
+    Raises:
+        ValueError: shapes that do not match, a background of another size than the frames.
+    """
+    frames = np.asarray(frames)
+    if frames.ndim == 3:
+        frames = frames[..., None]
+    background = np.asarray(background, float)
+    if background.ndim == 2:
+        background = background[..., None]
+    n, height, width = frames.shape[:3]
+    rotation = np.array(rotation, float)
+    position = np.array(position, float)
+    valid = np.asarray(valid, bool)
+    if frames.ndim != 4 or background.shape != frames.shape[1:]:
+        raise ValueError(
+            f"frames (T, H, W[, C]) and a background of one frame's shape needed, got "
+            f"{frames.shape} and {background.shape}"
+        )
+    if rotation.shape != (n, 3, 3) or position.shape != (n, 3) or valid.shape != (n,):
+        raise ValueError(
+            f"rotation (T, 3, 3), position (T, 3) and valid (T,) for T = {n} frames needed, got "
+            f"{rotation.shape}, {position.shape}, {valid.shape}"
+        )
+    k = np.asarray(intrinsics, float)
+    w = cfg.window_px
+    if w > min(height, width):
+        raise ValueError(f"window_px {w} larger than the frames ({height} x {width})")
+    fit, cost = _compiled(cfg)
+    refined = np.zeros(n, bool)
+    carried = np.zeros(n, bool)
+    out_r, out_t = rotation.copy(), position.copy()
+    seconds = np.zeros(n)
+    previous = None  # (measured R, t, refined R, t) of the previous frame
+    for i in range(n):
+        t0 = time.perf_counter()
+        r_m, t_m = rotation[i], position[i]
+        usable = valid[i] and np.all(np.isfinite(r_m)) and np.all(np.isfinite(t_m))
+        px = box_model.project_corners_np(r_m, t_m, size, k) if usable and t_m[2] > 0 else None
+        if px is None or np.any(px.max(0) - px.min(0) > w - 2 * cfg.margin_px):
+            previous = None
+            continue
+        centre = 0.5 * (px.min(0) + px.max(0))
+        origin = np.clip(np.round(centre - w / 2), 0, [width - w, height - w]).astype(int)
+        rows, cols = slice(origin[1], origin[1] + w), slice(origin[0], origin[0] + w)
+        image, empty = frames[i, rows, cols].astype(float), background[rows, cols]
+        o = origin.astype(float)
+        own = fit(r_m, t_m, image, empty, o, size, k)
+        best = (np.asarray(own.rotation), np.asarray(own.translation)) if bool(own.valid) else None
+        if previous is not None:
+            r_pm, t_pm, r_pr, t_pr = previous
+            other = fit(r_pr @ r_pm.T @ r_m, t_m + (t_pr - t_pm), image, empty, o, size, k)
+            if bool(other.valid) and (
+                best is None
+                or float(
+                    cost(other.rotation, other.translation, image, empty, o, size, k, own.noise)
+                )
+                < float(cost(*best, image, empty, o, size, k, own.noise))
+            ):
+                best = (np.asarray(other.rotation), np.asarray(other.translation))
+                carried[i] = True
+        if best is None:
+            previous = None
+            continue
+        out_r[i], out_t[i] = best
+        refined[i] = True
+        previous = (r_m, t_m, out_r[i], out_t[i])
+        seconds[i] = time.perf_counter() - t0
+    return RefinedMeasurements(out_r, out_t, refined, carried, seconds)
+
+
+@functools.lru_cache(maxsize=8)
+def _compiled(cfg: PhotometricConfig):
+    """The jitted fit and cost for one configuration (size and intrinsics traced)."""
+    fit = jax.jit(
+        lambda r, t, im, bg, o, size, k: refine_photometric(r, t, im, bg, o, size, k, cfg)
+    )
+    cost = jax.jit(
+        lambda r, t, im, bg, o, size, k, noise: window_cost(r, t, im, bg, o, size, k, noise, cfg)
+    )
+    return fit, cost

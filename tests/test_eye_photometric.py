@@ -1,0 +1,309 @@
+"""The photometric refinement (hec_jax.geometry.photometric) against independent truth: the exact
+pixel coverage against dense point sampling, and the refined pose of a box drawn by OpenCV at
+8 x 8 sub-pixels (tests/drawn_box.py) against the pose it was drawn at."""
+
+import cv2
+import jax
+import numpy as np
+import pytest
+from drawn_box import DEPTH, FACE_GREYS, SIZE, K, nearly_face_on
+
+from hec_jax.geometry import TrackConfig, box_model, photometric, track_box
+from hec_jax.geometry.accuracy import symmetric_rotation_error_deg
+from hec_jax.geometry.synthetic import rotation_from_axis_angle
+
+
+def _sampled_coverage(polygon, centres, samples=64):
+    """Area of a convex polygon in each unit pixel by counting samples x samples points."""
+    q = np.roll(polygon, -1, axis=0)
+    turn = np.sign(np.sum(polygon[:, 0] * q[:, 1] - q[:, 0] * polygon[:, 1]))
+    sub = (np.arange(samples) + 0.5) / samples - 0.5
+    xs = centres[:, 0, None, None] + sub[None, None, :]
+    ys = centres[:, 1, None, None] + sub[None, :, None]
+    inside = np.ones((len(centres), samples, samples), bool)
+    for a, b in zip(polygon, q, strict=True):
+        cross = (b[0] - a[0]) * (ys - a[1]) - (b[1] - a[1]) * (xs - a[0])
+        inside &= turn * cross >= 0
+    return inside.mean(axis=(1, 2))
+
+
+POLYGONS = [
+    np.array([[3.2, 2.1], [12.7, 4.3], [10.1, 11.8], [2.4, 8.9]]),  # a quad
+    np.array([[3.2, 2.1], [12.7, 2.4], [12.7, 2.9], [3.2, 2.6]]),  # a strip 0.5 px wide
+    np.array([[4.0, 3.0], [4.3, 12.5], [4.1, 12.6], [3.8, 3.1]]),  # a strip 0.2 px wide
+    np.array([[5.5, 5.5], [9.5, 5.5], [9.5, 9.5], [5.5, 9.5]]),  # pixel-aligned square
+]
+
+
+@pytest.mark.parametrize("polygon", POLYGONS)
+@pytest.mark.parametrize("flip", [False, True])
+def test_pixel_coverage_matches_dense_sampling(polygon, flip):
+    poly = polygon[::-1] if flip else polygon
+    rows, cols = np.mgrid[0:16, 0:16]
+    centres = np.stack([cols.ravel(), rows.ravel()], axis=-1) + 0.5
+    exact = np.asarray(photometric.pixel_coverage(poly, centres))
+    sampled = _sampled_coverage(poly, centres)
+    # 64 x 64 samples: each pixel's sampled area is within ~2/64 of the true one
+    assert np.max(np.abs(exact - sampled)) < 0.02
+    q = np.roll(poly, -1, axis=0)
+    area = 0.5 * abs(np.sum(poly[:, 0] * q[:, 1] - q[:, 0] * poly[:, 1]))
+    assert exact.sum() == pytest.approx(area, abs=1e-9)
+
+
+def test_pixel_coverage_is_continuous_in_the_vertices():
+    """A vertex moved by 1e-4 px changes no pixel's area by more than ~1e-4 (no sampling steps),
+    and forward-mode derivatives exist (the refinement's Jacobian)."""
+    rows, cols = np.mgrid[0:16, 0:16]
+    centres = np.stack([cols.ravel(), rows.ravel()], axis=-1) + 0.5
+    poly = POLYGONS[0]
+    moved = poly + np.array([[1e-4, 0.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    a = np.asarray(photometric.pixel_coverage(poly, centres))
+    b = np.asarray(photometric.pixel_coverage(moved, centres))
+    assert np.max(np.abs(a - b)) < 2e-4
+    jac = jax.jacfwd(lambda p: photometric.pixel_coverage(p, centres))(poly)
+    assert np.all(np.isfinite(np.asarray(jac)))
+    # the total area's derivative is the shoelace's
+    q = np.roll(poly, -1, axis=0)
+    signed = 0.5 * np.sum(poly[:, 0] * q[:, 1] - q[:, 0] * poly[:, 1])
+    d_area_dx0 = np.sign(signed) * 0.5 * (poly[1, 1] - poly[-1, 1])  # of |shoelace|
+    assert float(np.sum(np.asarray(jac)[:, 0, 0])) == pytest.approx(d_area_dx0, rel=1e-6)
+
+
+def _origin(rotation, translation, window):
+    """The window's top-left pixel (column, row) about the pose's projected box."""
+    px = box_model.project_corners_np(rotation, translation, SIZE, K)
+    lo, hi = px.min(0), px.max(0)
+    return np.round((lo + hi) / 2 - window / 2).astype(int)
+
+
+def _draw_sampled(rotation, translation, origin, window, samples=16, background=230.0):
+    """(window, window) the box's faces in their greys (tests/drawn_box.py) over a flat
+    background, each pixel the mean of samples x samples points (not the library's coverage).
+    OpenCV's filled polygons (tests/drawn_box.draw_box) come out about 1/16 px larger all round,
+    which alone moves this box's depth by about 10 mm (docs/eye_randomized.md, session 93)."""
+    px = box_model.project_corners_np(rotation, translation, SIZE, K)
+    sub = (np.arange(samples) + 0.5) / samples
+    rows, cols = np.mgrid[0:window, 0:window]
+    xs = cols[..., None, None] + origin[0] + sub[None, None, None, :]
+    ys = rows[..., None, None] + origin[1] + sub[None, None, :, None]
+    image = np.full((window, window, samples, samples), background)
+    for f in np.flatnonzero(box_model.face_visibility_np(rotation, translation, SIZE)):
+        polygon = px[box_model.FACES[f]]
+        q = np.roll(polygon, -1, axis=0)
+        turn = np.sign(np.sum(polygon[:, 0] * q[:, 1] - q[:, 0] * polygon[:, 1]))
+        inside = np.ones(image.shape, bool)
+        for a, b in zip(polygon, q, strict=True):
+            inside &= turn * ((b[0] - a[0]) * (ys - a[1]) - (b[1] - a[1]) * (xs - a[0])) >= 0
+        image[inside] = FACE_GREYS[f]
+    return image.mean(axis=(2, 3))
+
+
+def _drawn(rotation, translation, origin, window, blur=0.8):
+    image = _draw_sampled(rotation, translation, origin, window)
+    return cv2.GaussianBlur(image, (0, 0), blur, borderType=cv2.BORDER_REPLICATE)
+
+
+# thin-face poses where the edge fit from the true pose comes 70-105 mm nearer
+# (tests/test_eye_close_edge_points.py)
+THIN_POSES = [(5.0, -4.0), (-6.0, 3.0), (4.0, 6.0)]
+WINDOW = 32
+
+
+@pytest.mark.parametrize("yaw_pitch", THIN_POSES)
+def test_refine_recovers_a_drawn_thin_face_box(yaw_pitch):
+    """A box 18 px across at 2 m, two side faces under 2 px wide, blurred (sigma 0.8 px), no
+    noise: from a start 40 mm farther and turned 2 deg, the refined pose lies within 10 mm and
+    0.5 deg of the drawn one."""
+    rotation, translation = nearly_face_on(*yaw_pitch)
+    sight = translation / np.linalg.norm(translation)
+    start_t = translation + 0.04 * sight
+    start_r = rotation_from_axis_angle(np.array([0.6, 0.8, 0.0]), np.deg2rad(2.0)) @ rotation
+    origin = _origin(start_r, start_t, WINDOW)
+    image = _drawn(rotation, translation, origin, WINDOW)
+    background = np.full_like(image, 230.0)
+    cfg = photometric.PhotometricConfig(window_px=WINDOW)
+    fit = photometric.refine_photometric(
+        start_r,
+        start_t,
+        image[..., None],
+        background[..., None],
+        origin.astype(float),
+        SIZE,
+        K,
+        cfg,
+    )
+    assert bool(fit.valid)
+    assert np.linalg.norm(np.asarray(fit.translation) - translation) < 0.010
+    turn = symmetric_rotation_error_deg(np.asarray(fit.rotation)[None], rotation[None])[0]
+    assert float(turn) < 0.5
+    assert float(fit.cost) < float(fit.start_cost)
+
+
+def test_refine_is_jittable_and_colour_frames_work():
+    """The same fit under jit, on a three-channel frame: the pose within 10 mm, and three faces'
+    colours."""
+    rotation, translation = nearly_face_on(5.0, -4.0)
+    start_t = translation * 1.02
+    origin = _origin(rotation, start_t, WINDOW)
+    image = np.repeat(_drawn(rotation, translation, origin, WINDOW)[..., None], 3, axis=2)
+    background = np.full_like(image, 230.0)
+    cfg = photometric.PhotometricConfig(window_px=WINDOW)
+    fn = jax.jit(
+        lambda r, t, im, bg, o: photometric.refine_photometric(r, t, im, bg, o, SIZE, K, cfg)
+    )
+    fit = fn(rotation, start_t, image, background, origin.astype(float))
+    assert bool(fit.valid)
+    assert np.linalg.norm(np.asarray(fit.translation) - translation) < 0.010
+    assert np.asarray(fit.colours).shape == (3, 3)
+
+
+def test_start_outside_the_window_is_flagged_invalid():
+    rotation, translation = nearly_face_on(5.0, -4.0)
+    origin = _origin(rotation, translation, 16)  # the 18 px box does not fit 16 px
+    image = _drawn(rotation, translation, origin, 16)
+    cfg = photometric.PhotometricConfig(window_px=16)
+    fit = photometric.refine_photometric(
+        rotation, translation, image, np.full_like(image, 230.0), origin.astype(float), SIZE, K, cfg
+    )
+    assert not bool(fit.valid)
+
+
+def test_window_cost_prefers_the_true_depth():
+    """The Huber cost of the drawn pose is below that of the same pose 50 mm farther."""
+    rotation, translation = nearly_face_on(-6.0, 3.0)
+    origin = _origin(rotation, translation, WINDOW)
+    image = _drawn(rotation, translation, origin, WINDOW)
+    bg = np.full_like(image, 230.0)
+    cfg = photometric.PhotometricConfig(window_px=WINDOW)
+    o = origin.astype(float)
+    at = photometric.window_cost(rotation, translation, image, bg, o, SIZE, K, 2.0, cfg)
+    far = translation * (1 + 0.05 / DEPTH)
+    off = photometric.window_cost(rotation, far, image, bg, o, SIZE, K, 2.0, cfg)
+    assert float(at) < float(off)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        dict(window_px=4),
+        dict(window_px=20.5),
+        dict(blur_px=-1.0),
+        dict(iterations=0),
+        dict(huber_sigmas=0.0),
+        dict(min_noise=-1.0),
+    ],
+)
+def test_bad_config_raises(kwargs):
+    with pytest.raises(ValueError):
+        photometric.PhotometricConfig(**kwargs)
+
+
+def test_pixel_convention_matches_the_drawing():
+    """Pixel (i, j) covers [j, j + 1) x [i, i + 1): the drawn pose costs less than the same pose
+    moved half a pixel up and left in the image (the other convention)."""
+    rotation, translation = nearly_face_on(-6.0, 3.0)
+    origin = _origin(rotation, translation, WINDOW)
+    image = _drawn(rotation, translation, origin, WINDOW)
+    bg = np.full_like(image, 230.0)
+    cfg = photometric.PhotometricConfig(window_px=WINDOW)
+    half_px = 0.5 * translation[2] / K[0, 0]  # [m] at the box's depth
+    shifted = translation - np.array([half_px, half_px, 0.0])
+    o = origin.astype(float)
+    at = photometric.window_cost(rotation, translation, image, bg, o, SIZE, K, 2.0, cfg)
+    off = photometric.window_cost(rotation, shifted, image, bg, o, SIZE, K, 2.0, cfg)
+    assert float(at) < 0.5 * float(off)
+
+
+def _frame(rotation, translation, window=64):
+    """(480, 640, 3) uint8: a flat 230 frame with the sampled, blurred box drawn in."""
+    origin = _origin(rotation, translation, window)
+    frame = np.full((480, 640), 230.0)
+    rows = slice(origin[1], origin[1] + window)
+    cols = slice(origin[0], origin[0] + window)
+    frame[rows, cols] = _drawn(rotation, translation, origin, window)
+    return np.repeat(np.round(frame).astype(np.uint8)[..., None], 3, axis=2)
+
+
+def test_refine_measurements_refines_small_valid_frames_and_carries():
+    """Three frames of the thin-face box, each measured 60 mm too near (as the edge fits come out)
+    and the middle one invalid: the first and last refined to within 10 mm, the middle untouched,
+    the last not carried (its previous frame was not refined)."""
+    rotation, translation = nearly_face_on(5.0, -4.0)
+    frames = np.stack([_frame(rotation, translation)] * 3)
+    background = np.full(frames.shape[1:], 230, np.uint8)
+    sight = translation / np.linalg.norm(translation)
+    near = translation - 0.06 * sight
+    rotations = np.stack([rotation] * 3)
+    positions = np.stack([near, np.full(3, np.nan), near])
+    valid = np.array([True, False, True])
+    out = photometric.refine_measurements(frames, background, rotations, positions, valid, SIZE, K)
+    assert out.refined.tolist() == [True, False, True]
+    assert out.carried.tolist() == [False, False, False]
+    assert np.all(np.isnan(out.position[1]))
+    for i in (0, 2):
+        assert np.linalg.norm(out.position[i] - translation) < 0.010
+    assert out.frame_seconds[0] > 0 and out.frame_seconds[1] == 0
+
+
+def test_refine_measurements_carries_the_previous_correction():
+    """Two valid frames, both measured 60 mm too near: the second starts also from the first's
+    correction, which lands on the drawn pose; whichever start is kept, it is within 10 mm."""
+    rotation, translation = nearly_face_on(-6.0, 3.0)
+    frames = np.stack([_frame(rotation, translation)] * 2)
+    background = np.full(frames.shape[1:], 230, np.uint8)
+    near = translation - 0.06 * translation / np.linalg.norm(translation)
+    out = photometric.refine_measurements(
+        frames, background, np.stack([rotation] * 2), np.stack([near] * 2), [True, True], SIZE, K
+    )
+    assert out.refined.all()
+    assert np.linalg.norm(out.position - translation, axis=1).max() < 0.010
+
+
+def test_refine_measurements_leaves_large_boxes_and_rejects_bad_shapes():
+    rotation, translation = nearly_face_on(5.0, -4.0)
+    frames = np.stack([_frame(rotation, translation)])
+    background = np.full(frames.shape[1:], 230, np.uint8)
+    close = translation * 0.5  # at half the depth the box is about 36 px across
+    cfg = photometric.PhotometricConfig(window_px=32, margin_px=4)  # at most 24 px
+    out = photometric.refine_measurements(
+        frames, background, rotation[None], close[None], [True], SIZE, K, cfg
+    )
+    assert not out.refined.any() and np.array_equal(out.position[0], close)
+    with pytest.raises(ValueError, match="background"):
+        photometric.refine_measurements(
+            frames, background[:100], rotation[None], translation[None], [True], SIZE, K
+        )
+    with pytest.raises(ValueError, match="rotation"):
+        photometric.refine_measurements(
+            frames, background, rotation, translation[None], [True], SIZE, K
+        )
+
+
+def test_track_box_with_photometric_refinement_on_a_thin_face_box():
+    """``track_box(photometric=...)`` on three frames of the drawn thin-face box. The edge fits
+    of the tracked frames 1 and 2 drift off in depth (128 and 179 mm when written: the thin faces'
+    bias); refined, they lie within 10 mm. Frame 0's search fit (16 mm off but turned 17 deg) is
+    not asserted: from a start turned that far the refinement stops in a local minimum about
+    10 deg off (docs/eye_randomized.md, session 93). Only the measured poses change, and the
+    refinement's time is counted."""
+    rotation, translation = nearly_face_on(4.0, 6.0)
+    frames = np.stack([_frame(rotation, translation)] * 3)
+    background = np.full(frames.shape[1:], 230, np.uint8)
+    plain = track_box(frames, K, SIZE, 30.0, TrackConfig(), background=background)
+    refined = track_box(
+        frames,
+        K,
+        SIZE,
+        30.0,
+        TrackConfig(),
+        background=background,
+        photometric=photometric.PhotometricConfig(),
+    )
+    assert plain.valid.all() and refined.valid.all()
+    assert not plain.photometric_refined.any() and refined.photometric_refined.all()
+    plain_err = np.linalg.norm(plain.measured_position - translation, axis=1)
+    refined_err = np.linalg.norm(refined.measured_position - translation, axis=1)
+    assert plain_err[1:].min() > 0.050
+    assert refined_err[1:].max() < 0.010
+    np.testing.assert_array_equal(plain.causal_position, refined.causal_position)
+    assert refined.timing_ms["photometric_ms"] > 0 and plain.timing_ms["photometric_ms"] == 0
