@@ -3,7 +3,7 @@
 The edge fits (:mod:`hec_jax.geometry.refine`, :func:`hec_jax.geometry.track.refine_points`)
 take each model edge's image position from a grey-level step. Where a face is seen nearly edge-on,
 its two edges lie under a pixel or two apart and their steps merge, so the edge points of both
-sit on the stronger step; a small box seen face on then comes out tens of centimetres nearer
+sit on the stronger step; a small box seen face on then comes out 5-50 cm nearer
 than it is (docs/eye_randomized.md, "Thin faces"). Here the pose is fitted to the pixels
 themselves instead:
 
@@ -19,12 +19,17 @@ squared residuals over a square window by Levenberg-Marquardt with forward-mode 
 
 What the model leaves out: texture (wood grain) and shading within a face, specular highlights,
 the rod and anything else in front of the box, the box's shadow on the background, and motion
-blur. The Huber weights cap what such pixels can pull.
+blur. The Huber weights cap what such pixels can pull; they are taken once, from the start
+pose's residuals, so a start far off also down-weights the box's own edge pixels (a choice kept
+as measured in session 93, not a tuned one). The background is blurred with the box, although
+the empty scene's image already is a camera's: away from the box the model reads ``g * b`` where
+the frame shows ``b`` (found in review; kept as measured).
 
 Pixel convention: pixel (row i, column j) covers ``[j, j + 1) x [i, i + 1)`` in the intrinsics'
 pixel coordinates (its centre at ``(j + 0.5, i + 0.5)``), the convention of the tests' drawn box
 (tests/test_eye_photometric.py) and the one under which the scene's renders fit (the cost at
-the true pose is lower with it: docs/eye_randomized.md, session 93).
+the true pose is lower with it: docs/eye_randomized.md, "Photometric refinement of small
+boxes").
 """
 
 from __future__ import annotations
@@ -57,8 +62,10 @@ class PhotometricConfig:
         damping: the initial Levenberg-Marquardt damping (relative to the normal matrix's
             diagonal).
         margin_px: :func:`refine_measurements` refines a frame only where the measured pose's
-            projected box lies this far inside the window all round (a box at most
-            ``window_px - 2 margin_px`` across; larger boxes keep their edge fit).
+            projected box is at most ``window_px - 2 margin_px`` across (larger boxes keep
+            their edge fit); the window is centred on it, so the box lies about this far inside
+            all round, except where the window is moved back into the frame at its border (a
+            fit whose corners leave the window is not valid).
     """
 
     window_px: int = 48
@@ -92,7 +99,9 @@ class PhotometricFit(NamedTuple):
         translation: (3,) refined t [m].
         cost: Huber-weighted sum of squared residuals at the refined pose [grey levels^2], with the
             weights of the start pose's residuals.
-        start_cost: the same at the start pose.
+        start_cost: the same weights at the start pose, with the face colours solved unweighted
+            (so it is 0.2-1.4% above the weighted cost the iterations compare: found in review,
+            kept as measured).
         colours: (3, C) fitted colours of the three faces the refined pose shows most of.
         noise: the robust sigma of the start pose's residuals [grey levels] (floored at
             ``PhotometricConfig.min_noise``), which sets the Huber bar.
@@ -121,37 +130,55 @@ def pixel_coverage(polygon: Array, offsets: Array) -> Array:
     The area is the integral of the winding number over the pixel, summed edge by edge: each
     edge, clipped to the pixel's rows, adds the integral over y of the part of the pixel's width
     left of it, signed by its direction in y (exact for a closed polygon; continuous and
-    piecewise smooth in the vertices). Each pixel's coordinates are taken about its own corner
-    (no cancellation in float32).
+    piecewise smooth in the vertices, its forward-mode derivatives those of the area, horizontal
+    edges included). Each pixel's coordinates are taken about its own corner, and the mean width
+    is taken without a difference quotient wherever the clipped edge lies within one piece of
+    the clip (float32 keeps about 1e-6 of a pixel's area).
     """
     q = jnp.roll(polygon, -1, axis=0)
     shoelace = jnp.sum(polygon[:, 0] * q[:, 1] - q[:, 0] * polygon[:, 1])
     poly = jnp.where(shoelace < 0, polygon[::-1], polygon)  # positive shoelace (x right, y down)
     start = poly[None, :, :] - offsets[:, None, :] + 0.5  # (N, K, 2) about each pixel's corner
     d = jnp.roll(start, -1, axis=1) - start
-    dy = d[..., 1]
+    y0, dy = start[..., 1], d[..., 1]
     flat = dy == 0
     safe_dy = jnp.where(flat, 1.0, dy)
-    sa, sb = (0.0 - start[..., 1]) / safe_dy, (1.0 - start[..., 1]) / safe_dy
-    s0 = jnp.clip(jnp.minimum(sa, sb), 0.0, 1.0)
-    s1 = jnp.clip(jnp.maximum(sa, sb), 0.0, 1.0)
+    sa, sb = (0.0 - y0) / safe_dy, (1.0 - y0) / safe_dy
+    s0 = jnp.where(flat, 0.0, jnp.clip(jnp.minimum(sa, sb), 0.0, 1.0))
+    s1 = jnp.where(flat, 1.0, jnp.clip(jnp.maximum(sa, sb), 0.0, 1.0))
     xa, xb = start[..., 0] + s0 * d[..., 0], start[..., 0] + s1 * d[..., 0]
-    height = jnp.where(flat, 0.0, (s1 - s0) * dy)  # signed span of the edge within the row
+    # the signed span of the edge within the row (0 for a horizontal edge, whose derivative in
+    # its vertices' y is not 0)
+    height = jnp.clip(y0 + dy, 0.0, 1.0) - jnp.clip(y0, 0.0, 1.0)
 
     def ramp(u):  # the integral of clip(u, 0, 1)
         return jnp.where(u < 0, 0.0, jnp.where(u > 1, u - 0.5, 0.5 * u * u))
 
+    lo, hi = jnp.minimum(xa, xb), jnp.maximum(xa, xb)
     span = xb - xa
-    steep = jnp.abs(span) < 1e-9
-    safe_span = jnp.where(steep, 1.0, span)
+    short = jnp.abs(span) < jnp.sqrt(jnp.finfo(span.dtype).eps)
+    safe_span = jnp.where(short, 1.0, span)
+    middle = 0.5 * (xa + xb)
     mean_width = jnp.where(  # the mean of clip(x, 0, 1) along the clipped edge
-        steep, jnp.clip(0.5 * (xa + xb), 0.0, 1.0), (ramp(xb) - ramp(xa)) / safe_span
+        (lo >= 0) & (hi <= 1),
+        middle,
+        jnp.where(
+            lo >= 1,
+            1.0,
+            jnp.where(
+                hi <= 0,
+                0.0,
+                jnp.where(short, jnp.clip(middle, 0.0, 1.0), (ramp(xb) - ramp(xa)) / safe_span),
+            ),
+        ),
     )
     return jnp.clip(jnp.sum(height * mean_width, axis=1), 0.0, 1.0)
 
 
 def _gaussian_matrix(n: int, sigma: float) -> np.ndarray:
-    """(n, n) row-normalised Gaussian blur along one axis (edges replicate the mass inward)."""
+    """(n, n) Gaussian blur along one axis, truncated at the window's border and each row
+    renormalised (not OpenCV's replicated border).
+    """
     if sigma <= 0:
         return np.eye(n)
     i = np.arange(n)
@@ -349,7 +376,8 @@ class RefinedMeasurements(NamedTuple):
         refined: (T,) bool, the frames whose pose was replaced by a photometric fit.
         carried: (T,) bool, the refined frames whose kept fit started from the previous frame's
             correction (else from the frame's own measurement).
-        frame_seconds: (T,) wall time of each frame's refinement [s] (0 where none ran).
+        frame_seconds: (T,) wall time of each frame's refinement [s] (0 where none ran; the
+            compilation is done before the first frame and not counted).
     """
 
     rotation: np.ndarray
@@ -389,7 +417,9 @@ def refine_measurements(
         cfg: static settings.
 
     Returns:
-        :class:`RefinedMeasurements`; frames not refined keep their poses.
+        :class:`RefinedMeasurements`; frames not refined keep their poses. A kept fit is not
+        compared with the measured pose itself, and nothing here tells a fit that stopped in
+        another minimum (docs/eye_randomized.md, "Photometric refinement of small boxes").
 
     Raises:
         ValueError: shapes that do not match, a background of another size than the frames.
@@ -419,6 +449,11 @@ def refine_measurements(
     if w > min(height, width):
         raise ValueError(f"window_px {w} larger than the frames ({height} x {width})")
     fit, cost = _compiled(cfg)
+    if valid.any():  # compiled before the frames are timed
+        dummy = np.zeros((w, w, frames.shape[-1]))
+        pose = (np.eye(3), np.array([0.0, 0.0, 1.0]))
+        jax.block_until_ready(fit(*pose, dummy, dummy, np.zeros(2), size, k))
+        jax.block_until_ready(cost(*pose, dummy, dummy, np.zeros(2), size, k, 1.0))
     refined = np.zeros(n, bool)
     carried = np.zeros(n, bool)
     out_r, out_t = rotation.copy(), position.copy()
@@ -451,13 +486,13 @@ def refine_measurements(
             ):
                 best = (np.asarray(other.rotation), np.asarray(other.translation))
                 carried[i] = True
+        seconds[i] = time.perf_counter() - t0
         if best is None:
             previous = None
             continue
         out_r[i], out_t[i] = best
         refined[i] = True
         previous = (r_m, t_m, out_r[i], out_t[i])
-        seconds[i] = time.perf_counter() - t0
     return RefinedMeasurements(out_r, out_t, refined, carried, seconds)
 
 

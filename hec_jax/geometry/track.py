@@ -1555,7 +1555,8 @@ class BoxTrack(NamedTuple):
         segments: (T, M, 2, 2) the associated segments (clipped) [px], NaN where unassigned.
         edge_ids: (T, M) their model edge ids (-1 where unassigned).
         timing_ms: dict of mean per-frame times [ms]: detection, estimation (incl. the causal
-            filter), total = detection + estimation, smoothing (offline pass, per frame,
+            filter), photometric (``track_box``'s ``photometric``, 0 without it), total =
+            detection + estimation + photometric, smoothing (offline pass, per frame,
             the backward pass included), backward (that pass alone; 0 unless
             ``SmootherConfig.extend_backward``).
         hinge: bool, the main fields come from the fixed-axis model (:func:`smooth.fit_hinge`).
@@ -1568,7 +1569,8 @@ class BoxTrack(NamedTuple):
         search_skipped: (T,) bool, the lost frames whose search from scratch was skipped
             (``TrackStep.search_skipped``, ``TrackConfig.lost_search_every``).
         frame_ms: (T,) each frame's time in :meth:`BoxTracker.update` [ms] (detection +
-            estimation; ``timing_ms["total_ms"]`` is its mean).
+            estimation), plus its photometric refinement's; ``timing_ms["total_ms"]`` is its
+            mean.
         fit_source: (T,) str, ``TrackStep.fit_source`` ("" where not valid).
         initialised: (T,) bool, ``TrackStep.initialised``: the causal filter holds a state
             after the frame (an invalid frame with it set failed while the track ran).
@@ -1582,8 +1584,11 @@ class BoxTrack(NamedTuple):
             forward tracker's.
         photometric_refined: (T,) bool, the frames whose ``measured_position`` and
             ``causal_pose_rotation`` are the photometric refinement's (``track_box``'s
-            ``photometric``; all False without it). Their ``information`` and the ``causal_*``
-            filter fields stay the edge fit's.
+            ``photometric``; all False without it), and so ``causal_rotation`` (relative to the
+            first valid frame's, all frames) and the offline fields. Their ``information`` and
+            the causal filter's ``causal_position``, ``causal_velocity`` and
+            ``causal_acceleration`` stay the edge fit's; frames ``backward_filled`` keep their
+            edge fits.
     """
 
     position: np.ndarray
@@ -3178,7 +3183,9 @@ def track_box(
             face on, which the edge fits place tens of centimetres too near); ``measured_position``
             and ``causal_pose_rotation`` then hold the refined poses (``photometric_refined``), and
             the refinement's time is counted in ``frame_ms`` and ``timing_ms`` (its own
-            ``photometric_ms``). The causal filter does not see it. None: off (as before).
+            ``photometric_ms``). The causal filter (``causal_position``, ``causal_velocity``,
+            ``causal_acceleration``) does not see it. Needs a background (given, or five frames
+            or more). None: off (as before).
 
     Returns:
         :class:`BoxTrack`. Frames where the box was not found have ``valid == False`` (their state
@@ -3187,11 +3194,17 @@ def track_box(
 
     Raises:
         ValueError: frames not (T, H, W, 3) uint8, bad intrinsics, size or fps; ``gravity_cam``
-            not a finite nonzero (3,) vector.
+            not a finite nonzero (3,) vector; ``photometric`` without a background (none given
+            and fewer than five frames).
     """
     frames = detect.check_frames(frames)
     check_gravity(gravity_cam)  # before the frames are tracked
     check_camera_args(intrinsics, size, fps)
+    if photometric is not None and background is None and len(frames) < 5:
+        raise ValueError(
+            "track_box's photometric refinement needs a background: give one, or five frames"
+            " or more for the median model"
+        )
     cfg = config
     scfg = smoother if smoother is not None else SmootherConfig()
     t_n = len(frames)
