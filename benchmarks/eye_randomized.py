@@ -192,7 +192,7 @@ class EyeRandomized:
     short_edge_margin_px: float | None = TRACK.short_edge_margin_px
     # track_box's photometric refinement of small boxes before the smoother
     # (hec_jax.geometry.photometric.refine_measurements, library defaults; off in the preset:
-    # measured on the development sequences in session 93, about 120 ms a refined frame against
+    # measured on the development sequences in session 93, about 110 ms a refined frame against
     # the 15 ms budget; docs/eye_randomized.md "Photometric refinement of small boxes")
     photometric: bool = False
     # SmootherConfig.max_speed_m_s of the smoother (the preset's: the scenes' speed bound; 0: no
