@@ -1,6 +1,7 @@
 """The photometric refinement (hec_jax.geometry.photometric) against independent truth: the exact
-pixel coverage against dense point sampling, and the refined pose of a box drawn by OpenCV at
-8 x 8 sub-pixels (tests/drawn_box.py) against the pose it was drawn at."""
+pixel coverage against points counted in each pixel and central differences, and the refined pose
+of a box drawn by counting points in each pixel (the faces' greys and poses of tests/drawn_box.py)
+and blurred by OpenCV, against the pose it was drawn at."""
 
 import cv2
 import jax
@@ -118,8 +119,9 @@ def _origin(rotation, translation, window):
 def _draw_sampled(rotation, translation, origin, window, samples=16, background=230.0):
     """(window, window) the box's faces in their greys (tests/drawn_box.py) over a flat
     background, each pixel the mean of samples x samples points (not the library's coverage).
-    OpenCV's filled polygons (tests/drawn_box.draw_box) come out about 1/16 px larger all round,
-    which alone moves this box's depth by about 10 mm (docs/eye_randomized.md, session 93)."""
+    OpenCV's filled polygons (tests/drawn_box.draw_box) come out larger, and on them the fit
+    from the true pose ends 9-17 mm off (docs/eye_randomized.md, "Photometric refinement of
+    small boxes")."""
     px = box_model.project_corners_np(rotation, translation, SIZE, K)
     sub = (np.arange(samples) + 0.5) / samples
     rows, cols = np.mgrid[0:window, 0:window]
@@ -324,10 +326,10 @@ def test_refine_measurements_leaves_large_boxes_and_rejects_bad_shapes():
 def test_track_box_with_photometric_refinement_on_a_thin_face_box():
     """``track_box(photometric=...)`` on three frames of the drawn thin-face box. The edge fits
     of the tracked frames 1 and 2 drift off in depth (128 and 179 mm when written: the thin faces'
-    bias); refined, they lie within 10 mm. Frame 0's search fit (16 mm off but turned 17 deg) is
+    bias); refined, they lie within 10 mm. Frame 0's search fit (15 mm off but turned 17 deg) is
     not asserted: from a start turned that far the refinement stops in a local minimum about
-    10 deg off (docs/eye_randomized.md, session 93). Only the measured poses change, and the
-    refinement's time is counted."""
+    10 deg off (docs/eye_randomized.md, "Photometric refinement of small boxes"). Only the
+    measured poses change, and the refinement's time is counted."""
     rotation, translation = nearly_face_on(4.0, 6.0)
     frames = np.stack([_frame(rotation, translation)] * 3)
     background = np.full(frames.shape[1:], 230, np.uint8)

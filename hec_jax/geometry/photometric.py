@@ -102,7 +102,8 @@ class PhotometricFit(NamedTuple):
         start_cost: the same weights at the start pose, with the face colours solved unweighted
             (so it is 0.2-1.4% above the weighted cost the iterations compare: found in review,
             kept as measured).
-        colours: (3, C) fitted colours of the three faces the refined pose shows most of.
+        colours: (3, C) fitted colours of the three faces turned most towards the camera at the
+            refined pose (a hidden one's is not determined).
         noise: the robust sigma of the start pose's residuals [grey levels] (floored at
             ``PhotometricConfig.min_noise``), which sets the Huber bar.
         valid: the fit is finite and its projection lies inside the window.
