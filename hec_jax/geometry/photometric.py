@@ -100,8 +100,8 @@ class PhotometricFit(NamedTuple):
         cost: Huber-weighted sum of squared residuals at the refined pose [grey levels^2], with the
             weights of the start pose's residuals.
         start_cost: the same weights at the start pose, with the face colours solved unweighted
-            (so it is 0.2-1.4% above the weighted cost the iterations compare: found in review,
-            kept as measured).
+            (so it lies above the weighted cost the iterations compare, by 0.2-1.4% in a
+            reviewer's runs; kept as measured).
         colours: (3, C) fitted colours of the three faces turned most towards the camera at the
             refined pose (a hidden one's is not determined).
         noise: the robust sigma of the start pose's residuals [grey levels] (floored at
