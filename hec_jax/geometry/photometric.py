@@ -303,8 +303,10 @@ def refine_photometric(
     def step(_, carry):
         rot, trans, lam, cost = carry
         zero = jnp.zeros(6, image.dtype)
-        r = residual_at(zero, rot, trans, weights).ravel()
-        jac = jax.jacfwd(lambda d: residual_at(d, rot, trans, weights).ravel())(zero)
+        # the residual and its six directional derivatives from one linearisation (not the
+        # residual again beside jacfwd)
+        r, tangent = jax.linearize(lambda d: residual_at(d, rot, trans, weights).ravel(), zero)
+        jac = jax.vmap(tangent, out_axes=1)(jnp.eye(6, dtype=image.dtype))
         jw = jac * jnp.repeat(weights, channels)[:, None]
         h = jw.T @ jac
         g = jw.T @ r
