@@ -94,6 +94,32 @@ def test_pixel_coverage_derivatives_match_finite_differences(polygon, flip):
             np.testing.assert_allclose(jac[:, i, j], (up - down) / (2 * step), atol=1e-6)
 
 
+@pytest.mark.parametrize("polygon", POLYGONS[:3])
+@pytest.mark.parametrize("flip", [False, True])
+def test_pixel_coverage_boundary_derivative_equals_the_formulas_own(polygon, flip):
+    """The custom JVP (the boundary's normal velocity over each edge's part inside the pixel)
+    against automatic differentiation of the area formula itself, in random directions of the
+    vertices and of the pixels' centres (a pixel moved by o is the polygon moved by -o), float64.
+    """
+    poly = polygon[::-1] if flip else polygon
+    rows, cols = np.mgrid[0:16, 0:16]
+    centres = np.stack([cols.ravel(), rows.ravel()], axis=-1) + 0.5
+    rng = np.random.default_rng(7)
+
+    def formula(p, c):  # the same orientation rule, then the area formula differentiated by JAX
+        q = jnp.roll(p, -1, axis=0)
+        shoelace = jnp.sum(p[:, 0] * q[:, 1] - q[:, 0] * p[:, 1])
+        return photometric._coverage_formula(jnp.where(shoelace < 0, p[::-1], p), c)
+
+    for _ in range(4):
+        tangents = (rng.normal(size=poly.shape), rng.normal(size=centres.shape))
+        area, rate = jax.jvp(photometric.pixel_coverage, (poly, centres), tangents)
+        area_ref, rate_ref = jax.jvp(formula, (poly, centres), tangents)
+        np.testing.assert_array_equal(np.asarray(area), np.asarray(area_ref))
+        assert np.max(np.abs(np.asarray(rate))) > 0.1
+        np.testing.assert_allclose(np.asarray(rate), np.asarray(rate_ref), rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("lean", [1e-6, 1e-4])
 def test_pixel_coverage_in_float32_near_vertical_edges(lean):
     """Edges leaning by 1e-6-1e-4 px from vertical, in float32: within 2/256 of 256 x 256 points

@@ -131,14 +131,27 @@ def pixel_coverage(polygon: Array, offsets: Array) -> Array:
     The area is the integral of the winding number over the pixel, summed edge by edge: each
     edge, clipped to the pixel's rows, adds the integral over y of the part of the pixel's width
     left of it, signed by its direction in y (exact for a closed polygon; continuous and
-    piecewise smooth in the vertices, its forward-mode derivatives those of the area, horizontal
-    edges included). Each pixel's coordinates are taken about its own corner, and the mean width
-    is taken without a difference quotient wherever the clipped edge lies within one piece of
-    the clip (float32 keeps about 1e-6 of a pixel's area).
+    piecewise smooth in the vertices). Each pixel's coordinates are taken about its own corner,
+    and the mean width is taken without a difference quotient wherever the clipped edge lies
+    within one piece of the clip (float32 keeps about 1e-6 of a pixel's area).
+
+    Derivatives (forward mode, a ``jax.custom_jvp``): the area's rate is the boundary's normal
+    velocity integrated over the part of each edge inside the pixel (Reynolds' transport
+    theorem), with a point at fraction s along the edge moving as ``(1 - s)`` of its first vertex
+    and ``s`` of its second. That is the derivative of the area formula above wherever it has
+    one (tests compare the two, and finite differences); it costs two clipped fractions per
+    pixel and edge instead of the formula's derivative through every branch.
     """
     q = jnp.roll(polygon, -1, axis=0)
     shoelace = jnp.sum(polygon[:, 0] * q[:, 1] - q[:, 0] * polygon[:, 1])
     poly = jnp.where(shoelace < 0, polygon[::-1], polygon)  # positive shoelace (x right, y down)
+    return _oriented_coverage(poly, offsets)
+
+
+def _coverage_formula(poly: Array, offsets: Array) -> Array:
+    """:func:`pixel_coverage` of a polygon of positive shoelace sum (the value; its own
+    derivatives by automatic differentiation are the tests' reference for the custom JVP).
+    """
     start = poly[None, :, :] - offsets[:, None, :] + 0.5  # (N, K, 2) about each pixel's corner
     d = jnp.roll(start, -1, axis=1) - start
     y0, dy = start[..., 1], d[..., 1]
@@ -174,6 +187,54 @@ def pixel_coverage(polygon: Array, offsets: Array) -> Array:
         ),
     )
     return jnp.clip(jnp.sum(height * mean_width, axis=1), 0.0, 1.0)
+
+
+def _edge_fractions_inside(poly: Array, offsets: Array) -> tuple[Array, Array, Array]:
+    """Each edge's part inside each pixel, for the boundary integral of :func:`pixel_coverage`.
+
+    Returns ``(m0, m1, normal)``: (N, K) integrals of ``1 - s`` and of ``s`` over the fractions s
+    of edge k (from vertex k to vertex k + 1) that lie inside pixel n (a closed unit square, so
+    an edge along a pixel border counts in both pixels, a set of measure zero), and (K, 2) each
+    edge's outward normal scaled by its length (positive shoelace sum).
+    """
+    a = poly[None, :, :] - offsets[:, None, :] + 0.5  # (N, K, 2) about each pixel's corner
+    d = jnp.roll(poly, -1, axis=0) - poly  # (K, 2)
+    enter = jnp.zeros(a.shape[:2], a.dtype)
+    leave = jnp.ones(a.shape[:2], a.dtype)
+    for axis in range(2):  # Liang-Barsky: the fractions within 0 <= coordinate <= 1
+        da = d[None, :, axis]
+        flat = da == 0
+        safe = jnp.where(flat, 1.0, da)
+        sa, sb = -a[..., axis] / safe, (1.0 - a[..., axis]) / safe
+        outside = flat & ((a[..., axis] < 0) | (a[..., axis] > 1))
+        enter = jnp.where(flat, enter, jnp.maximum(enter, jnp.minimum(sa, sb)))
+        leave = jnp.where(
+            outside, enter, jnp.where(flat, leave, jnp.minimum(leave, jnp.maximum(sa, sb)))
+        )
+    leave = jnp.maximum(leave, enter)
+    m1 = 0.5 * (leave * leave - enter * enter)
+    m0 = (leave - enter) - m1
+    normal = jnp.stack([d[:, 1], -d[:, 0]], axis=-1)
+    return m0, m1, normal
+
+
+@jax.custom_jvp
+def _oriented_coverage(poly: Array, offsets: Array) -> Array:
+    return _coverage_formula(poly, offsets)
+
+
+@_oriented_coverage.defjvp
+def _oriented_coverage_jvp(primals, tangents):
+    poly, offsets = primals
+    poly_dot, offsets_dot = tangents
+    area = _coverage_formula(poly, offsets)
+    m0, m1, normal = _edge_fractions_inside(poly, offsets)
+    first = jnp.sum(normal * poly_dot, axis=-1)  # (K,) each edge's normal rate at its first vertex
+    second = jnp.sum(normal * jnp.roll(poly_dot, -1, axis=0), axis=-1)  # ... at its second
+    rate = m0 @ first + m1 @ second
+    # a pixel moved by o_dot is the polygon moved by -o_dot
+    rate = rate - jnp.sum(((m0 + m1) @ normal) * offsets_dot, axis=-1)
+    return area, rate
 
 
 def _gaussian_matrix(n: int, sigma: float) -> np.ndarray:
