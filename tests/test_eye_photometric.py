@@ -206,6 +206,30 @@ def test_refine_recovers_a_drawn_thin_face_box(yaw_pitch):
     assert float(fit.cost) < float(fit.start_cost)
 
 
+@pytest.mark.parametrize("yaw_pitch", THIN_POSES)
+def test_early_stop_keeps_the_fit(yaw_pitch):
+    """With ``relative_tolerance`` 1e-5 the fit of the drawn thin-face box stops before its 10
+    iterations and ends within 1 mm of the full fit's pose (and of the drawn one within 10 mm);
+    with 0 it runs all 10."""
+    rotation, translation = nearly_face_on(*yaw_pitch)
+    start_t = translation + 0.04 * translation / np.linalg.norm(translation)
+    origin = _origin(rotation, start_t, WINDOW)
+    image = _drawn(rotation, translation, origin, WINDOW)[..., None]
+    args = (rotation, start_t, image, np.full_like(image, 230.0), origin.astype(float), SIZE, K)
+    full = photometric.refine_photometric(
+        *args, photometric.PhotometricConfig(window_px=WINDOW, relative_tolerance=0.0)
+    )
+    early = photometric.refine_photometric(
+        *args, photometric.PhotometricConfig(window_px=WINDOW, relative_tolerance=1e-5)
+    )
+    assert int(full.steps) == 10
+    assert 1 <= int(early.steps) < 10
+    assert bool(early.valid)
+    assert np.linalg.norm(np.asarray(early.translation - full.translation)) < 1e-3
+    assert np.linalg.norm(np.asarray(early.translation) - translation) < 0.010
+    assert float(early.cost) >= float(full.cost)
+
+
 def test_refine_is_jittable_and_colour_frames_work():
     """The same fit under jit, on a three-channel frame: the pose within 10 mm, and the three
     front faces' colours within 2 grey levels of their drawn greys."""
@@ -261,6 +285,8 @@ def test_window_cost_prefers_the_true_depth():
         dict(iterations=0),
         dict(huber_sigmas=0.0),
         dict(min_noise=-1.0),
+        dict(relative_tolerance=-1e-3),
+        dict(relative_tolerance=1.0),
     ],
 )
 def test_bad_config_raises(kwargs):
