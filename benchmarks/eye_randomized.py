@@ -36,7 +36,10 @@ Methods, on the same frames:
   before, the causal time alone); with ``--extend-backward`` (off by default) the offline pass
   also tracks backward from re-acquisitions (``hec_jax.geometry.backward``, its time in the
   smoother's), the smoothed row counts ``BoxTrack.offline_valid`` frames and keeps the forward
-  tracker's acquisition;
+  tracker's acquisition; since session 94 the tracker's measured poses of boxes up to 24 px
+  across are refined on the frame's pixels before the smoother (``PHOTOMETRIC`` =
+  ``track.RANDOMIZED_PHOTOMETRIC``: 32 px windows; ``track_box``'s ``photometric``;
+  ``--no-photometric`` for the ablation, ``--photometric-window-px``);
 * ``opencv_pnp``: the visible face as a quadrilateral (``baselines.face_quad``) and
   ``cv2.solvePnP(IPPE_SQUARE)`` per frame, velocity by differences;
 * ``paper``: the paper's two-frame method (Eqs. 1-38, closed form) on the face's opposite sides in
@@ -73,8 +76,9 @@ import numpy as np
 from hec_jax.cli import command, parse, require
 from hec_jax.geometry import accuracy, smooth
 from hec_jax.geometry.baselines import paper_two_frame_track, pnp_face_track
+from hec_jax.geometry.photometric import PhotometricConfig
 from hec_jax.geometry.smooth import NO_EXTRAPOLATION
-from hec_jax.geometry.track import RANDOMIZED_BENCHMARK, track_box
+from hec_jax.geometry.track import RANDOMIZED_BENCHMARK, RANDOMIZED_PHOTOMETRIC, track_box
 from hec_jax.mjx_scene.randomized import max_swing_speed_m_s
 from hec_jax.progress import ProgressBar
 from hec_jax.report import CompileMeter
@@ -106,6 +110,7 @@ TRACK = RANDOMIZED_BENCHMARK  # the issue-24 checks and the search options (see 
 # no extrapolation across gaps over 0.2 s; fits farther apart than the swing can move split the
 # track (the bound from the scene ranges' physics, randomized.max_swing_speed_m_s: 1.75 m/s)
 SMOOTH = dataclasses.replace(NO_EXTRAPOLATION, max_speed_m_s=max_swing_speed_m_s())
+PHOTOMETRIC = RANDOMIZED_PHOTOMETRIC  # boxes up to 24 px refined on the frame's pixels (see there)
 
 
 @dataclass(frozen=True)
@@ -191,10 +196,13 @@ class EyeRandomized:
     # session 92 and not adopted by its rule, docs/eye_randomized.md "Short edges")
     short_edge_margin_px: float | None = TRACK.short_edge_margin_px
     # track_box's photometric refinement of small boxes before the smoother
-    # (hec_jax.geometry.photometric.refine_measurements, library defaults; off in the preset:
-    # measured on the development sequences in session 93, about 110 ms a refined frame against
-    # the 15 ms budget; docs/eye_randomized.md "Photometric refinement of small boxes")
-    photometric: bool = False
+    # (hec_jax.geometry.photometric.refine_measurements with PHOTOMETRIC; on in the preset since
+    # session 94; False for the ablation)
+    photometric: bool = True
+    # its window [px] (boxes up to window - 8 px across are refined; the preset's 32; session
+    # 93 measured the library's 48, over the time budget: docs/eye_randomized.md "Photometric
+    # refinement of small boxes", "A faster photometric fit")
+    photometric_window_px: int = PHOTOMETRIC.window_px
     # SmootherConfig.max_speed_m_s of the smoother (the preset's: the scenes' speed bound; 0: no
     # jump test, for the ablation; same docs section)
     max_speed_m_s: float = SMOOTH.max_speed_m_s
@@ -224,6 +232,13 @@ class EyeRandomized:
 
     def __post_init__(self):
         require(self, "count", "sequences", "width", "height", "threads")
+        if self.photometric_window_px != int(self.photometric_window_px) or not (
+            2 * PHOTOMETRIC.margin_px < self.photometric_window_px
+        ):
+            raise ValueError(
+                f"--photometric-window-px: must be an integer > {2 * PHOTOMETRIC.margin_px} (twice"
+                f" the {PHOTOMETRIC.margin_px} px margin), got {self.photometric_window_px!r}"
+            )
         require(self, "seed", "first")
         require(self, "positive", "seconds", "fps")
         if self.blob_scales:
@@ -317,11 +332,13 @@ def smoother_config(a: EyeRandomized):
     )
 
 
-def photometric_config(a: EyeRandomized):
-    """``track_box``'s ``photometric``: the library's defaults with ``--photometric``, else None."""
-    from hec_jax.geometry.photometric import PhotometricConfig
-
-    return PhotometricConfig() if a.photometric else None
+def photometric_config(a: EyeRandomized) -> PhotometricConfig | None:
+    """``track_box``'s ``photometric``: ``PHOTOMETRIC`` with ``--photometric-window-px``, or
+    None with ``--no-photometric``.
+    """
+    if not a.photometric:
+        return None
+    return dataclasses.replace(PHOTOMETRIC, window_px=a.photometric_window_px)
 
 
 def run_sequence(seed: int, a: EyeRandomized) -> tuple[dict, dict]:
@@ -559,6 +576,8 @@ def main(argv=None) -> dict:
     settings = {"seeds": [seeds[0], seeds[-1]], "frames": int(round(a.seconds * a.fps))}
     settings |= {"track": dataclasses.asdict(tracker_config(a))}
     settings |= {"smoother": dataclasses.asdict(smoother_config(a))}
+    photometric = photometric_config(a)
+    settings |= {"photometric": None if photometric is None else dataclasses.asdict(photometric)}
     with run_folder(a.out, seeds[0], settings, a.overwrite) as folder:
         per = {name: [] for name in METHODS}
         summaries = []

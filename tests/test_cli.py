@@ -140,6 +140,7 @@ BAD = {
     "benchmarks/eye_randomized.py": [
         (["--sequences", "0"], "--sequences: must be an integer >= 1"),
         (["--fps", "0"], "--fps: must be finite and > 0"),
+        (["--photometric-window-px", "8"], "--photometric-window-px: must be an integer > 8"),
         (
             ["--split", "test"],
             "--split: 'test' is not one of dev, heldout, dev-low-views, dev-wood-low-views, fresh",
@@ -273,12 +274,16 @@ def test_the_eye_benchmark_s_tracker_flags_reach_its_tracker():
     assert default.min_inner_support == 0.0 and default.acquired_gates_px == (1.5,)
     assert default.texture_families == 3 and default.jump_speed_m_s is None
     assert default.texture_family_keep_step and not default.close_edge_points
-    # the photometric refinement of small boxes: off by default, the library's defaults on
+    # the photometric refinement of small boxes: on in the preset (32 px windows since session
+    # 94), off for the ablation, its window a flag
     from hec_jax.geometry.photometric import PhotometricConfig
 
-    assert bench.photometric_config(parse(bench.EyeRandomized(), [])) is None
-    on = bench.photometric_config(parse(bench.EyeRandomized(), ["--photometric"]))
-    assert on == PhotometricConfig()
+    preset = bench.photometric_config(parse(bench.EyeRandomized(), []))
+    assert preset == PhotometricConfig(window_px=32)
+    assert bench.photometric_config(parse(bench.EyeRandomized(), ["--no-photometric"])) is None
+    wide = bench.photometric_config(parse(bench.EyeRandomized(), ["--photometric-window-px", "48"]))
+    assert wide == PhotometricConfig()
+
     # the smoother: the jump test at the scenes' speed bound; 0 turns it off
     from hec_jax.geometry.smooth import NO_EXTRAPOLATION
     from hec_jax.mjx_scene.randomized import max_swing_speed_m_s

@@ -355,6 +355,35 @@ def test_refine_measurements_carries_the_previous_correction():
     assert np.linalg.norm(out.position - translation, axis=1).max() < 0.010
 
 
+def test_refine_measurements_compiles_before_the_first_frame_only():
+    """A configuration not compiled before: refine_measurements compiles its fit and its cost
+    once each, before the frames are timed; the frames (the second with a carried start and a
+    cost comparison) compile nothing more (the warm-up's noise once compiled the cost anew)."""
+    from hec_jax.report import CompileMeter
+
+    rotation, translation = nearly_face_on(-6.0, 3.0)
+    frames = np.stack([_frame(rotation, translation)] * 2)
+    background = np.full(frames.shape[1:], 230, np.uint8)
+    near = translation - 0.06 * translation / np.linalg.norm(translation)
+    cfg = photometric.PhotometricConfig(huber_sigmas=3.125)  # its own compiled pair
+    meter = CompileMeter().install()
+    try:
+        out = photometric.refine_measurements(
+            frames,
+            background,
+            np.stack([rotation] * 2),
+            np.stack([near] * 2),
+            [True, True],
+            SIZE,
+            K,
+            cfg,
+        )
+    finally:
+        meter.uninstall()
+    assert out.carried.tolist() == [False, True]
+    assert meter.compilations == 2
+
+
 def test_refine_measurements_leaves_large_boxes_and_rejects_bad_shapes():
     rotation, translation = nearly_face_on(5.0, -4.0)
     frames = np.stack([_frame(rotation, translation)])

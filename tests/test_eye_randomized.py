@@ -19,6 +19,7 @@ from hec_jax.geometry.smooth import NO_EXTRAPOLATION, SmootherConfig, smooth_tra
 from hec_jax.geometry.synthetic import random_rotation, rotation_from_axis_angle
 from hec_jax.geometry.track import (
     RANDOMIZED_BENCHMARK,
+    RANDOMIZED_PHOTOMETRIC,
     UNSEEN_SCENES,
     _iou,
     cube_symmetries,
@@ -186,7 +187,17 @@ def test_tracker_acquires_and_tracks_a_new_scene(rendered, tracker):
     scene, seq, background = rendered
     smoother = NO_EXTRAPOLATION  # the benchmark's: max_gap_s 0.2
     cfg = {"unseen_scenes": UNSEEN_SCENES, "randomized_benchmark": RANDOMIZED_BENCHMARK}[tracker]
-    tr = track_box(seq.frames, seq.intrinsics, scene.edge_m, FPS, cfg, smoother, background)
+    photometric = RANDOMIZED_PHOTOMETRIC if tracker == "randomized_benchmark" else None
+    tr = track_box(
+        seq.frames,
+        seq.intrinsics,
+        scene.edge_m,
+        FPS,
+        cfg,
+        smoother,
+        background,
+        photometric=photometric,
+    )
     assert tr.valid[0] and tr.valid.mean() >= 0.9
     assert tr.restarted[0] and not (tr.restarted & ~tr.valid).any()  # a restart is a valid fit
     assert not (tr.search_skipped & tr.valid).any()  # a skipped search gives no fit
