@@ -120,6 +120,26 @@ def test_pixel_coverage_boundary_derivative_equals_the_formulas_own(polygon, fli
         np.testing.assert_allclose(np.asarray(rate), np.asarray(rate_ref), rtol=0, atol=1e-12)
 
 
+def test_pixel_coverage_derivative_in_float32():
+    """The custom JVP in float32 against float64's, within 1e-4 of a pixel's area a px moved."""
+    rows, cols = np.mgrid[0:16, 0:16]
+    centres = np.stack([cols.ravel(), rows.ravel()], axis=-1) + 0.5
+    direction = np.random.default_rng(3).normal(size=POLYGONS[0].shape)
+    rates = [
+        np.asarray(
+            jax.jvp(
+                lambda p, dt=dt: photometric.pixel_coverage(p, jnp.asarray(centres, dt)),
+                (jnp.asarray(POLYGONS[0], dt),),
+                (jnp.asarray(direction, dt),),
+            )[1]
+        )
+        for dt in (jnp.float32, jnp.float64)
+    ]
+    assert rates[0].dtype == np.float32
+    assert np.max(np.abs(rates[1])) > 0.1
+    np.testing.assert_allclose(rates[0], rates[1], rtol=0, atol=1e-4)
+
+
 @pytest.mark.parametrize("lean", [1e-6, 1e-4])
 def test_pixel_coverage_in_float32_near_vertical_edges(lean):
     """Edges leaning by 1e-6-1e-4 px from vertical, in float32: within 2/256 of 256 x 256 points

@@ -55,7 +55,8 @@ class PhotometricConfig:
         window_px: side of the square image window the fit reads [px] (static: one compiled
             function a size).
         blur_px: sigma of the Gaussian point spread [px].
-        iterations: Levenberg-Marquardt iterations (fixed; a rejected step raises the damping).
+        iterations: the most Levenberg-Marquardt iterations (a rejected step raises the
+            damping; ``relative_tolerance`` can stop them earlier).
         huber_sigmas: residuals beyond this many robust sigmas (1.4826 x the median absolute
             residual at the start pose, floored at ``min_noise``) are down-weighted (Huber).
         min_noise: floor of the robust sigma [grey levels].
@@ -154,6 +155,8 @@ def pixel_coverage(polygon: Array, offsets: Array) -> Array:
     one (tests compare the two, and finite differences); it costs two clipped fractions per
     pixel and edge instead of the formula's derivative through every branch.
     """
+    polygon = jnp.asarray(polygon, jnp.result_type(polygon, offsets, float))
+    offsets = jnp.asarray(offsets, polygon.dtype)  # (integer centres would get no tangent)
     q = jnp.roll(polygon, -1, axis=0)
     shoelace = jnp.sum(polygon[:, 0] * q[:, 1] - q[:, 0] * polygon[:, 1])
     poly = jnp.where(shoelace < 0, polygon[::-1], polygon)  # positive shoelace (x right, y down)
@@ -354,7 +357,8 @@ def refine_photometric(
         cfg: static settings.
 
     Returns:
-        :class:`PhotometricFit`. Jittable; ``cfg`` is static. The caller checks that the start
+        :class:`PhotometricFit`. Jittable and vmappable; ``cfg`` is static; not
+        reverse-differentiable (a ``lax.while_loop``). The caller checks that the start
         pose's projection fits inside the window (``valid`` is False where the refined one does
         not).
     """
@@ -403,7 +407,7 @@ def refine_photometric(
         new_r, new_jac = linearised(new_rot, new_trans)
         new_cost = jnp.sum(pixel_weights * new_r * new_r)
         better = jnp.isfinite(new_cost) & (new_cost < cost)
-        settled = better & (cost - new_cost <= cfg.relative_tolerance * cost)
+        settled = better & jnp.isfinite(cost) & (cost - new_cost <= cfg.relative_tolerance * cost)
 
         def pick(new, old):
             return jnp.where(better, new, old)
