@@ -694,9 +694,10 @@ RANDOMIZED_BENCHMARK = dataclasses.replace(
 # ``track_box``'s ``photometric`` in the randomized benchmark's preset: boxes up to 24 px across
 # refined on 32 px windows (session 94, by a rule written before its runs, on the 1240
 # development sequences: smoothed gross frames 632 -> 472, acquisitions within 3 frames
-# 1183 -> 1184, the velocity RMS lower on each set, an estimated 13.5 ms a frame; 40 px windows
-# fixed more, 373, at an estimated 16.5 ms; docs/eye_randomized.md, "The smallest boxes only, in
-# the preset")
+# 1183 -> 1184, the velocity RMS lower on each set, an estimated 13.2 ms a frame (13.5 with a
+# compilation inside the timing, since fixed); 40 px windows fixed more, 373, at an estimated
+# 15.8 ms (16.5), over the 15 ms budget; docs/eye_randomized.md, "The smallest boxes only, in the
+# preset")
 RANDOMIZED_PHOTOMETRIC = photometric_fit.PhotometricConfig(window_px=32)
 
 
