@@ -326,13 +326,6 @@ def _window_arrays(image, background, origin, cfg: PhotometricConfig):
     return image, background, jnp.asarray(origin, image.dtype), blur
 
 
-def _robust_noise(residual: Array, cfg: PhotometricConfig) -> Array:
-    """1.4826 x the median of the pixels' residual norms / sqrt(C), floored at ``min_noise``."""
-    norms = jnp.sqrt(jnp.sum(residual * residual, axis=-1))
-    channels = residual.shape[-1]
-    return jnp.maximum(1.4826 * jnp.median(norms) / jnp.sqrt(channels), cfg.min_noise)
-
-
 def refine_photometric(
     rotation: Array,
     translation: Array,
@@ -374,7 +367,7 @@ def refine_photometric(
     r0 = residual_at(jnp.zeros(6), rotation, translation, ones)
     norms = jnp.sqrt(jnp.sum(r0 * r0, axis=-1))
     channels = r0.shape[-1]
-    sigma = _robust_noise(r0, cfg)
+    sigma = jnp.maximum(1.4826 * jnp.median(norms) / jnp.sqrt(channels), cfg.min_noise)
     bar = cfg.huber_sigmas * sigma * jnp.sqrt(channels)
     weights = jnp.where(norms <= bar, 1.0, bar / jnp.maximum(norms, 1e-12))
     weights = jax.lax.stop_gradient(weights)
