@@ -78,7 +78,12 @@ from hec_jax.geometry import accuracy, smooth
 from hec_jax.geometry.baselines import paper_two_frame_track, pnp_face_track
 from hec_jax.geometry.photometric import PhotometricConfig
 from hec_jax.geometry.smooth import NO_EXTRAPOLATION
-from hec_jax.geometry.track import RANDOMIZED_BENCHMARK, RANDOMIZED_PHOTOMETRIC, track_box
+from hec_jax.geometry.track import (
+    RANDOMIZED_BENCHMARK,
+    RANDOMIZED_PHOTOMETRIC,
+    track_box,
+    warm_up_rescue,
+)
 from hec_jax.mjx_scene.randomized import max_swing_speed_m_s
 from hec_jax.progress import ProgressBar
 from hec_jax.report import CompileMeter
@@ -195,6 +200,15 @@ class EyeRandomized:
     # margin sampled from this many px of their corners; off in the preset: measured at 1.6 in
     # session 92 and not adopted by its rule, docs/eye_randomized.md "Short edges")
     short_edge_margin_px: float | None = TRACK.short_edge_margin_px
+    # TrackConfig.rescue_windows_px of the tracker (the photometric rescue of frames whose
+    # tracked fit and search failed while the filter runs; off, (), in the preset: measured in
+    # session 96, docs/eye_randomized.md "A photometric fit from the prediction ...")
+    rescue_windows_px: tuple[int, ...] = TRACK.rescue_windows_px
+    # TrackConfig.rescue_max_contrast, its contrast bar (0: no bar)
+    rescue_max_contrast: float = TRACK.rescue_max_contrast or 0.0
+    # TrackConfig.rescue_needs_tracked: the rescue only on a track with a tracked fit since its
+    # filter (re)started (same docs section)
+    rescue_needs_tracked: bool = TRACK.rescue_needs_tracked
     # track_box's photometric refinement of small boxes before the smoother
     # (hec_jax.geometry.photometric.refine_measurements with PHOTOMETRIC; on in the preset since
     # session 94; False for the ablation)
@@ -299,6 +313,9 @@ def tracker_config(a: EyeRandomized):
         close_edge_points=a.close_edge_points,
         tracked_without_shadow_test=a.tracked_without_shadow_test,
         short_edge_margin_px=a.short_edge_margin_px,
+        rescue_windows_px=a.rescue_windows_px,
+        rescue_max_contrast=a.rescue_max_contrast or None,
+        rescue_needs_tracked=a.rescue_needs_tracked,
     )
 
 
@@ -587,6 +604,7 @@ def main(argv=None) -> dict:
             run_sequence(seeds[0], a)  # not counted
             # the smoother's fits for every segment length (a first scene need not have them)
             smooth.warm_up(settings["frames"], 1.0 / a.fps, smoother_config(a), a.gravity)
+            warm_up_rescue(tracker_config(a), a.fps)  # each rescue window (colour frames)
             warmup_s = time.perf_counter() - t0
             bar.log(f"warm-up (compilation) {warmup_s:.1f} s")
             meter = CompileMeter().install()  # compilations while the timed sequences run

@@ -39,6 +39,7 @@ import functools
 import time
 from typing import NamedTuple
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -119,6 +120,12 @@ class PhotometricFit(NamedTuple):
         valid: the fit is finite and its projection lies inside the window.
         steps: the iterations run (``cfg.iterations`` unless ``cfg.relative_tolerance`` stopped
             them early).
+        information: (6, 6) Gauss-Newton information of the pose increment (dw, dt) [1/rad^2,
+            1/m^2] at the refined pose: J^T W J / noise^2, J the residuals' derivatives (the
+            colours solved at each pose), W the Huber weights. The increment is the edge fits'
+            (R <- exp(dw) R, t <- t + dt: :func:`hec_jax.geometry.refine.retract`). Neighbouring
+            pixels share their error (the blur, the model's omissions), so it over-counts them
+            like the edge fits' information does; a consumer scales it.
     """
 
     rotation: Array
@@ -129,6 +136,7 @@ class PhotometricFit(NamedTuple):
     noise: Array
     valid: Array
     steps: Array
+    information: Array
 
 
 def pixel_coverage(polygon: Array, offsets: Array) -> Array:
@@ -418,7 +426,7 @@ def refine_photometric(
 
     lam0 = jnp.asarray(cfg.damping, image.dtype)
     r_start, jac_start = linearised(rotation, translation)
-    rot, trans, _, cost, _, _, steps, _ = jax.lax.while_loop(
+    rot, trans, _, cost, _, jac, steps, _ = jax.lax.while_loop(
         lambda carry: (carry[6] < cfg.iterations) & ~carry[7],
         step,
         (rotation, translation, lam0, start_cost, r_start, jac_start, 0, False),
@@ -429,7 +437,10 @@ def refine_photometric(
     )
     inside = jnp.all((corners >= 0) & (corners <= w))
     valid = inside & jnp.isfinite(cost) & jnp.all(jnp.isfinite(trans)) & (trans[2] > 0)
-    return PhotometricFit(rot, trans, cost, start_cost, colours, sigma, valid, steps)
+    # the carried derivatives are those of the kept pose (a rejected step keeps the old ones)
+    information = (jac * pixel_weights[:, None]).T @ jac / (sigma * sigma)
+    information = 0.5 * (information + information.T)
+    return PhotometricFit(rot, trans, cost, start_cost, colours, sigma, valid, steps, information)
 
 
 def window_cost(
@@ -465,6 +476,57 @@ def window_cost(
     norms = jnp.sqrt(jnp.sum(r * r, axis=-1))
     bar = cfg.huber_sigmas * noise * jnp.sqrt(r.shape[-1])
     return jnp.sum(jnp.where(norms <= bar, 0.5 * norms**2, bar * (norms - 0.5 * bar)))
+
+
+def silhouette_contrast(frame, background, rotation, translation, size, intrinsics, noise) -> float:
+    """How far a posed box's projected silhouette stands out from the empty scene, in units of
+    a fit's noise (NumPy, on the host): the median over the pixels whose centres lie inside the
+    convex hull of the projected corners of the largest channel's |frame - background|, over
+    ``noise`` (:attr:`PhotometricFit.noise`).
+
+    Args:
+        frame: (H, W, C) or (H, W) image (grey levels).
+        background: the empty scene's image, of the frame's shape.
+        rotation: (3, 3) R of the pose (object axes in the camera frame).
+        translation: (3,) t of the pose [m].
+        size: the cube's edge [m].
+        intrinsics: (3, 3) K.
+        noise: [grey levels], positive.
+
+    Returns:
+        The contrast [-]; 0.0 where the silhouette covers no pixel centre, or the pose is not in
+        front of the camera or not finite.
+
+    Raises:
+        ValueError: frame and background of different shapes, or ``noise`` not positive.
+    """
+    frame, background = np.asarray(frame, float), np.asarray(background, float)
+    if frame.shape != background.shape or frame.ndim not in (2, 3):
+        raise ValueError(
+            f"frame and background must be (H, W[, C]) of one shape, got {frame.shape} and "
+            f"{background.shape}"
+        )
+    if not float(noise) > 0:
+        raise ValueError(f"noise must be positive, got {noise!r}")
+    rotation, translation = np.asarray(rotation, float), np.asarray(translation, float)
+    if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(translation))):
+        return 0.0
+    if translation[2] <= 0:
+        return 0.0
+    corners = box_model.project_corners_np(rotation, translation, size, intrinsics)
+    if not np.all(np.isfinite(corners)):
+        return 0.0
+    # cv2.fillConvexPoly with 8 fractional bits fills the pixels whose centres lie inside
+    hull = cv2.convexHull(np.round((corners - 0.5) * 256).astype(np.int32))
+    inside = np.zeros(frame.shape[:2], np.uint8)
+    cv2.fillConvexPoly(inside, hull, 1, lineType=cv2.LINE_8, shift=8)
+    difference = np.abs(frame - background)
+    if difference.ndim == 3:
+        difference = difference.max(axis=-1)
+    pixels = difference[inside > 0]
+    if pixels.size == 0:
+        return 0.0
+    return float(np.median(pixels) / float(noise))
 
 
 class RefinedMeasurements(NamedTuple):

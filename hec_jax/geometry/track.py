@@ -489,6 +489,34 @@ class TrackConfig:
             are small (a 6-vector pose, 48 segments, 96 starts), where those libraries cost more
             than they give; the same arithmetic, equal to round-off but not bit for bit. False:
             XLA's defaults (as before).
+        rescue_windows_px: a photometric rescue of the frames whose tracked fit fails while
+            the filter runs (off where empty, as before): before the search near the prediction,
+            :func:`photometric.refine_photometric` (the library's settings, window the smallest
+            of these [px] whose side holds the predicted box's projection with
+            ``PhotometricConfig.margin_px`` to spare; none: no rescue) fits the frame's pixels
+            from the predicted pose (the filter's predicted centre, the rotation turned on at
+            the last angular velocity). The fit counts as the frame's measurement where it is
+            valid, passes the innovation gate and the tracked confirmation checks as any tracked
+            fit (:meth:`BoxTracker._confirmed`), and its silhouette's contrast
+            (:func:`photometric.silhouette_contrast`) is under ``rescue_max_contrast``. It
+            needs a background (given in colour: the fit reads colour). Its information is
+            ``rescue_info_ratio`` x the fit's (:attr:`photometric.PhotometricFit.information`),
+            then used as an edge fit's (``info_scale``, the smoother's). The frame's edge
+            segments are none, its coverage 0 and its RMS NaN (``fit_source`` "photometric").
+            Measured in session 95 as a diagnosis and in session 96 inside the tracker
+            (docs/eye_randomized.md, "A photometric fit from the prediction ...").
+        rescue_max_contrast: the contrast bar of the rescue [-] (None: no bar). A fit whose
+            box differs strongly from the background but failed its edge fit had extended a
+            wrong track more often on the development seeds of session 95 (the bar 8 was read
+            there, and checked on other seeds by a rule written before: same docs section).
+        rescue_info_ratio: factor on the rescue fit's information [-], calibrated in session
+            96 so that its normalised position error matches the edge fits' on development
+            frames (same docs section).
+        rescue_needs_tracked: the rescue runs only on a track that has had a tracked fit (the
+            edge fit from the prediction, ``fit_source`` "tracked") since its filter (re)started.
+            A search's fit that locked onto something else, followed by failed tracked fits,
+            is then not carried on by rescues (development seed 3904: a wrong lock 1.8 m off
+            kept alive by two rescues, same docs section). False: every running track.
     """
 
     max_segments: int = 48
@@ -574,6 +602,10 @@ class TrackConfig:
     close_edge_points: bool = False
     tracked_without_shadow_test: bool = False
     short_edge_margin_px: float | None = None
+    rescue_windows_px: tuple[int, ...] = ()
+    rescue_max_contrast: float | None = 8.0
+    rescue_info_ratio: float = 1.0
+    rescue_needs_tracked: bool = False
 
 
 # The issue-24 checks on (``benchmarks/eye_randomized.py``, ``tests/test_eye_randomized.py``); the
@@ -1694,6 +1726,50 @@ def _compiled_locate(cfg: TrackConfig, gates_px: tuple[float, ...]):
     return _CACHE[key]
 
 
+def _rescue_configs(cfg: TrackConfig) -> tuple[photometric_fit.PhotometricConfig, ...]:
+    """The photometric rescue's settings (``TrackConfig.rescue_windows_px``), smallest window
+    first: the library's :class:`photometric.PhotometricConfig` but the window.
+    """
+    return tuple(
+        dataclasses.replace(photometric_fit.PhotometricConfig(), window_px=w)
+        for w in sorted(set(cfg.rescue_windows_px))
+    )
+
+
+def _make_measurement_update(fcfg: kf.FilterConfig):
+    """Jitted (predicted state, position (3,) [m], covariance (3, 3) [m^2]) -> (corrected
+    state, its prediction one frame on): a rescue fit's filter update (as ``_make_finish``'s).
+    """
+    key = ("measurement_update", fcfg)
+    if key not in _CACHE:
+
+        def update(predicted, position, cov):
+            new = kf.correct(predicted, position, cov, jnp.bool_(True))
+            return new, kf.predict(fcfg, new)
+
+        _CACHE[key] = jax.jit(update)
+    return _CACHE[key]
+
+
+def warm_up_rescue(config: TrackConfig, fps: float, channels: int = 3) -> None:
+    """Compile what the photometric rescue (``config.rescue_windows_px``) runs, so that no frame
+    of a timed run compiles it: each window's fit (on ``channels`` channels: 3 with a colour
+    background, else 1) and the filter update at ``fps``. Nothing where the rescue is off.
+    """
+    configs = _rescue_configs(config)
+    if not configs:
+        return
+    k = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+    pose = (np.eye(3), np.array([0.0, 0.0, 1.0]))
+    for pcfg in configs:
+        fit, _ = photometric_fit._compiled(pcfg)
+        dummy = np.zeros((pcfg.window_px, pcfg.window_px, channels))
+        jax.block_until_ready(fit(*pose, dummy, dummy, np.zeros(2), 0.05, k))
+    fcfg = kf.FilterConfig(dt=1.0 / fps, jerk_psd=config.jerk_psd)
+    state = jax.device_get(kf.init(fcfg, jnp.zeros(3)))
+    jax.block_until_ready(_make_measurement_update(fcfg)(state, np.zeros(3), np.eye(3)))
+
+
 def _window(corners_px: np.ndarray, margin: float):
     lo, hi = corners_px.min(0), corners_px.max(0)
     pad = margin * max(hi[0] - lo[0], hi[1] - lo[1]) + 4.0
@@ -1753,7 +1829,8 @@ class TrackStep(NamedTuple):
             scratch ``"search"``, the tracked or stopped fit with fewer segments where the
             occluded pixels hide edges ``"three_segments"`` (``min_segments_hidden``), the
             tracked or stopped fit taken along its line of sight, with the filter restarted
-            ``"along_sight"`` (``depth_gate``); ``""`` where the frame is not valid.
+            ``"along_sight"`` (``depth_gate``), the photometric rescue from the prediction
+            ``"photometric"`` (``rescue_windows_px``); ``""`` where the frame is not valid.
         restarted: the frame's valid fit started a new filter: a detection with no filter
             running (the first, or the first after a loss) or ``"along_sight"``. The state
             before it belongs to another track (lost, or run away), so the offline smoother
@@ -1795,6 +1872,7 @@ FIT_SOURCES = (
     "search",
     "three_segments",
     "along_sight",
+    "photometric",
 )
 
 
@@ -1969,13 +2047,12 @@ class BoxTracker:
             raise ValueError(
                 f"TrackConfig.texture_families must be None or an int >= 2, got {least!r}"
             )
-        speed = config.jump_speed_m_s
-        if speed is not None and not (
-            isinstance(speed, int | float) and not isinstance(speed, bool) and speed > 0
-        ):
-            raise ValueError(
-                f"TrackConfig.jump_speed_m_s must be None or a number > 0, got {speed!r}"
-            )
+        for name in ("jump_speed_m_s", "rescue_max_contrast"):
+            value = getattr(config, name)
+            if value is not None and not (
+                isinstance(value, int | float) and not isinstance(value, bool) and value > 0
+            ):
+                raise ValueError(f"TrackConfig.{name} must be None or a number > 0, got {value!r}")
         slack = config.jump_slack_m
         if not (isinstance(slack, int | float) and not isinstance(slack, bool) and slack >= 0):
             raise ValueError(f"TrackConfig.jump_slack_m must be a number >= 0, got {slack!r}")
@@ -1987,6 +2064,23 @@ class BoxTracker:
                 "TrackConfig.short_edge_margin_px must be None or a number in (0, 3) [px],"
                 f" got {margin!r}"
             )
+        windows = config.rescue_windows_px
+        if not (
+            isinstance(windows, tuple)
+            and all(isinstance(w, int) and not isinstance(w, bool) and w >= 8 for w in windows)
+        ):
+            raise ValueError(
+                "TrackConfig.rescue_windows_px must be a tuple of integers >= 8 [px],"
+                f" got {windows!r}"
+            )
+        if not isinstance(config.rescue_needs_tracked, bool):
+            raise ValueError(
+                "TrackConfig.rescue_needs_tracked must be a bool,"
+                f" got {config.rescue_needs_tracked!r}"
+            )
+        ratio = config.rescue_info_ratio
+        if not (isinstance(ratio, int | float) and not isinstance(ratio, bool) and ratio > 0):
+            raise ValueError(f"TrackConfig.rescue_info_ratio must be a number > 0, got {ratio!r}")
         for name, least in (("lost_search_every", 1), ("lost_search_after", 0), ("threads", 1)):
             value = getattr(config, name)
             if not (isinstance(value, int) and value >= least):
@@ -2040,6 +2134,7 @@ class BoxTracker:
         # labelling reference: of re-acquisitions (the last tracked fit's rotation) and, with
         # keep_labelling, of every fit (the last accepted fit's rotation)
         self._rot_anchor = None
+        self._tracked_in_track = False  # a tracked fit since the filter (re)started
         self._frame = 0
         self._bg_frames: list[np.ndarray] = []
         self._bg_dirty = False
@@ -2067,6 +2162,7 @@ class BoxTracker:
         "_rot_prev2",
         "_last_good",
         "_rot_anchor",
+        "_tracked_in_track",
         "_frame",
         "_bg_frames",
         "_bg_dirty",
@@ -2074,7 +2170,7 @@ class BoxTracker:
     )
     # fields added since snapshots were first recorded, and their values before they existed
     # (a snapshot without them restores as the tracker of that time ran)
-    _LATER_STATE = {"_failed_searches": 0, "_searches_skipped": 0}
+    _LATER_STATE = {"_failed_searches": 0, "_searches_skipped": 0, "_tracked_in_track": False}
 
     def snapshot(self) -> dict:
         """The track between frames (filter, rotations, misses, frame count; the background
@@ -2143,6 +2239,7 @@ class BoxTracker:
         it before its first frame (each path compiles in seconds on first use).
         """
         self._refine_failed = True  # the refinement compiled even where no located fit passes
+        warm_up_rescue(self.config, self.fps, 3 if self._background_rgb is not None else 1)
         try:
             for _ in range(3):
                 self.update(frame, occluded)
@@ -2901,6 +2998,84 @@ class BoxTracker:
             three.append(finish(True))
         return finish(False) if shown else None
 
+    def _rescue(self, gray, pose) -> Finished | None:
+        """The photometric rescue's fit (``config.rescue_windows_px``) of this frame from
+        ``pose`` (R, t [m]: the prediction), as a :class:`Finished` whose filter state is
+        corrected by it (the innovation gate and the confirmation checks are the caller's), or
+        None: no background, no window holds the predicted box, the fit is not valid, its
+        contrast reaches ``config.rescue_max_contrast``, or its filter update is not finite.
+        """
+        cfg, k = self.config, self.intrinsics
+        if self._background_rgb is not None:  # the fit reads colour where it can
+            image, empty = self._frame_rgb, self._background_rgb
+        elif self.background is not None:
+            image, empty = gray, self.background
+        else:
+            return None
+        rotation = np.asarray(pose[0], np.float64)
+        translation = np.asarray(pose[1], np.float64)
+        if not (np.all(np.isfinite(rotation)) and np.all(np.isfinite(translation))):
+            return None
+        if translation[2] <= 0:
+            return None
+        corners = project_corners_np(rotation, translation, self.size, k)
+        span = float(np.max(corners.max(0) - corners.min(0)))
+        height, width = image.shape[:2]
+        pcfg = next(
+            (
+                c
+                for c in _rescue_configs(cfg)
+                if span <= c.window_px - 2 * c.margin_px and c.window_px <= min(height, width)
+            ),
+            None,
+        )
+        if pcfg is None:
+            return None
+        w = pcfg.window_px
+        centre = 0.5 * (corners.min(0) + corners.max(0))
+        origin = np.clip(np.round(centre - w / 2), 0, [width - w, height - w]).astype(int)
+        rows, cols = slice(origin[1], origin[1] + w), slice(origin[0], origin[0] + w)
+        window = image[rows, cols].astype(float).reshape(w, w, -1)
+        empty_window = empty[rows, cols].astype(float).reshape(w, w, -1)
+        fit_fn, _ = photometric_fit._compiled(pcfg)
+        fit = jax.device_get(
+            fit_fn(rotation, translation, window, empty_window, origin.astype(float), self.size, k)
+        )
+        if not bool(fit.valid):
+            return None
+        r_fit, t_fit = np.asarray(fit.rotation), np.asarray(fit.translation)
+        if cfg.rescue_max_contrast is not None:
+            contrast = photometric_fit.silhouette_contrast(
+                image, empty, r_fit, t_fit, self.size, k, float(fit.noise)
+            )
+            if not contrast < cfg.rescue_max_contrast:
+                return None
+        information = cfg.rescue_info_ratio * np.asarray(fit.information, np.float64)
+        # the centre's covariance given the rotation, as the edge fits' (refine_points)
+        info_tt = information[3:, 3:] + 1e-9 * np.eye(3)
+        if not np.all(np.isfinite(info_tt)) or np.linalg.cond(info_tt) > 1e12:
+            return None
+        cov = np.linalg.inv(info_tt)
+        cov = 0.5 * (cov + cov.T) / cfg.info_scale
+        update = _make_measurement_update(self._fcfg)
+        new, predicted = jax.device_get(update(self._predicted, t_fit, cov))
+        if not all(np.all(np.isfinite(x)) for x in (*new, *predicted)):
+            return None
+        m = cfg.max_segments
+        return Finished(
+            r_fit,
+            t_fit,
+            np.float64(np.nan),
+            np.bool_(True),
+            information,
+            new,
+            predicted,
+            np.zeros((m, 2, 2)),
+            np.full(m, -1, np.int32),
+            np.zeros(m),
+            np.float64(0.0),
+        )
+
     def _along_sight(self, own_fits, gate: Gate, gray):
         """(fit, "along_sight") of the valid, confirmed fit among ``own_fits`` that passes
         ``gate`` split along the line of sight (nearest the gate's centre), with the filter
@@ -2970,6 +3145,7 @@ class BoxTracker:
             rot_prev, rot_prev2 = self._rot_prev, self._rot_prev2
             omega = _log(rot_prev @ rot_prev2.T) if rot_prev2 is not None else np.zeros(3)
             prior = (_rodrigues(omega) @ rot_prev, np.asarray(self._predicted.mean[:3]))
+            predicted_pose = prior  # (the rescue's start)
             corners = project_corners_np(*prior, self.size, k)
             seg = self._moving_segments(gray, _window(corners, cfg.roi_margin))
             segp, mask = detect.pad_segments(self._near_prior(seg, prior), m)
@@ -3081,6 +3257,14 @@ class BoxTracker:
                     fin, source = fin2, "search"
                     if first or not self._started:
                         self._started = False
+        rescue = cfg.rescue_windows_px and tracking and running
+        if cfg.rescue_needs_tracked and not self._tracked_in_track:
+            rescue = False
+        if rescue and not gated(fin):
+            # all else failed while the filter runs: the photometric fit from the prediction
+            rescued = self._rescue(gray, predicted_pose)
+            if gated(rescued):
+                fin, source = rescued, "photometric"
         ok = fin is not None and bool(fin.valid)
         if ok:
             self._state, self._predicted = fin.filter_state, fin.predicted
@@ -3094,6 +3278,10 @@ class BoxTracker:
         information = np.zeros((6, 6))
         coverage, rms = 0.0, np.nan
         if ok:
+            if not running or source == "along_sight":  # a new filter (TrackStep.restarted)
+                self._tracked_in_track = False
+            if source == "tracked":
+                self._tracked_in_track = True
             self._misses = 0
             self._failed_searches = self._searches_skipped = 0
             self._last_good = (i, np.asarray(fin.translation))
