@@ -558,6 +558,7 @@ def test_rescue_measures_a_frame_whose_edge_fits_fail():
     [
         dict(rescue_windows_px=[32]),
         dict(rescue_windows_px=(4,)),
+        dict(rescue_windows_px=(8,)),  # no room for the 4 px margins
         dict(rescue_windows_px=(32.0,)),
         dict(rescue_max_contrast=0.0),
         dict(rescue_info_ratio=-1.0),
@@ -579,3 +580,34 @@ def test_rescue_needs_a_tracked_fit_with_rescue_needs_tracked():
     assert _tracker_failing_at(frames, rescue, 1).fit_source == "photometric"
     assert not bool(_tracker_failing_at(frames, needs, 1).valid)
     assert _tracker_failing_at(frames, needs, 6).fit_source == "photometric"
+
+
+def _face_on(x0, y0, width_px):
+    """(rotation, translation, intrinsics): the box face on (identity rotation) on the optical
+    axis, the principal point at its centre, so its silhouette is the front face's square
+    [x0, x0 + width] x [y0, y0 + width] [px] (the back face projects inside it)."""
+    depth = K[0, 0] * SIZE / width_px  # of the front face [m]
+    k = K.copy()
+    k[0, 2], k[1, 2] = x0 + width_px / 2, y0 + width_px / 2
+    return np.eye(3), np.array([0.0, 0.0, depth + SIZE / 2]), k
+
+
+def test_silhouette_contrast_counts_the_pixels_whose_centres_lie_inside():
+    """The pixel convention (pixel (i, j) centred at (j + 0.5, i + 0.5)), from the face-on box's
+    analytic silhouette: a square from 100.2 to 102.4 px holds the centres of the 2 x 2 pixels
+    (100, 101) and no other. Those differ from the background by 100, the pixels around by 0:
+    the contrast is 100 / noise (a mask that took the ring the outline crosses would have a
+    median of 0). A square 0.3 px wide between centres holds none: 0."""
+    rotation, translation, k = _face_on(100.2, 60.2, 2.2)
+    corners = box_model.project_corners_np(rotation, translation, SIZE, k)
+    np.testing.assert_allclose(corners.min(0), [100.2, 60.2], atol=1e-9)
+    np.testing.assert_allclose(corners.max(0), [102.4, 62.4], atol=1e-9)
+    empty = np.full((120, 160, 3), 230.0)
+    frame = empty.copy()
+    frame[60:62, 100:102] = 130.0
+    got = photometric.silhouette_contrast(frame, empty, rotation, translation, SIZE, k, 4.0)
+    assert got == pytest.approx(25.0)
+    r_sliver, t_sliver, k_sliver = _face_on(100.6, 60.6, 0.3)
+    frame[59:64, 99:104] = 130.0  # around the sliver too
+    got = photometric.silhouette_contrast(frame, empty, r_sliver, t_sliver, SIZE, k_sliver, 4.0)
+    assert got == 0.0

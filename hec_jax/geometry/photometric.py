@@ -516,14 +516,26 @@ def silhouette_contrast(frame, background, rotation, translation, size, intrinsi
     corners = box_model.project_corners_np(rotation, translation, size, intrinsics)
     if not np.all(np.isfinite(corners)):
         return 0.0
-    # cv2.fillConvexPoly with 8 fractional bits fills the pixels whose centres lie inside
-    hull = cv2.convexHull(np.round((corners - 0.5) * 256).astype(np.int32))
-    inside = np.zeros(frame.shape[:2], np.uint8)
-    cv2.fillConvexPoly(inside, hull, 1, lineType=cv2.LINE_8, shift=8)
-    difference = np.abs(frame - background)
+    order = cv2.convexHull(corners.astype(np.float32), returnPoints=False).ravel()
+    hull = corners[order]  # the exact corners, in the hull's order
+    # the pixels whose centres (column + 0.5, row + 0.5) can lie inside: the hull's bounding box
+    height, width = frame.shape[:2]
+    lo = np.maximum(np.ceil(hull.min(axis=0) - 0.5), 0).astype(int)
+    hi = np.minimum(np.floor(hull.max(axis=0) - 0.5), [width - 1, height - 1]).astype(int)
+    if np.any(hi < lo):
+        return 0.0
+    xs = np.arange(lo[0], hi[0] + 1)[None, :] + 0.5
+    ys = np.arange(lo[1], hi[1] + 1)[:, None] + 0.5
+    ahead = np.roll(hull, -1, axis=0)
+    turn = np.sign(np.sum(hull[:, 0] * ahead[:, 1] - ahead[:, 0] * hull[:, 1]))
+    inside = np.ones((len(ys), xs.shape[1]), bool)
+    for a, b in zip(hull, ahead, strict=True):  # on the inner side of every hull edge
+        inside &= turn * ((b[0] - a[0]) * (ys - a[1]) - (b[1] - a[1]) * (xs - a[0])) >= 0
+    rows, cols = slice(lo[1], hi[1] + 1), slice(lo[0], hi[0] + 1)
+    difference = np.abs(frame[rows, cols] - background[rows, cols])
     if difference.ndim == 3:
         difference = difference.max(axis=-1)
-    pixels = difference[inside > 0]
+    pixels = difference[inside]
     if pixels.size == 0:
         return 0.0
     return float(np.median(pixels) / float(noise))

@@ -489,34 +489,43 @@ class TrackConfig:
             are small (a 6-vector pose, 48 segments, 96 starts), where those libraries cost more
             than they give; the same arithmetic, equal to round-off but not bit for bit. False:
             XLA's defaults (as before).
-        rescue_windows_px: a photometric rescue of the frames whose tracked fit fails while
-            the filter runs (off where empty, as before): before the search near the prediction,
-            :func:`photometric.refine_photometric` (the library's settings, window the smallest
-            of these [px] whose side holds the predicted box's projection with
+        rescue_windows_px: a photometric rescue of the frames whose fits fail while the
+            filter runs (off where empty, as before). Once the tracked fit, the cheaper fits and
+            the search near the prediction (where it runs: ``defer_search``) have failed, and
+            no fit restarted the filter along the line of sight,
+            :func:`photometric.refine_photometric` (the library's settings; the window the
+            smallest of these [px] whose side holds the predicted box's projection with
             ``PhotometricConfig.margin_px`` to spare; none: no rescue) fits the frame's pixels
             from the predicted pose (the filter's predicted centre, the rotation turned on at
             the last angular velocity). The fit counts as the frame's measurement where it is
             valid, passes the innovation gate and the tracked confirmation checks as any tracked
             fit (:meth:`BoxTracker._confirmed`), and its silhouette's contrast
             (:func:`photometric.silhouette_contrast`) is under ``rescue_max_contrast``. It
-            needs a background (given in colour: the fit reads colour). Its information is
-            ``rescue_info_ratio`` x the fit's (:attr:`photometric.PhotometricFit.information`),
-            then used as an edge fit's (``info_scale``, the smoother's). The frame's edge
-            segments are none, its coverage 0 and its RMS NaN (``fit_source`` "photometric").
-            Measured in session 95 as a diagnosis and in session 96 inside the tracker
-            (docs/eye_randomized.md, "A photometric fit from the prediction ...").
+            needs a background: the given colour one where there is one (the fit reads colour),
+            else the grey one (given, or the tracker's median of past frames as last refreshed).
+            Its information is ``rescue_info_ratio`` x the fit's
+            (:attr:`photometric.PhotometricFit.information`), then used as an edge fit's
+            (``info_scale``, the smoother's); no ``maneuver_nis`` reset follows it. The frame's
+            edge segments are none, its coverage 0 and its RMS NaN (``fit_source``
+            "photometric"). Measured in session 95 as a diagnosis and in session 96 inside the
+            tracker, where it failed two rules written before their runs: it carried wrong
+            tracks on as well as right ones, and cost about 1 ms a frame (docs/eye_randomized.md,
+            "The photometric rescue inside the tracker").
         rescue_max_contrast: the contrast bar of the rescue [-] (None: no bar). A fit whose
             box differs strongly from the background but failed its edge fit had extended a
             wrong track more often on the development seeds of session 95 (the bar 8 was read
-            there, and checked on other seeds by a rule written before: same docs section).
+            there, and checked on other seeds by a rule written before: docs/eye_randomized.md,
+            "A photometric fit from the prediction on the frames lost while tracking").
         rescue_info_ratio: factor on the rescue fit's information [-], calibrated in session
             96 so that its normalised position error matches the edge fits' on development
-            frames (same docs section).
+            frames (docs/eye_randomized.md, "The photometric rescue inside the tracker").
         rescue_needs_tracked: the rescue runs only on a track that has had a tracked fit (the
             edge fit from the prediction, ``fit_source`` "tracked") since its filter (re)started.
             A search's fit that locked onto something else, followed by failed tracked fits,
             is then not carried on by rescues (development seed 3904: a wrong lock 1.8 m off
-            kept alive by two rescues, same docs section). False: every running track.
+            kept alive by two rescues; the same docs section). The backward pass of
+            ``SmootherConfig.extend_backward`` starts with the restored snapshot's state of
+            this. False: every running track.
     """
 
     max_segments: int = 48
@@ -2065,12 +2074,13 @@ class BoxTracker:
                 f" got {margin!r}"
             )
         windows = config.rescue_windows_px
+        least = 2 * photometric_fit.PhotometricConfig().margin_px + 1  # a window's margins
         if not (
             isinstance(windows, tuple)
-            and all(isinstance(w, int) and not isinstance(w, bool) and w >= 8 for w in windows)
+            and all(isinstance(w, int) and not isinstance(w, bool) and w >= least for w in windows)
         ):
             raise ValueError(
-                "TrackConfig.rescue_windows_px must be a tuple of integers >= 8 [px],"
+                f"TrackConfig.rescue_windows_px must be a tuple of integers >= {least} [px],"
                 f" got {windows!r}"
             )
         if not isinstance(config.rescue_needs_tracked, bool):
@@ -3260,7 +3270,7 @@ class BoxTracker:
         rescue = cfg.rescue_windows_px and tracking and running
         if cfg.rescue_needs_tracked and not self._tracked_in_track:
             rescue = False
-        if rescue and not gated(fin):
+        if rescue and not gated(fin) and source != "along_sight":  # (a restart stands)
             # all else failed while the filter runs: the photometric fit from the prediction
             rescued = self._rescue(gray, predicted_pose)
             if gated(rescued):
