@@ -201,8 +201,8 @@ class EyeRandomized:
     # session 92 and not adopted by its rule, docs/eye_randomized.md "Short edges")
     short_edge_margin_px: float | None = TRACK.short_edge_margin_px
     # TrackConfig.rescue_windows_px of the tracker (the photometric rescue of frames whose
-    # tracked fit and search failed while the filter runs; off, (), in the preset: measured in
-    # session 96, docs/eye_randomized.md "A photometric fit from the prediction ...")
+    # tracked fit and search failed while the filter runs; off, (), in the preset: it failed two
+    # rules in session 96, docs/eye_randomized.md "The photometric rescue inside the tracker")
     rescue_windows_px: tuple[int, ...] = TRACK.rescue_windows_px
     # TrackConfig.rescue_max_contrast, its contrast bar (0: no bar)
     rescue_max_contrast: float = TRACK.rescue_max_contrast or 0.0

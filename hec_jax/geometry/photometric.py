@@ -500,7 +500,7 @@ def silhouette_contrast(frame, background, rotation, translation, size, intrinsi
     Raises:
         ValueError: frame and background of different shapes, or ``noise`` not positive.
     """
-    frame, background = np.asarray(frame, float), np.asarray(background, float)
+    frame, background = np.asarray(frame), np.asarray(background)  # (only the crop as floats)
     if frame.shape != background.shape or frame.ndim not in (2, 3):
         raise ValueError(
             f"frame and background must be (H, W[, C]) of one shape, got {frame.shape} and "
@@ -528,11 +528,13 @@ def silhouette_contrast(frame, background, rotation, translation, size, intrinsi
     ys = np.arange(lo[1], hi[1] + 1)[:, None] + 0.5
     ahead = np.roll(hull, -1, axis=0)
     turn = np.sign(np.sum(hull[:, 0] * ahead[:, 1] - ahead[:, 0] * hull[:, 1]))
+    if turn == 0:  # no area
+        return 0.0
     inside = np.ones((len(ys), xs.shape[1]), bool)
     for a, b in zip(hull, ahead, strict=True):  # on the inner side of every hull edge
         inside &= turn * ((b[0] - a[0]) * (ys - a[1]) - (b[1] - a[1]) * (xs - a[0])) >= 0
     rows, cols = slice(lo[1], hi[1] + 1), slice(lo[0], hi[0] + 1)
-    difference = np.abs(frame[rows, cols] - background[rows, cols])
+    difference = np.abs(frame[rows, cols].astype(float) - background[rows, cols].astype(float))
     if difference.ndim == 3:
         difference = difference.max(axis=-1)
     pixels = difference[inside]
